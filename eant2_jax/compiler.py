@@ -1,0 +1,204 @@
+"""Compile linear genomes into padded dense layouts that one jit-compiled program evaluates.
+
+Host side (NumPy). For each genome:
+
+* neuron slots: neurons sorted by DESCENDING gene index. Every input of a neuron, and the
+  source of every forward jumper, lies to its right in the genome, so this order is
+  topological: ``w_ff`` is strictly lower-triangular.
+* gene slots: gene ``g`` adds its weight into one entry of the flat parameter buffer of
+  :mod:`eant2_jax.kernels.network`, according to its kind and the neuron that reads it
+  (its parent):
+
+  ===================  =====================================================
+  gene                 entry
+  ===================  =====================================================
+  ``I<j>``             ``w_in[slot(parent), j]``
+  ``B``                ``bias[slot(parent)]``
+  ``F<id>``            ``w_ff[slot(parent), slot(id)]``
+  ``R<id>``            ``w_rec[slot(parent), slot(id)]``
+  ``N<id>`` (inner)    ``w_ff[slot(parent), slot(id)]``
+  ``N<id>`` (root r)   ``w_out[r, slot(id)]``
+  padding              the trash entry
+  ===================  =====================================================
+
+Padded sizes come from buckets so that networks of different sizes share one compiled
+program. Every size is rounded up to the next value of the series
+``{2^k, 3 * 2^(k-1)}`` above a floor: 1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, ...
+
+* neurons ``H``: floor 4 (4, 6, 8, 12, 16, 24, 32, ...)
+* genes ``P`` (= CMA-ES dimension): floor 8 (8, 12, 16, 24, 32, 48, 64, 96, 128, ...)
+* sweeps (>= depth): floor 1 (1, 2, 3, 4, 6, 8, ...)
+* number of genomes in one call: floor 1, same series.
+
+The series wastes at most a third of a dimension (half, for powers of two only) and keeps the
+number of distinct programs logarithmic in the largest size.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from .genome import GeneKind, Genome
+from .kernels.network import Layout, buffer_size
+
+__all__ = ["Bucket", "CompiledBatch", "bucket_for", "bucket_size", "compile_genomes"]
+
+NEURON_FLOOR = 4
+GENE_FLOOR = 8
+SWEEP_FLOOR = 1
+BATCH_FLOOR = 1
+
+
+def bucket_size(n: int, floor: int = 1) -> int:
+    """Smallest value of the series 1, 2, 3, 4, 6, 8, 12, 16, 24, ... that is >= max(n, floor)."""
+    n = max(int(n), int(floor), 1)
+    p = 1
+    while p < n:
+        if p >= 2 and p + p // 2 >= n:
+            return p + p // 2
+        p *= 2
+    return p
+
+
+@struct.dataclass
+class Bucket:
+    """Padded sizes shared by every network of one compiled batch."""
+
+    neurons: int = struct.field(pytree_node=False)
+    genes: int = struct.field(pytree_node=False)
+    sweeps: int = struct.field(pytree_node=False)
+
+
+def bucket_for(genomes: Sequence[Genome]) -> Bucket:
+    """The smallest bucket that holds every genome given."""
+    if not genomes:
+        raise ValueError("bucket_for: no genomes")
+    return Bucket(
+        neurons=bucket_size(max(g.n_neurons for g in genomes), NEURON_FLOOR),
+        genes=bucket_size(max(g.n_params for g in genomes), GENE_FLOOR),
+        sweeps=bucket_size(max(g.depth() for g in genomes), SWEEP_FLOOR),
+    )
+
+
+@struct.dataclass
+class CompiledBatch:
+    """A batch of genomes compiled into one bucket.
+
+    Attributes:
+      layout: batched :class:`~eant2_jax.kernels.network.Layout`, leading dim ``G`` (padded).
+      weights: ``float32[G, P]`` each genome's own weights in gene order, 0 on padding.
+      count: number of real genomes (the first ``count`` rows); static.
+      bucket: the padded sizes; static.
+    """
+
+    layout: Layout
+    weights: jnp.ndarray
+    count: int = struct.field(pytree_node=False)
+    bucket: Bucket = struct.field(pytree_node=False)
+
+
+def _slots(genome: Genome, n_neurons: int, n_inputs: int, n_outputs: int) -> tuple:
+    """Buffer entry of each gene, and the root / real-neuron masks over neuron slots."""
+    genes = genome.genes
+    h = n_neurons
+    off_bias = h * n_inputs
+    off_ff = off_bias + h
+    off_rec = off_ff + h * h
+    off_out = off_rec + h * h
+    positions = sorted((i for i, g in enumerate(genes) if g.kind == GeneKind.NEURON), reverse=True)
+    slot_of = {genes[i].ref: s for s, i in enumerate(positions)}
+    root_rank = {gene_index: r for r, gene_index in enumerate(genome.roots)}
+    parent = genome.parent
+    slot = np.empty(len(genes), dtype=np.int32)
+    for i, g in enumerate(genes):
+        if g.kind == GeneKind.NEURON and i in root_rank:
+            slot[i] = off_out + root_rank[i] * h + slot_of[g.ref]
+            continue
+        ps = slot_of[genes[parent[i]].ref]
+        if g.kind == GeneKind.INPUT:
+            slot[i] = ps * n_inputs + g.ref
+        elif g.kind == GeneKind.BIAS:
+            slot[i] = off_bias + ps
+        elif g.kind == GeneKind.RECURRENT:
+            slot[i] = off_rec + ps * h + slot_of[g.ref]
+        else:  # inner neuron or forward jumper: a current-step edge
+            slot[i] = off_ff + ps * h + slot_of[g.ref]
+    is_root = np.zeros(h, dtype=bool)
+    for gene_index in genome.roots:
+        is_root[slot_of[genes[gene_index].ref]] = True
+    neuron_mask = np.zeros(h, dtype=bool)
+    neuron_mask[: len(positions)] = True
+    return slot, is_root, neuron_mask
+
+
+def compile_genomes(
+    genomes: Sequence[Genome],
+    n_inputs: int,
+    *,
+    bucket: Bucket | None = None,
+    pad_count: bool = True,
+) -> CompiledBatch:
+    """Compile genomes into one padded batch.
+
+    Args:
+      genomes: networks with the same number of outputs.
+      n_inputs: width of the input vector the networks will read (>= each genome's inputs).
+      bucket: padded sizes to use; default the smallest that fits (:func:`bucket_for`).
+      pad_count: pad the number of genomes up its bucket series too, so that batches of
+        similar counts share a program (padding rows are empty networks).
+
+    Returns:
+      The :class:`CompiledBatch`.
+    """
+    genomes = list(genomes)
+    if not genomes:
+        raise ValueError("compile_genomes: no genomes")
+    n_out = genomes[0].n_outputs
+    for i, g in enumerate(genomes):
+        if g.n_outputs != n_out:
+            raise ValueError(
+                f"genomes have different numbers of outputs: genome 0 has {n_out}, "
+                f"genome {i} has {g.n_outputs}"
+            )
+        if g.n_inputs > n_inputs:
+            raise ValueError(
+                f"genome {i} reads input {g.n_inputs - 1} but the data has {n_inputs} inputs"
+            )
+    need = bucket_for(genomes)
+    if bucket is None:
+        bucket = need
+    elif bucket.neurons < need.neurons or bucket.genes < need.genes or bucket.sweeps < need.sweeps:
+        raise ValueError(f"bucket {bucket} is too small for these genomes (need {need})")
+    h, p = bucket.neurons, bucket.genes
+    count = len(genomes)
+    rows = bucket_size(count, BATCH_FLOOR) if pad_count else count
+    trash = buffer_size(h, n_inputs, n_out) - 1
+    slot = np.full((rows, p), trash, dtype=np.int32)
+    gene_mask = np.zeros((rows, p), dtype=bool)
+    is_root = np.zeros((rows, h), dtype=bool)
+    neuron_mask = np.zeros((rows, h), dtype=bool)
+    depth = np.zeros(rows, dtype=np.int32)
+    weights = np.zeros((rows, p), dtype=np.float32)
+    for r, g in enumerate(genomes):
+        s, root, real = _slots(g, h, n_inputs, n_out)
+        n = g.n_params
+        slot[r, :n] = s
+        gene_mask[r, :n] = True
+        is_root[r], neuron_mask[r] = root, real
+        depth[r] = g.depth()
+        weights[r, :n] = g.weights
+    layout = Layout(
+        slot=jnp.asarray(slot),
+        gene_mask=jnp.asarray(gene_mask),
+        is_root=jnp.asarray(is_root),
+        neuron_mask=jnp.asarray(neuron_mask),
+        depth=jnp.asarray(depth),
+        n_inputs=int(n_inputs),
+        n_outputs=int(n_out),
+        sweeps=bucket.sweeps,
+    )
+    return CompiledBatch(layout=layout, weights=jnp.asarray(weights), count=count, bucket=bucket)

@@ -1,0 +1,364 @@
+"""The EANT2 linear genome: a network as a list of genes in prefix order.
+
+Paper section III.A, figure 2. Each gene carries exactly one weight, so the genome's length is
+its number of parameters and its weight vector is in gene order.
+
+Text form (tokens separated by whitespace):
+
+* ``N<id>/<k>*<w>`` neuron ``id`` (non-negative, unique) with ``k >= 1`` inputs, weight ``w``
+* ``I<j>*<w>``      network input ``j`` (0-based)
+* ``B*<w>``         bias (the constant 1.0)
+* ``F<id>*<w>``     forward jumper: the current-step output of neuron ``id``
+* ``R<id>*<w>``     recurrent jumper: the previous-step output of neuron ``id`` (0.0 at step 0)
+
+Semantics: walk the genes from last to first with a stack. ``I``, ``B``, ``F`` and ``R`` push
+``w * value``. ``N`` pops ``k`` values, sums them to ``a``, computes ``o = act(a)`` (output
+activation for roots, hidden activation otherwise), records ``o`` as the neuron's output at
+this step and pushes ``w * o``. At the end the stack holds the outputs; output 0 is the
+leftmost root.
+
+This module is host-side Python (NumPy); nothing here is traced by JAX.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+import re
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+
+__all__ = ["Gene", "GeneKind", "Genome", "GenomeError"]
+
+
+class GeneKind(enum.IntEnum):
+    """The five gene kinds; the integer codes are used by the compiler's tables."""
+
+    NEURON = 0
+    INPUT = 1
+    BIAS = 2
+    FORWARD = 3
+    RECURRENT = 4
+
+
+_LETTER = {
+    GeneKind.NEURON: "N",
+    GeneKind.INPUT: "I",
+    GeneKind.BIAS: "B",
+    GeneKind.FORWARD: "F",
+    GeneKind.RECURRENT: "R",
+}
+
+# One regex per token; the weight is matched loosely and parsed by float() so that any Python
+# float literal (1, -2.5, 1e-3, 1_000.5, .5) is accepted and anything else is reported.
+_TOKEN = re.compile(
+    r"""^(?:
+        N(?P<nid>\d+)/(?P<k>\d+)
+      | I(?P<inp>\d+)
+      | (?P<bias>B)
+      | F(?P<fid>\d+)
+      | R(?P<rid>\d+)
+    )\*(?P<w>\S+)$""",
+    re.VERBOSE,
+)
+
+
+class GenomeError(ValueError):
+    """A malformed genome. ``position`` is the 0-based token index (None if not one token)."""
+
+    def __init__(self, reason: str, position: int | None = None, token: str | None = None):
+        self.reason = reason
+        self.position = position
+        self.token = token
+        where = "" if position is None else f"token {position}"
+        if token is not None:
+            where += f" {token!r}"
+        super().__init__(
+            f"invalid genome: {where}: {reason}" if where else f"invalid genome: {reason}"
+        )
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Gene:
+    """One gene. ``ref`` is the neuron id (N, F, R), the input index (I) or -1 (B)."""
+
+    kind: GeneKind
+    ref: int
+    weight: float
+    arity: int = 0  # number of inputs, neurons only
+
+    def __str__(self) -> str:
+        w = repr(float(self.weight))
+        if self.kind == GeneKind.NEURON:
+            return f"N{self.ref}/{self.arity}*{w}"
+        if self.kind == GeneKind.BIAS:
+            return f"B*{w}"
+        return f"{_LETTER[self.kind]}{self.ref}*{w}"
+
+
+def _parse_weight(text: str, position: int, token: str) -> float:
+    # float() accepts 'nan', 'inf', 'infinity' and surrounding spaces; the regex already
+    # excluded spaces, and non-finite values get their own message.
+    try:
+        w = float(text)
+    except ValueError:
+        raise GenomeError(f"unparsable weight {text!r}", position, token) from None
+    if not math.isfinite(w):
+        raise GenomeError(f"non-finite weight {text!r}", position, token)
+    return w
+
+
+def _parse_token(token: str, position: int) -> Gene:
+    m = _TOKEN.match(token)
+    if m is None:
+        if "*" not in token or token.endswith("*"):
+            raise GenomeError("missing weight (expected '<gene>*<weight>')", position, token)
+        raise GenomeError(
+            "unknown token (expected N<id>/<k>*w, I<j>*w, B*w, F<id>*w or R<id>*w)",
+            position,
+            token,
+        )
+    w = _parse_weight(m["w"], position, token)
+    if m["nid"] is not None:
+        k = int(m["k"])
+        if k < 1:
+            raise GenomeError("a neuron needs k >= 1 inputs", position, token)
+        return Gene(GeneKind.NEURON, int(m["nid"]), w, k)
+    if m["inp"] is not None:
+        return Gene(GeneKind.INPUT, int(m["inp"]), w)
+    if m["bias"] is not None:
+        return Gene(GeneKind.BIAS, -1, w)
+    if m["fid"] is not None:
+        return Gene(GeneKind.FORWARD, int(m["fid"]), w)
+    return Gene(GeneKind.RECURRENT, int(m["rid"]), w)
+
+
+class Genome:
+    """An immutable, validated EANT2 linear genome.
+
+    Construct with :meth:`parse` (text form) or from a sequence of :class:`Gene`. Validation
+    runs on construction, so every ``Genome`` in existence is evaluable.
+
+    Derived structure (all in gene order, computed once at construction):
+
+    * ``parent[g]``: index of the neuron gene that consumes gene ``g`` (-1 for roots);
+    * ``roots``: gene indices of the root neurons, left to right (output order);
+    * ``neuron_position[id]``: gene index of neuron ``id``.
+    """
+
+    __slots__ = ("_genes", "_parent", "_roots", "_neuron_position", "_weights", "_hash")
+
+    def __init__(self, genes: Iterable[Gene]):
+        genes = tuple(genes)
+        self._genes = genes
+        self._parent, self._roots, self._neuron_position = _validate(genes)
+        self._weights = np.array([g.weight for g in genes], dtype=np.float64)
+        self._weights.setflags(write=False)
+        self._hash = None
+
+    # ----------------------------------------------------------------------------- text form
+    @classmethod
+    def parse(cls, text: str) -> Genome:
+        """Parse the text form; raises :class:`GenomeError` naming the token and the reason."""
+        if not isinstance(text, str):
+            raise TypeError(f"Genome.parse expects a str, got {type(text).__name__}")
+        tokens = text.split()
+        if not tokens:
+            raise GenomeError("empty genome")
+        return cls(_parse_token(t, i) for i, t in enumerate(tokens))
+
+    def __str__(self) -> str:
+        """Canonical text form: one space between tokens, weights as ``repr(float)``."""
+        return " ".join(str(g) for g in self._genes)
+
+    def __repr__(self) -> str:
+        text = str(self)
+        if len(text) > 80:
+            text = text[:77] + "..."
+        return f"Genome({text!r})"
+
+    # ------------------------------------------------------------------------------ equality
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Genome) and self._genes == other._genes
+
+    def __hash__(self) -> int:
+        if self._hash is None:
+            self._hash = hash(self._genes)
+        return self._hash
+
+    def structure_key(self) -> tuple:
+        """The genome with its weights dropped: equal keys mean identical structures."""
+        return tuple((g.kind, g.ref, g.arity) for g in self._genes)
+
+    # ----------------------------------------------------------------------------- accessors
+    @property
+    def genes(self) -> tuple[Gene, ...]:
+        return self._genes
+
+    def __len__(self) -> int:
+        return len(self._genes)
+
+    def __iter__(self):
+        return iter(self._genes)
+
+    def __getitem__(self, index: int) -> Gene:
+        return self._genes[index]
+
+    @property
+    def n_params(self) -> int:
+        """Number of parameters = number of genes (paper: the network's "size")."""
+        return len(self._genes)
+
+    @property
+    def weights(self) -> np.ndarray:
+        """The weight vector in gene order, float64 ``[n_params]`` (read-only)."""
+        return self._weights
+
+    @property
+    def n_outputs(self) -> int:
+        return len(self._roots)
+
+    @property
+    def n_inputs(self) -> int:
+        """Number of network inputs this genome reads: 1 + the largest input index (0 if none)."""
+        return 1 + max((g.ref for g in self._genes if g.kind == GeneKind.INPUT), default=-1)
+
+    @property
+    def n_neurons(self) -> int:
+        return len(self._neuron_position)
+
+    @property
+    def neuron_ids(self) -> tuple[int, ...]:
+        """Neuron ids in gene order."""
+        return tuple(g.ref for g in self._genes if g.kind == GeneKind.NEURON)
+
+    @property
+    def parent(self) -> np.ndarray:
+        """``parent[g]``: gene index of the neuron consuming gene ``g``; -1 for roots."""
+        return self._parent
+
+    @property
+    def roots(self) -> tuple[int, ...]:
+        """Gene indices of the root neurons, in output order."""
+        return self._roots
+
+    @property
+    def neuron_position(self) -> dict[int, int]:
+        """Map neuron id -> gene index."""
+        return dict(self._neuron_position)
+
+    def with_weights(self, weights: Sequence[float] | np.ndarray) -> Genome:
+        """A copy with a new weight vector (length ``n_params``, finite)."""
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != (len(self._genes),):
+            raise ValueError(
+                f"with_weights: expected {len(self._genes)} weights, got shape {w.shape}"
+            )
+        if not np.all(np.isfinite(w)):
+            bad = int(np.flatnonzero(~np.isfinite(w))[0])
+            raise GenomeError(f"non-finite weight {w[bad]!r}", bad)
+        return Genome(dataclasses.replace(g, weight=float(x)) for g, x in zip(self._genes, w))
+
+    def subtree_end(self, index: int) -> int:
+        """One past the last gene of the sub-genome rooted at gene ``index``."""
+        need = 1
+        j = index
+        while need:
+            need += self._genes[j].arity - 1 if self._genes[j].kind == GeneKind.NEURON else -1
+            j += 1
+        return j
+
+    def depth(self) -> int:
+        """Longest chain of neurons along forward edges (sub-neurons and forward jumpers).
+
+        A network of output neurons only has depth 1. One right-to-left pass: every input of
+        a gene lies to its right, and a forward jumper's source too.
+        """
+        level: dict[int, int] = {}  # neuron id -> its depth
+        below = np.zeros(len(self._genes), dtype=np.int64)  # per gene: deepest input so far
+        for i in reversed(range(len(self._genes))):
+            gene = self._genes[i]
+            if gene.kind == GeneKind.NEURON:
+                level[gene.ref] = 1 + int(below[i])
+                lv = level[gene.ref]
+            elif gene.kind == GeneKind.FORWARD:
+                lv = level[gene.ref]
+            else:
+                continue
+            p = self._parent[i]
+            if p >= 0:
+                below[p] = max(below[p], lv)
+        return max(level.values())
+
+    def children(self, index: int) -> list[int]:
+        """Gene indices of the direct inputs of the neuron at gene ``index``, left to right."""
+        gene = self._genes[index]
+        if gene.kind != GeneKind.NEURON:
+            return []
+        out = []
+        j = index + 1
+        for _ in range(gene.arity):
+            out.append(j)
+            j = self.subtree_end(j)
+        return out
+
+
+def _validate(genes: tuple[Gene, ...]) -> tuple[np.ndarray, tuple[int, ...], dict[int, int]]:
+    """Check the genome and derive (parent, roots, neuron_position). Raises GenomeError."""
+    if not genes:
+        raise GenomeError("empty genome")
+    neuron_position: dict[int, int] = {}
+    for i, g in enumerate(genes):
+        if not isinstance(g, Gene):
+            raise GenomeError(f"expected a Gene, got {type(g).__name__}", i)
+        if not math.isfinite(g.weight):
+            raise GenomeError(f"non-finite weight {g.weight!r}", i, str(g))
+        if g.kind == GeneKind.NEURON:
+            if g.arity < 1:
+                raise GenomeError("a neuron needs k >= 1 inputs", i, str(g))
+            if g.ref < 0:
+                raise GenomeError("neuron id must be non-negative", i, str(g))
+            if g.ref in neuron_position:
+                raise GenomeError(
+                    f"duplicate neuron id {g.ref} (first at token {neuron_position[g.ref]})",
+                    i,
+                    str(g),
+                )
+            neuron_position[g.ref] = i
+        elif g.kind == GeneKind.INPUT and g.ref < 0:
+            raise GenomeError("input index must be non-negative", i, str(g))
+    for i, g in enumerate(genes):
+        if g.kind in (GeneKind.FORWARD, GeneKind.RECURRENT):
+            if g.ref not in neuron_position:
+                raise GenomeError(f"jumper to neuron {g.ref}, which does not exist", i, str(g))
+            if g.kind == GeneKind.FORWARD and neuron_position[g.ref] <= i:
+                raise GenomeError(
+                    f"forward jumper to neuron {g.ref}, which is not to its right "
+                    "(it would not be evaluated yet: a cycle); use a recurrent jumper",
+                    i,
+                    str(g),
+                )
+    # The stack walk, last gene to first; the stack holds gene indices.
+    parent = np.full(len(genes), -1, dtype=np.int64)
+    stack: list[int] = []
+    for i in reversed(range(len(genes))):
+        g = genes[i]
+        if g.kind == GeneKind.NEURON:
+            if len(stack) < g.arity:
+                raise GenomeError(
+                    f"stack underflow: neuron {g.ref} takes {g.arity} inputs "
+                    f"but only {len(stack)} are available",
+                    i,
+                    str(g),
+                )
+            for _ in range(g.arity):
+                parent[stack.pop()] = i
+        stack.append(i)
+    roots = tuple(reversed(stack))  # the stack top is the leftmost root
+    for r in roots:
+        if genes[r].kind != GeneKind.NEURON:
+            raise GenomeError("a root (network output) must be a neuron", r, str(genes[r]))
+    parent.setflags(write=False)
+    return parent, roots, neuron_position

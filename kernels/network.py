@@ -1,0 +1,218 @@
+"""Dense evaluation of one compiled EANT2 network: build, one step, a whole sequence.
+
+A compiled network has ``H`` neuron slots in topological order (every neuron after the
+neurons it reads at the current step) and ``P`` gene slots. Its parameters live in one flat
+buffer laid out as::
+
+    [ w_in (H * n_in) | bias (H) | w_ff (H * H) | w_rec (H * H) | w_out (n_out * H) | trash (1) ]
+
+and every gene adds its weight into one entry of that buffer (``Layout.slot``); padding genes
+point at the trash entry. Several genes may share an entry (a neuron reading the same input
+twice): their weights add, exactly as the stack semantics add them.
+
+One step of the network on one example:
+
+    base = w_in @ x + bias + w_rec @ h_prev          # inputs, biases, recurrent jumpers
+    h    = 0;  repeat `sweeps` times:  h = act(base + w_ff @ h)
+    y    = w_out @ h
+
+``w_ff`` is strictly lower-triangular in slot order (a neuron only reads earlier slots), so
+after ``d`` sweeps every neuron of depth <= d is exact and stays exact: ``sweeps`` must be at
+least the network's depth (the longest chain of neurons). No Python loop over neurons or genes
+and no per-node ``lax.cond``: a step is ``sweeps + 3`` small dense products.
+
+Everything here is written for ONE network and ONE example; batch with ``jax.vmap``. This
+module imports nothing from the rest of eant2_jax.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+__all__ = [
+    "ACTIVATIONS",
+    "Layout",
+    "Network",
+    "activation",
+    "buffer_size",
+    "network",
+    "rollout",
+    "step",
+]
+
+# Exact float32 products: on GPUs the default precision of a float32 dot may use TF32
+# (~1e-3 relative error), which would break equality with the reference interpreter. These
+# products are tiny, so the cost is nil.
+_PRECISION = jax.lax.Precision.HIGHEST
+
+ACTIVATIONS: dict[str, Callable[[jax.Array], jax.Array]] = {
+    "identity": lambda a: a,
+    "tanh": jnp.tanh,
+    "sigmoid": jax.nn.sigmoid,
+    "relu": jax.nn.relu,
+}
+
+
+def activation(name: str) -> Callable[[jax.Array], jax.Array]:
+    """The activation function called ``name``; ValueError listing the known ones."""
+    try:
+        return ACTIVATIONS[name]
+    except KeyError:
+        raise ValueError(
+            f"unknown activation {name!r}; known: {', '.join(sorted(ACTIVATIONS))}"
+        ) from None
+
+
+def buffer_size(n_neurons: int, n_inputs: int, n_outputs: int) -> int:
+    """Length of the flat parameter buffer, trash entry included."""
+    h = n_neurons
+    return h * n_inputs + h + 2 * h * h + n_outputs * h + 1
+
+
+@struct.dataclass
+class Layout:
+    """The structure of one compiled network (no weights).
+
+    Attributes:
+      slot: ``int32[P]`` entry of the flat buffer each gene adds its weight to.
+      gene_mask: ``bool[P]`` true for real genes, false for padding.
+      is_root: ``bool[H]`` neuron slots that are network outputs (use the output activation).
+      neuron_mask: ``bool[H]`` true for real neurons.
+      depth: ``int32[]`` the network's depth (informative; ``sweeps`` is what runs).
+      n_inputs, n_outputs, sweeps: static sizes shared by every network of a batch.
+    """
+
+    slot: jax.Array
+    gene_mask: jax.Array
+    is_root: jax.Array
+    neuron_mask: jax.Array
+    depth: jax.Array
+    n_inputs: int = struct.field(pytree_node=False)
+    n_outputs: int = struct.field(pytree_node=False)
+    sweeps: int = struct.field(pytree_node=False)
+
+
+@struct.dataclass
+class Network:
+    """Dense tensors of one network, ready to run.
+
+    Attributes:
+      w_in: ``[H, n_in]`` weights of network inputs into neurons.
+      bias: ``[H]`` bias of each neuron (sum of its bias genes).
+      w_ff: ``[H, H]`` current-step weights, ``w_ff[i, j]``: neuron j into neuron i (j < i).
+      w_rec: ``[H, H]`` previous-step weights (recurrent jumpers).
+      w_out: ``[n_out, H]`` output selection: root r's own weight at its neuron's slot.
+      is_root, neuron_mask: ``bool[H]`` as in :class:`Layout`.
+      sweeps: static number of dense sweeps per step (>= depth).
+    """
+
+    w_in: jax.Array
+    bias: jax.Array
+    w_ff: jax.Array
+    w_rec: jax.Array
+    w_out: jax.Array
+    is_root: jax.Array
+    neuron_mask: jax.Array
+    sweeps: int = struct.field(pytree_node=False)
+
+
+def network(layout: Layout, params: jax.Array) -> Network:
+    """Scatter a parameter vector into the dense tensors of one network.
+
+    Args:
+      layout: the network's structure.
+      params: ``[P]`` one weight per gene slot, in gene order (padding entries are ignored).
+
+    Returns:
+      The :class:`Network`. Differentiable in ``params``; jit/vmap friendly.
+    """
+    h = layout.is_root.shape[-1]
+    n_in, n_out = layout.n_inputs, layout.n_outputs
+    values = jnp.where(layout.gene_mask, params, jnp.zeros_like(params))
+    flat = jnp.zeros(buffer_size(h, n_in, n_out), params.dtype).at[layout.slot].add(values)
+    sizes = (h * n_in, h, h * h, h * h, n_out * h)
+    offsets = [0]
+    for s in sizes:
+        offsets.append(offsets[-1] + s)
+    part = [flat[offsets[i] : offsets[i + 1]] for i in range(len(sizes))]
+    return Network(
+        w_in=part[0].reshape(h, n_in),
+        bias=part[1],
+        w_ff=part[2].reshape(h, h),
+        w_rec=part[3].reshape(h, h),
+        w_out=part[4].reshape(n_out, h),
+        is_root=layout.is_root,
+        neuron_mask=layout.neuron_mask,
+        sweeps=layout.sweeps,
+    )
+
+
+def step(
+    net: Network,
+    x: jax.Array,
+    h_prev: jax.Array,
+    *,
+    hidden: str = "tanh",
+    output: str = "identity",
+) -> tuple[jax.Array, jax.Array]:
+    """One time step of one network on one example.
+
+    Args:
+      net: the network.
+      x: ``[n_in]`` inputs at this step.
+      h_prev: ``[H]`` neuron outputs at the previous step (zeros at the first).
+      hidden, output: activation names for hidden and root neurons.
+
+    Returns:
+      ``(y [n_out], h [H])``: the outputs and every neuron's output at this step.
+    """
+    act_h, act_o = activation(hidden), activation(output)
+    base = (
+        jnp.dot(net.w_in, x, precision=_PRECISION)
+        + net.bias
+        + jnp.dot(net.w_rec, h_prev, precision=_PRECISION)
+    )
+
+    def sweep(_, h):
+        a = base + jnp.dot(net.w_ff, h, precision=_PRECISION)
+        o = jnp.where(net.is_root, act_o(a), act_h(a))
+        # Padding neurons stay at exactly 0 (sigmoid(0) would be 0.5).
+        return jnp.where(net.neuron_mask, o, jnp.zeros_like(o))
+
+    h = jax.lax.fori_loop(0, net.sweeps, sweep, jnp.zeros_like(base), unroll=True)
+    y = jnp.dot(net.w_out, h, precision=_PRECISION)
+    return y, h
+
+
+def rollout(
+    net: Network,
+    xs: jax.Array,
+    *,
+    hidden: str = "tanh",
+    output: str = "identity",
+    h0: jax.Array | None = None,
+) -> jax.Array:
+    """Run one network over a sequence of one stream, carrying the recurrent state.
+
+    Args:
+      net: the network.
+      xs: ``[T, n_in]`` inputs.
+      hidden, output: activation names.
+      h0: ``[H]`` initial neuron outputs (default zeros: "0.0 at the first step").
+
+    Returns:
+      ``[T, n_out]`` outputs.
+    """
+    if h0 is None:
+        h0 = jnp.zeros(net.bias.shape, xs.dtype)
+
+    def body(h, x):
+        y, h = step(net, x, h, hidden=hidden, output=output)
+        return h, y
+
+    _, ys = jax.lax.scan(body, h0, xs)
+    return ys

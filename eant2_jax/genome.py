@@ -259,7 +259,9 @@ class Genome:
         if not np.all(np.isfinite(w)):
             bad = int(np.flatnonzero(~np.isfinite(w))[0])
             raise GenomeError(f"non-finite weight {w[bad]!r}", bad)
-        return Genome(dataclasses.replace(g, weight=float(x)) for g, x in zip(self._genes, w))
+        return Genome(
+            dataclasses.replace(g, weight=float(x)) for g, x in zip(self._genes, w, strict=True)
+        )
 
     def subtree_end(self, index: int) -> int:
         """One past the last gene of the sub-genome rooted at gene ``index``."""

@@ -1,1 +1,47 @@
-"""Tasks: what a network is scored on."""
+"""Tasks: what a network is scored on, and the registry that names them.
+
+``make(name, **options)`` builds a registered task; ``register(name, factory)`` adds one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from .base import Task as Task
+from .base import map_networks as map_networks
+from .regression import Regression as Regression
+from .regression import regression as regression
+from .regression import xor as xor
+
+_REGISTRY: dict[str, Callable[..., Task]] = {}
+
+
+def register(name: str, factory: Callable[..., Task], *, overwrite: bool = False) -> None:
+    """Register a task factory under ``name`` (ValueError if taken, unless ``overwrite``)."""
+    if not overwrite and name in _REGISTRY:
+        raise ValueError(f"task {name!r} is already registered")
+    _REGISTRY[name] = factory
+
+
+def names() -> list[str]:
+    """The registered task names, sorted."""
+    return sorted(_REGISTRY)
+
+
+def make(name: str, **options) -> Task:
+    """Build the registered task ``name`` with its options.
+
+    Raises:
+      ValueError: unknown name (the message lists the known ones) or a bad option.
+    """
+    try:
+        factory = _REGISTRY[name]
+    except KeyError:
+        raise ValueError(f"unknown task {name!r}; known tasks: {', '.join(names())}") from None
+    try:
+        return factory(**options)
+    except TypeError as e:
+        raise ValueError(f"bad options for task {name!r}: {e}") from None
+
+
+register("xor", xor)

@@ -1,0 +1,54 @@
+"""The ``eant2`` command line. The library never prints; this module renders."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+__all__ = ["main"]
+
+DEMO_GENOME = "N0/3*1.0 F2*0.3 N1/2*0.5 I0*1 I1*-2 R0*0.7 N2/2*-1.2 B*0.1 I2*0.4"
+
+
+def _demo(args: argparse.Namespace) -> int:
+    import eant2_jax
+
+    genome = eant2_jax.Genome.parse(DEMO_GENOME)
+    print(f"genome     {genome}")
+    print(
+        f"           {genome.n_params} parameters, {genome.n_inputs} inputs, "
+        f"{genome.n_outputs} outputs, {genome.n_neurons} neurons, depth {genome.depth()}"
+    )
+    x = np.random.default_rng(args.seed).normal(size=(4, 2, genome.n_inputs))
+    y = np.asarray(eant2_jax.evaluate(genome, x))[0]
+    ref = eant2_jax.interpret(genome, x)
+    print(
+        f"evaluate   outputs of stream 0 over {x.shape[0]} steps: {np.round(y[:, 0], 4).tolist()}"
+    )
+    print(f"reference  max |compiled - NumPy reference| = {np.max(np.abs(y - ref)):.2e}")
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="eant2", description="EANT2 neuro-evolution in JAX.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    demo = sub.add_parser("demo", help="evaluate a small recurrent genome and check it")
+    demo.add_argument("--seed", type=int, default=0, help="seed of the random inputs")
+    demo.set_defaults(func=_demo)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (ValueError, OSError) as e:
+        print(f"eant2: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

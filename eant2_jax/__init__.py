@@ -20,3 +20,8 @@ from .genome import GenomeError as GenomeError
 from .reference import interpret as interpret
 
 __version__ = "0.1.0"
+from . import tasks as tasks
+from .exploitation import ExploitConfig as ExploitConfig
+from .exploitation import OptimizeResult as OptimizeResult
+from .exploitation import cost as cost
+from .exploitation import optimize as optimize

@@ -49,7 +49,7 @@ def map_networks(fn: Callable[[Network], jax.Array], nets: Network) -> jax.Array
 
     Args:
       fn: maps ONE network to a scalar (or any array).
-      nets: networks with leading batch shape ``[*batch]`` (read off ``nets.bias``, ``[*batch, H]``).
+      nets: networks with leading batch shape ``[*batch]`` (read off ``nets.bias``).
 
     Returns:
       ``fn``'s results stacked as ``[*batch, ...]``.

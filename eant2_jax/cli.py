@@ -26,7 +26,8 @@ def _demo(args: argparse.Namespace) -> int:
     x = np.random.default_rng(args.seed).normal(size=(4, 2, genome.n_inputs))
     y = np.asarray(eant2_jax.evaluate(genome, x))[0]
     ref = eant2_jax.interpret(genome, x)
-    print(f"evaluate   stream 0 over {x.shape[0]} steps: {np.round(y[:, 0].astype(float), 3).tolist()}")
+    first = np.round(y[:, 0].astype(float), 3).tolist()
+    print(f"evaluate   stream 0 over {x.shape[0]} steps: {first}")
     print(f"reference  max |compiled - NumPy reference| = {np.max(np.abs(y - ref)):.2e}")
 
     import jax

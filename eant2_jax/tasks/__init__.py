@@ -45,3 +45,20 @@ def make(name: str, **options) -> Task:
 
 
 register("xor", xor)
+
+
+def _lazy(module: str, factory: str) -> Callable[..., Task]:
+    """A factory that imports its module on first use (MJX is slow to import)."""
+
+    def make_task(**options) -> Task:
+        import importlib
+
+        return getattr(importlib.import_module(f"{__name__}.{module}"), factory)(**options)
+
+    make_task.__name__ = factory
+    return make_task
+
+
+register("servo", _lazy("servo", "servo"))
+register("dpv", _lazy("pole", "dpv"))
+register("dpnv", _lazy("pole", "dpnv"))

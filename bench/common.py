@@ -1,0 +1,240 @@
+"""Helpers shared by the benchmarks: device tagging, timing, random genomes, output files.
+
+Nothing here is specific to one benchmark. A benchmark builds a list of row dicts, then calls
+:func:`write_results` with a payload that starts from :func:`environment` and a markdown table
+from :func:`markdown_table`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import platform
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+
+from eant2_jax.genome import Gene, GeneKind, Genome
+
+__all__ = [
+    "RESULTS_DIR",
+    "Column",
+    "Timing",
+    "default_out",
+    "environment",
+    "markdown_table",
+    "minimal_genome",
+    "random_genome",
+    "random_population",
+    "time_call",
+    "write_results",
+]
+
+RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+
+# ------------------------------------------------------------------------------ environment
+def environment() -> dict[str, Any]:
+    """Where the numbers were taken: device, platform, library versions, date (UTC)."""
+    dev = jax.devices()[0]
+    try:
+        import jaxlib
+
+        jaxlib_version = jaxlib.__version__
+    except (ImportError, AttributeError):  # pragma: no cover - jaxlib always ships with jax
+        jaxlib_version = None
+    return {
+        "device_kind": dev.device_kind,
+        "platform": dev.platform,
+        "device_count": jax.device_count(),
+        "jax_version": jax.__version__,
+        "jaxlib_version": jaxlib_version,
+        "numpy_version": np.__version__,
+        "python_version": platform.python_version(),
+        "machine": platform.machine(),
+        "date_utc": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+    }
+
+
+def default_out(name: str) -> Path:
+    """``bench/results/<name>-<platform>.json`` for the default JAX platform."""
+    return RESULTS_DIR / f"{name}-{jax.devices()[0].platform}.json"
+
+
+# ----------------------------------------------------------------------------------- timing
+class Timing(NamedTuple):
+    """Seconds of one benchmarked call.
+
+    Attributes:
+      first_call_s: the first call, tracing and XLA compilation included.
+      median_s: median of the timed repeats (steady state, after warm-up).
+      min_s: fastest timed repeat.
+      times_s: every timed repeat.
+    """
+
+    first_call_s: float
+    median_s: float
+    min_s: float
+    times_s: tuple[float, ...]
+
+    @property
+    def compile_s(self) -> float:
+        """First call minus one steady-state call: tracing + compilation, approximately."""
+        return max(self.first_call_s - self.median_s, 0.0)
+
+
+def time_call(fn: Callable[[], Any], *, warmup: int = 2, repeats: int = 7) -> Timing:
+    """Time a call that returns JAX arrays; every measurement waits for the device.
+
+    Args:
+      fn: zero-argument callable (typically a jitted function with its arguments bound).
+        The caller makes sure its program is not in the compilation cache yet
+        (``jax.clear_caches()``) if ``first_call_s`` is to include compilation.
+      warmup: untimed calls between the first call and the timed ones.
+      repeats: timed calls (>= 1); the median is reported.
+
+    Returns:
+      The :class:`Timing`.
+    """
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}")
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn())
+    first = time.perf_counter() - t0
+    for _ in range(warmup):
+        jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return Timing(first, statistics.median(times), min(times), tuple(times))
+
+
+# --------------------------------------------------------------------------- random genomes
+def minimal_genome(rng: np.random.Generator, n_inputs: int, n_outputs: int) -> list[Gene]:
+    """EANT2's minimal start network: every output neuron reads every input (paper III.B)."""
+    genes: list[Gene] = []
+    for r in range(n_outputs):
+        genes.append(Gene(GeneKind.NEURON, r, float(rng.normal()), n_inputs))
+        genes.extend(Gene(GeneKind.INPUT, j, float(rng.normal(scale=0.5))) for j in range(n_inputs))
+    return genes
+
+
+def random_genome(
+    rng: np.random.Generator,
+    n_genes: int,
+    *,
+    n_inputs: int = 10,
+    n_outputs: int = 3,
+    p_neuron: float = 0.6,
+    p_forward: float = 0.25,
+) -> Genome:
+    """A random valid genome grown from the minimal network to at least ``n_genes`` genes.
+
+    Growth repeats, until the genome is long enough, one of three structural mutations (the
+    same kinds EANT2's exploration uses): with probability ``p_neuron`` a new hidden neuron
+    reading 1-3 random inputs (and a bias half the time) becomes the first input of a random
+    neuron; with ``p_forward`` a forward jumper from a neuron to the right is added to a random
+    neuron; otherwise a recurrent jumper from any neuron. The result may overshoot
+    ``n_genes`` by at most the size of one new neuron (5 genes).
+
+    Args:
+      rng: the NumPy generator (the result depends only on its state).
+      n_genes: target length; a genome is never shorter than the minimal network,
+        ``n_outputs * (n_inputs + 1)`` genes.
+      n_inputs, n_outputs: network interface.
+      p_neuron, p_forward: mutation probabilities (the rest are recurrent jumpers).
+
+    Returns:
+      A validated :class:`~eant2_jax.genome.Genome`.
+    """
+    genes = minimal_genome(rng, n_inputs, n_outputs)
+    next_id = n_outputs
+    # Gene indices of the neurons, kept sorted; updated on each insertion instead of
+    # rescanning the genome (the scan made populations of 2048 x 300 genes slow to build).
+    neurons = [r * (n_inputs + 1) for r in range(n_outputs)]
+    while len(genes) < n_genes:
+        i = neurons[rng.integers(len(neurons))]
+        u = rng.random()
+        if u < p_neuron:
+            k = int(rng.integers(1, 4))
+            new = [
+                Gene(GeneKind.INPUT, int(j), float(rng.normal(scale=0.5)))
+                for j in rng.choice(n_inputs, size=k, replace=False)
+            ]
+            if rng.random() < 0.5:
+                new.append(Gene(GeneKind.BIAS, -1, float(rng.normal(scale=0.5))))
+            new.insert(0, Gene(GeneKind.NEURON, next_id, float(rng.normal()), len(new)))
+            next_id += 1
+        elif u < p_neuron + p_forward:
+            # Only neurons to the right of the reader: they are evaluated before it.
+            right = [n for n in neurons if n > i]
+            if not right:
+                continue
+            src = genes[right[rng.integers(len(right))]].ref
+            new = [Gene(GeneKind.FORWARD, src, float(rng.normal(scale=0.5)))]
+        else:
+            src = genes[neurons[rng.integers(len(neurons))]].ref
+            new = [Gene(GeneKind.RECURRENT, src, float(rng.normal(scale=0.5)))]
+        genes[i] = dataclasses.replace(genes[i], arity=genes[i].arity + 1)
+        genes[i + 1 : i + 1] = new
+        shift = len(new)
+        neurons = [n + shift if n > i else n for n in neurons]
+        if new[0].kind == GeneKind.NEURON:
+            neurons.append(i + 1)
+            neurons.sort()
+    return Genome(genes)
+
+
+def random_population(seed: int, count: int, n_genes: int, **kwargs: Any) -> list[Genome]:
+    """``count`` random genomes of about ``n_genes`` genes, deterministic in ``seed``.
+
+    Keyword arguments go to :func:`random_genome`.
+    """
+    rng = np.random.default_rng(seed)
+    return [random_genome(rng, n_genes, **kwargs) for _ in range(count)]
+
+
+# ---------------------------------------------------------------------------------- output
+class Column(NamedTuple):
+    """One column of a markdown table: row key (or callable on the row), header, format."""
+
+    key: str | Callable[[dict], Any]
+    header: str
+    fmt: str = "{}"
+
+
+def markdown_table(rows: Sequence[dict], columns: Sequence[Column]) -> str:
+    """A GitHub markdown table of ``rows``; missing or None values print as an em dash."""
+    lines = [
+        "| " + " | ".join(c.header for c in columns) + " |",
+        "| " + " | ".join("---" for _ in columns) + " |",
+    ]
+    for row in rows:
+        cells = []
+        for c in columns:
+            value = c.key(row) if callable(c.key) else row.get(c.key)
+            cells.append("—" if value is None else c.fmt.format(value))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_results(out: str | Path, payload: dict, markdown: str) -> tuple[Path, Path]:
+    """Write ``payload`` as JSON to ``out`` and ``markdown`` next to it (same name, ``.md``).
+
+    Returns:
+      ``(json_path, markdown_path)``.
+    """
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(payload, indent=2, sort_keys=False) + "\n")
+    md = out.with_suffix(".md")
+    md.write_text(markdown)
+    return out, md

@@ -25,3 +25,8 @@ from .exploitation import ExploitConfig as ExploitConfig
 from .exploitation import OptimizeResult as OptimizeResult
 from .exploitation import cost as cost
 from .exploitation import optimize as optimize
+from .loop import EANT2Config as EANT2Config
+from .loop import Individual as Individual
+from .loop import RunResult as RunResult
+from .loop import resume as resume
+from .loop import run as run

@@ -141,6 +141,7 @@ def compile_genomes(
     *,
     bucket: Bucket | None = None,
     pad_count: bool = True,
+    min_rows: int = 1,
 ) -> CompiledBatch:
     """Compile genomes into one padded batch.
 
@@ -150,6 +151,8 @@ def compile_genomes(
       bucket: padded sizes to use; default the smallest that fits (:func:`bucket_for`).
       pad_count: pad the number of genomes up its bucket series too, so that batches of
         similar counts share a program (padding rows are empty networks).
+      min_rows: pad to at least this many rows (a caller that knows its usual batch size
+        keeps one program for all of them).
 
     Returns:
       The :class:`CompiledBatch`.
@@ -175,7 +178,8 @@ def compile_genomes(
         raise ValueError(f"bucket {bucket} is too small for these genomes (need {need})")
     h, p = bucket.neurons, bucket.genes
     count = len(genomes)
-    rows = bucket_size(count, BATCH_FLOOR) if pad_count else count
+    rows = max(count, min_rows)
+    rows = bucket_size(rows, BATCH_FLOOR) if pad_count else rows
     trash = buffer_size(h, n_inputs, n_out) - 1
     slot = np.full((rows, p), trash, dtype=np.int32)
     gene_mask = np.zeros((rows, p), dtype=bool)

@@ -1,0 +1,269 @@
+"""Structural exploration and selection (paper section III.A, figure 3). Host-side Python.
+
+Mutation operators make new structures from a parent genome:
+
+* ``add_subnetwork``: a new hidden neuron connected to about half of the network inputs
+  (each input independently with probability ``input_fraction``, at least one), feeding an
+  existing neuron;
+* ``remove_subnetwork``: a random hidden neuron leaves with its whole sub-genome;
+* ``add_connection``: an input, bias, forward jumper or recurrent jumper into a random neuron;
+* ``remove_connection``: a random input, bias or jumper gene leaves;
+* ``add_bias``: a bias into a random neuron.
+
+The gene that joins new material to the network starts at weight 0 (the new neuron's own
+gene, or the new connection gene), while the new neuron's inner weights are random: a new
+structure first computes exactly what its parent did. Every offspring is a valid
+:class:`Genome` by construction (it is validated on creation anyway); an operator that has
+nothing to act on (e.g. no hidden neuron to remove) reports ``None``.
+
+Neuron ids are unique across a whole run (a run-level counter numbers new neurons), so two
+genomes have "the same set of neurons" exactly when one was derived from the other — or both
+from a common ancestor — by changing connections only. Selection uses that:
+
+* **identical**: equal structure (:meth:`Genome.structure_key`: the genes without weights);
+* **similar**: the same set of neuron ids.
+
+Selection (rank-based and greedy on cost) keeps at most one copy of an identical structure
+and at most ``similar_limit`` (2) similar ones; with ``prefer_smaller`` a network whose cost
+is within ``size_tolerance * max(|c1|, |c2|) + size_atol`` of a larger one's ranks before it
+(the absolute part makes costs near an exact 0, e.g. 1e-14 and 1e-20, count as equal).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+
+import numpy as np
+
+from .genome import Gene, GeneKind, Genome
+
+__all__ = [
+    "OPERATORS",
+    "initial_genome",
+    "mutate",
+    "rank",
+    "select",
+    "similarity_key",
+]
+
+OPERATORS = (
+    "add_subnetwork",
+    "remove_subnetwork",
+    "add_connection",
+    "remove_connection",
+    "add_bias",
+)
+
+
+def initial_genome(
+    rng: np.random.Generator,
+    n_inputs: int,
+    n_outputs: int,
+    *,
+    connectivity: float = 1.0,
+    weight_scale: float = 0.1,
+) -> Genome:
+    """A minimal network: one neuron per output (ids 0..n_out-1), no hidden neurons.
+
+    Each output neuron reads each input with probability ``connectivity`` (at least one);
+    weights are drawn from N(0, weight_scale^2), the output neurons' own weights are 1.
+    """
+    genes = []
+    for o in range(n_outputs):
+        chosen = [j for j in range(n_inputs) if rng.random() < connectivity]
+        if not chosen:
+            chosen = [int(rng.integers(n_inputs))]
+        genes.append(Gene(GeneKind.NEURON, o, 1.0, len(chosen)))
+        genes += [Gene(GeneKind.INPUT, j, float(rng.normal(0, weight_scale))) for j in chosen]
+    return Genome(genes)
+
+
+def similarity_key(genome: Genome) -> frozenset[int]:
+    """The set of neuron ids: equal keys mean "similar" (derived by connection changes)."""
+    return frozenset(genome.neuron_ids)
+
+
+def _insert_child(genome: Genome, neuron_index: int, new: list[Gene]) -> Genome:
+    """Insert a sub-genome as the first input of the neuron at ``neuron_index``."""
+    genes = list(genome.genes)
+    target = genes[neuron_index]
+    genes[neuron_index] = dataclasses.replace(target, arity=target.arity + 1)
+    genes[neuron_index + 1 : neuron_index + 1] = new
+    return Genome(genes)
+
+
+def _remove_range(genome: Genome, start: int, stop: int) -> Genome:
+    """Remove the sub-genome ``genes[start:stop]`` (one input of its parent)."""
+    genes = list(genome.genes)
+    p = int(genome.parent[start])
+    genes[p] = dataclasses.replace(genes[p], arity=genes[p].arity - 1)
+    del genes[start:stop]
+    return Genome(genes)
+
+
+def _neuron_indices(genome: Genome) -> list[int]:
+    return [i for i, g in enumerate(genome.genes) if g.kind == GeneKind.NEURON]
+
+
+def _removable_input(genome: Genome, i: int) -> bool:
+    """Gene i may leave (with its sub-genome) without breaking the genome."""
+    p = int(genome.parent[i])
+    if p < 0 or genome[p].arity < 2:
+        return False
+    if genome[i].kind != GeneKind.NEURON:
+        return True
+    stop = genome.subtree_end(i)
+    inside = {g.ref for g in genome.genes[i:stop] if g.kind == GeneKind.NEURON}
+    outside = genome.genes[:i] + genome.genes[stop:]
+    return not any(
+        g.kind in (GeneKind.FORWARD, GeneKind.RECURRENT) and g.ref in inside for g in outside
+    )
+
+
+def mutate(
+    rng: np.random.Generator,
+    genome: Genome,
+    operator: str,
+    *,
+    n_inputs: int,
+    next_id: int,
+    input_fraction: float = 0.5,
+    weight_scale: float = 0.5,
+) -> Genome | None:
+    """Apply one structural mutation.
+
+    Args:
+      rng: the random source (derived from the run's key).
+      genome: the parent.
+      operator: one of ``OPERATORS``.
+      n_inputs: number of network inputs of the task.
+      next_id: id for a new neuron (unique in the run).
+      input_fraction: probability that a new hidden neuron reads each input.
+      weight_scale: std of the new neuron's inner weights.
+
+    Returns:
+      The offspring, or None when the operator has nothing to act on.
+    """
+    neurons = _neuron_indices(genome)
+    if operator == "add_subnetwork":
+        target = neurons[int(rng.integers(len(neurons)))]
+        chosen = [j for j in range(n_inputs) if rng.random() < input_fraction]
+        if not chosen:
+            chosen = [int(rng.integers(n_inputs))]
+        inner = [Gene(GeneKind.INPUT, j, float(rng.normal(0, weight_scale))) for j in chosen]
+        return _insert_child(
+            genome, target, [Gene(GeneKind.NEURON, next_id, 0.0, len(chosen)), *inner]
+        )
+    if operator == "remove_subnetwork":
+        hidden = [i for i in neurons if genome.parent[i] >= 0 and _removable_input(genome, i)]
+        if not hidden:
+            return None
+        i = hidden[int(rng.integers(len(hidden)))]
+        return _remove_range(genome, i, genome.subtree_end(i))
+    if operator == "remove_connection":
+        leaves = [
+            i
+            for i, g in enumerate(genome.genes)
+            if g.kind != GeneKind.NEURON and _removable_input(genome, i)
+        ]
+        if not leaves:
+            return None
+        i = leaves[int(rng.integers(len(leaves)))]
+        return _remove_range(genome, i, i + 1)
+    if operator == "add_bias":
+        target = neurons[int(rng.integers(len(neurons)))]
+        return _insert_child(genome, target, [Gene(GeneKind.BIAS, -1, 0.0)])
+    if operator == "add_connection":
+        target = neurons[int(rng.integers(len(neurons)))]
+        # A forward jumper may read any neuron to the right of the target (already evaluated
+        # at this step, so no cycle); a recurrent jumper any neuron.
+        right = [genome[i].ref for i in neurons if i > target]
+        kinds = ["input", "bias", "recurrent"] + (["forward"] if right else [])
+        kind = kinds[int(rng.integers(len(kinds)))]
+        if kind == "input":
+            gene = Gene(GeneKind.INPUT, int(rng.integers(n_inputs)), 0.0)
+        elif kind == "bias":
+            gene = Gene(GeneKind.BIAS, -1, 0.0)
+        elif kind == "forward":
+            gene = Gene(GeneKind.FORWARD, right[int(rng.integers(len(right)))], 0.0)
+        else:
+            ids = [genome[i].ref for i in neurons]
+            gene = Gene(GeneKind.RECURRENT, ids[int(rng.integers(len(ids)))], 0.0)
+        return _insert_child(genome, target, [gene])
+    raise ValueError(f"unknown operator {operator!r}; known: {', '.join(OPERATORS)}")
+
+
+def rank(
+    genomes: Sequence[Genome],
+    costs: Sequence[float],
+    *,
+    prefer_smaller: bool = True,
+    size_tolerance: float = 1e-3,
+    size_atol: float = 1e-9,
+) -> list[int]:
+    """Indices from best to worst: by cost; non-finite costs last.
+
+    With ``prefer_smaller``, of two networks whose costs are within
+    ``size_tolerance * max(|c1|, |c2|) + size_atol`` the one with fewer parameters ranks
+    first. Remaining ties keep the input order (stable), so the ranking is deterministic.
+    """
+    cost = [float(c) if np.isfinite(c) else np.inf for c in costs]
+
+    def compare(a: int, b: int) -> int:
+        ca, cb = cost[a], cost[b]
+        if prefer_smaller and np.isfinite(ca) and np.isfinite(cb):
+            scale = max(abs(ca), abs(cb))
+            if abs(ca - cb) <= size_tolerance * scale + size_atol:
+                sa, sb = genomes[a].n_params, genomes[b].n_params
+                if sa != sb:
+                    return -1 if sa < sb else 1
+        if ca != cb:
+            return -1 if ca < cb else 1
+        return 0
+
+    # Sort by cost first so that the tolerance comparison only reorders near neighbours.
+    order = sorted(range(len(cost)), key=lambda i: cost[i])
+    return sorted(order, key=functools.cmp_to_key(compare))
+
+
+def select(
+    genomes: Sequence[Genome],
+    costs: Sequence[float],
+    size: int,
+    *,
+    similar_limit: int = 2,
+    prefer_smaller: bool = True,
+    size_tolerance: float = 1e-3,
+    size_atol: float = 1e-9,
+) -> list[int]:
+    """Rank-based greedy selection with the paper's diversity rules.
+
+    Walks the ranking and keeps an individual unless an identical structure is already kept
+    or ``similar_limit`` similar ones are; stops at ``size``.
+
+    Returns:
+      Indices of the survivors, best first.
+    """
+    kept: list[int] = []
+    seen: set[tuple] = set()
+    similar: dict[frozenset[int], int] = {}
+    ranking = rank(
+        genomes,
+        costs,
+        prefer_smaller=prefer_smaller,
+        size_tolerance=size_tolerance,
+        size_atol=size_atol,
+    )
+    for i in ranking:
+        if len(kept) == size:
+            break
+        key = genomes[i].structure_key()
+        group = similarity_key(genomes[i])
+        if key in seen or similar.get(group, 0) >= similar_limit:
+            continue
+        kept.append(i)
+        seen.add(key)
+        similar[group] = similar.get(group, 0) + 1
+    return kept

@@ -1,0 +1,501 @@
+"""The EANT2 loop (paper section III, figures 3 and 5): one function per box of the figure.
+
+::
+
+    initialise          minimal networks (one neuron per output, no hidden neurons)
+      -> exploit        batched CMA-ES of every new structure (+ pruning), exploitation.run
+      -> repeat:
+           explore      offspring by structural mutation (weight-0 joins), exploration.mutate
+           exploit      batched CMA-ES of the offspring (+ parents if ``reexploit``)
+           select       rank-based greedy with the diversity rules, exploration.select
+
+Everything a run does flows from one PRNG key and an :class:`EANT2Config`: generation ``g``
+uses ``fold_in(key, g)``, split into a mutation key (seeding a NumPy generator for the host
+side) and an exploitation key. The whole state after a generation is a small JSON document
+(:meth:`RunState.to_json`), so a run resumes from its last complete generation and, on CPU,
+ends with exactly the result of an uninterrupted run.
+
+The library never prints: progress goes to ``callback(event: dict)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import exploitation as ex
+from .compiler import compile_genomes
+from .exploration import OPERATORS, initial_genome, mutate, select
+from .genome import Genome
+from .pruning import attempt_records, prune_genome, tables_for
+from .rundir import RunDir, RunDirError
+from .tasks.base import Task
+
+__all__ = [
+    "EANT2Config",
+    "Individual",
+    "RunResult",
+    "RunState",
+    "exploit",
+    "resume",
+    "run",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class EANT2Config:
+    """Configuration of an EANT2 run (JSON round-trips through ``to_dict``/``from_dict``).
+
+    Attributes:
+      population: number of individuals kept by selection.
+      offspring: new structures made per generation (None: ``population``).
+      init_connectivity: probability that an initial output neuron reads each input.
+      init_weight_scale: std of the initial weights.
+      input_fraction: probability that a new hidden neuron reads each input (paper: ~50%).
+      new_weight_scale: std of a new hidden neuron's inner weights.
+      operator_weights: relative frequency of each operator in ``exploration.OPERATORS``.
+      reexploit: also run CMA-ES again on surviving parents each generation, continuing from
+        their tuned weights (default False: a parent was already tuned to convergence when it
+        was new; its structure has not changed since).
+      similar_limit: at most this many similar structures survive (paper: 2).
+      prefer_smaller: of two costs within ``size_tolerance`` the smaller network ranks first.
+      size_tolerance, size_atol: relative and absolute cost tolerance of that rule.
+      exploit: the CMA-ES / pruning configuration (its ``pruner`` turns pruning on).
+    """
+
+    population: int = 20
+    offspring: int | None = None
+    init_connectivity: float = 1.0
+    init_weight_scale: float = 0.1
+    input_fraction: float = 0.5
+    new_weight_scale: float = 0.5
+    operator_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)
+    reexploit: bool = False
+    similar_limit: int = 2
+    prefer_smaller: bool = True
+    size_tolerance: float = 1e-3
+    size_atol: float = 1e-9
+    exploit: ex.ExploitConfig = dataclasses.field(
+        default_factory=lambda: ex.ExploitConfig(pruner="covariance")
+    )
+
+    def __post_init__(self):
+        w = tuple(float(x) for x in self.operator_weights)
+        object.__setattr__(self, "operator_weights", w)
+        checks = [
+            ("population", self.population >= 1, ">= 1"),
+            ("offspring", self.offspring is None or self.offspring >= 1, ">= 1 (or None)"),
+            ("init_connectivity", 0 < self.init_connectivity <= 1, "in (0, 1]"),
+            ("init_weight_scale", self.init_weight_scale >= 0, ">= 0"),
+            ("input_fraction", 0 < self.input_fraction <= 1, "in (0, 1]"),
+            ("new_weight_scale", self.new_weight_scale >= 0, ">= 0"),
+            (
+                "operator_weights",
+                len(w) == len(OPERATORS) and min(w) >= 0 and sum(w) > 0,
+                f"{len(OPERATORS)} non-negative numbers, not all 0 (order: {', '.join(OPERATORS)})",
+            ),
+            ("similar_limit", self.similar_limit >= 1, ">= 1"),
+            ("size_tolerance", self.size_tolerance >= 0, ">= 0"),
+            ("size_atol", self.size_atol >= 0, ">= 0"),
+        ]
+        for name, ok, want in checks:
+            if not ok:
+                raise ValueError(f"EANT2Config.{name} must be {want}, got {getattr(self, name)!r}")
+        if not isinstance(self.exploit, ex.ExploitConfig):
+            raise ValueError("EANT2Config.exploit must be an ExploitConfig")
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["operator_weights"] = list(self.operator_weights)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> EANT2Config:
+        """Inverse of :meth:`to_dict`; unknown keys are a ValueError naming them."""
+        d = dict(d)
+        exploit = d.pop("exploit", {})
+        _check_keys(cls, d, "EANT2Config")
+        _check_keys(ex.ExploitConfig, exploit, "ExploitConfig")
+        if "operator_weights" in d:
+            d["operator_weights"] = tuple(d["operator_weights"])
+        return cls(**d, exploit=ex.ExploitConfig(**exploit))
+
+
+def _check_keys(cls, d: dict, name: str) -> None:
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(d) - known)
+    if unknown:
+        raise ValueError(
+            f"unknown {name} option(s): {', '.join(unknown)}; known: {', '.join(sorted(known))}"
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class Individual:
+    """A member of the population: its genome (with tuned weights) and its cost."""
+
+    genome: Genome
+    cost: float
+    origin: str = "init"  # the operator that made it, or "init"
+
+    def to_json(self) -> dict:
+        return {"genome": str(self.genome), "cost": self.cost, "origin": self.origin}
+
+    @classmethod
+    def from_json(cls, d: dict) -> Individual:
+        return cls(Genome.parse(d["genome"]), float(d["cost"]), d.get("origin", "init"))
+
+
+@dataclasses.dataclass(frozen=True)
+class RunState:
+    """Everything needed to continue a run after a completed generation."""
+
+    generation: int
+    population: tuple[Individual, ...]
+    next_id: int
+    evaluations: int
+    key: tuple[int, ...]  # raw key data of the run's PRNG key
+    wall_s: float = 0.0
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["population"] = [ind.to_json() for ind in self.population]
+        d["key"] = list(self.key)
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict) -> RunState:
+        return cls(
+            generation=int(d["generation"]),
+            population=tuple(Individual.from_json(x) for x in d["population"]),
+            next_id=int(d["next_id"]),
+            evaluations=int(d["evaluations"]),
+            key=tuple(int(k) for k in d["key"]),
+            wall_s=float(d.get("wall_s", 0.0)),
+        )
+
+    def best(self) -> Individual:
+        return self.population[0]
+
+
+class RunResult(NamedTuple):
+    """What :func:`run` returns: the final population (best first), the best genome, and
+    the records (``generations``: one dict per generation; ``pruning``: one per attempt)."""
+
+    population: list[Individual]
+    best: Genome
+    records: dict[str, list[dict]]
+
+
+def _key_data(key: jax.Array) -> tuple[int, ...]:
+    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        key = jax.random.key_data(key)
+    return tuple(int(k) for k in np.asarray(key, dtype=np.uint32).ravel())
+
+
+def _run_key(state: RunState) -> jax.Array:
+    return jax.random.wrap_key_data(jnp.asarray(np.array(state.key, dtype=np.uint32)))
+
+
+def exploit(
+    genomes: Sequence[Genome],
+    task: Task,
+    *,
+    key: jax.Array,
+    config: ex.ExploitConfig,
+    on_chunk: Callable[[dict], None] | None = None,
+    min_rows: int = 1,
+) -> tuple[list[Genome], list[float], int, list[dict]]:
+    """Tune (and prune) a batch of structures together: ONE batched CMA-ES run.
+
+    Args:
+      genomes: the structures, with their starting weights.
+      task: the task.
+      key: PRNG key; structure ``i`` uses ``fold_in(key, i)``.
+      config: the exploitation configuration.
+      on_chunk: progress callback (see :func:`eant2_jax.exploitation.run`).
+      min_rows: pad the batch to at least this many structures (one program per bucket).
+
+    Returns:
+      ``(tuned genomes, costs, evaluations spent, pruning records)``; records name the
+      structure by its index in ``genomes``.
+    """
+    batch = compile_genomes(genomes, task.n_inputs, min_rows=min_rows)
+    rows = batch.layout.slot.shape[0]
+    # The popsize follows the gene bucket, not the batch's largest member, so batches of one
+    # bucket share one compiled program.
+    popsize = config.popsize or ex.default_popsize(batch.bucket.genes)
+    init_key, run_key = jax.random.split(key)
+    keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(init_key, jnp.arange(rows))
+    active = jnp.arange(rows) < batch.count
+    st = ex.init(
+        keys, batch.weights, batch.layout.gene_mask, config, popsize=popsize, active=active
+    )
+    tables = tables_for(genomes, batch.bucket.genes, rows)
+    st, hist = ex.run(
+        st, batch.layout, task, key=run_key, config=config, tables=tables, on_chunk=on_chunk
+    )
+    best_x = np.asarray(st.cma.best_x, np.float64)
+    best_cost = np.asarray(st.cma.best_cost, np.float64)
+    mask = np.asarray(st.cma.mask)
+    tuned, costs = [], []
+    for i, g in enumerate(genomes):
+        n = g.n_params
+        if np.isfinite(best_cost[i]):
+            tuned.append(prune_genome(g, mask[i, :n], best_x[i, :n]))
+            costs.append(float(best_cost[i]))
+        else:  # never saw a finite cost: keep the structure, rank it last
+            tuned.append(g)
+            costs.append(float("inf"))
+    evals = int(np.sum(np.asarray(st.evals)[: batch.count]))
+    return tuned, costs, evals, attempt_records(hist, genomes, config.pruner)
+
+
+def _initialise(task: Task, key: jax.Array, config: EANT2Config) -> tuple[list[Genome], int]:
+    rng = np.random.default_rng(_key_data(key))
+    genomes, seen = [], set()
+    for _ in range(config.population):
+        g = initial_genome(
+            rng,
+            task.n_inputs,
+            task.n_outputs,
+            connectivity=config.init_connectivity,
+            weight_scale=config.init_weight_scale,
+        )
+        # Identical structures are not evaluated twice (with full connectivity, all are).
+        if g.structure_key() not in seen:
+            seen.add(g.structure_key())
+            genomes.append(g)
+    return genomes, task.n_outputs
+
+
+def _explore(
+    rng: np.random.Generator,
+    population: Sequence[Individual],
+    task: Task,
+    next_id: int,
+    config: EANT2Config,
+) -> tuple[list[Individual], int]:
+    """Make offspring by structural mutation; duplicates of existing structures are dropped."""
+    want = config.offspring or config.population
+    seen = {ind.genome.structure_key() for ind in population}
+    p = np.asarray(config.operator_weights) / sum(config.operator_weights)
+    children: list[Individual] = []
+    for _ in range(20 * want):  # give up on duplicates after a while
+        if len(children) == want:
+            break
+        parent = population[int(rng.integers(len(population)))]
+        op = OPERATORS[int(rng.choice(len(OPERATORS), p=p))]
+        child = mutate(
+            rng,
+            parent.genome,
+            op,
+            n_inputs=task.n_inputs,
+            next_id=next_id,
+            input_fraction=config.input_fraction,
+            weight_scale=config.new_weight_scale,
+        )
+        if child is None or child.structure_key() in seen:
+            continue
+        if op == "add_subnetwork":
+            next_id += 1
+        seen.add(child.structure_key())
+        children.append(Individual(child, parent.cost, op))
+    return children, next_id
+
+
+def _generation_record(state: RunState, evaluated: int, prune: list[dict], t: float) -> dict:
+    best = state.best()
+    sizes = [ind.genome.n_params for ind in state.population]
+    return {
+        "generation": state.generation,
+        "best_cost": best.cost,
+        "best_size": best.genome.n_params,
+        "mean_size": float(np.mean(sizes)),
+        "best_neurons": best.genome.n_neurons,
+        "evaluations": state.evaluations,
+        "wall_s": state.wall_s,
+        "prune_attempts": len(prune),
+        "prune_accepted": sum(r["accepted"] for r in prune),
+        "population": len(state.population),
+        "exploited": evaluated,
+        "generation_s": t,
+        "best_genome": str(best.genome),
+    }
+
+
+def _generation(
+    task: Task, state: RunState | None, key: jax.Array, config: EANT2Config, callback
+) -> tuple[RunState, dict, list[dict]]:
+    """One generation (generation 0 initialises); returns the new state and its records."""
+    t0 = time.perf_counter()
+    gen = 0 if state is None else state.generation + 1
+    gkey = jax.random.fold_in(key, gen)
+    mut_key, exp_key = jax.random.split(gkey)
+
+    def progress(info):
+        if callback is not None:
+            callback({"event": "exploit", "generation": gen, **info})
+
+    if state is None:
+        genomes, next_id = _initialise(task, mut_key, config)
+        parents: list[Individual] = []
+        new = [Individual(g, float("inf")) for g in genomes]
+        evaluations = 0
+    else:
+        rng = np.random.default_rng(_key_data(mut_key))
+        parents = list(state.population)
+        new, next_id = _explore(rng, parents, task, state.next_id, config)
+        evaluations = state.evaluations
+        if config.reexploit:
+            new = parents + new
+            parents = []
+    if new:
+        tuned, costs, evals, prune = exploit(
+            [ind.genome for ind in new],
+            task,
+            key=exp_key,
+            config=config.exploit,
+            on_chunk=progress,
+            # Every generation's batch gets the same number of rows: one program per bucket.
+            min_rows=(config.offspring or config.population)
+            + (config.population if config.reexploit else 0),
+        )
+        new = [Individual(g, c, ind.origin) for g, c, ind in zip(tuned, costs, new, strict=True)]
+        for r in prune:
+            r["generation"] = gen
+    else:
+        evals, prune = 0, []
+    pool = parents + new
+    keep = select(
+        [ind.genome for ind in pool],
+        [ind.cost for ind in pool],
+        config.population,
+        similar_limit=config.similar_limit,
+        prefer_smaller=config.prefer_smaller,
+        size_tolerance=config.size_tolerance,
+        size_atol=config.size_atol,
+    )
+    dt = time.perf_counter() - t0
+    state = RunState(
+        generation=gen,
+        population=tuple(pool[i] for i in keep),
+        next_id=next_id,
+        evaluations=evaluations + evals,
+        key=_key_data(key) if state is None else state.key,
+        wall_s=(0.0 if state is None else state.wall_s) + dt,
+    )
+    return state, _generation_record(state, len(new), prune, dt), prune
+
+
+def run(
+    task: Task,
+    *,
+    key: jax.Array,
+    config: EANT2Config | None = None,
+    generations: int,
+    out: str | None = None,
+    callback: Callable[[dict], None] | None = None,
+    meta: dict | None = None,
+) -> RunResult:
+    """Run EANT2 on a task.
+
+    Args:
+      task: the task (see :mod:`eant2_jax.tasks`).
+      key: the run's PRNG key; the same key and config give the same run.
+      config: :class:`EANT2Config` (default: its defaults, covariance pruning on).
+      generations: generations after the initial one (generation 0 exploits the minimal
+        networks; the result has ``generations + 1`` generation records).
+      out: optional run directory to create (must not exist or be empty); a run written
+        there continues with :func:`resume` after a crash or a kill.
+      callback: receives progress events (dicts with ``event`` = ``generation`` or
+        ``exploit``).
+      meta: extra JSON fields for ``config.json`` (the CLI stores the task name there).
+
+    Returns:
+      :class:`RunResult`.
+    """
+    config = EANT2Config() if config is None else config
+    if generations < 0:
+        raise ValueError(f"generations must be >= 0, got {generations}")
+    rundir = None
+    if out is not None:
+        rundir = RunDir.create(
+            out,
+            {
+                **(meta or {}),
+                "generations": generations,
+                "key": list(_key_data(key)),
+                "config": config.to_dict(),
+            },
+        )
+    return _loop(task, None, _run_key_from(key), config, generations, rundir, callback)
+
+
+def _run_key_from(key: jax.Array) -> jax.Array:
+    return jax.random.wrap_key_data(jnp.asarray(np.array(_key_data(key), dtype=np.uint32)))
+
+
+def resume(
+    out: str,
+    task: Task,
+    *,
+    generations: int | None = None,
+    callback: Callable[[dict], None] | None = None,
+) -> RunResult:
+    """Continue a run directory from its last complete generation.
+
+    Args:
+      out: the run directory.
+      task: the task it was run on (the CLI rebuilds it from ``config.json``).
+      generations: new total number of generations (default: the one in ``config.json``).
+      callback: progress events, as for :func:`run`.
+    """
+    rundir = RunDir.open(out)
+    meta = rundir.config()
+    try:
+        config = EANT2Config.from_dict(meta["config"])
+        total = int(meta["generations"] if generations is None else generations)
+    except (KeyError, TypeError, ValueError) as e:
+        raise RunDirError(f"{rundir.path}: config.json is corrupt: {e}") from None
+    ckpt = rundir.checkpoint()
+    try:
+        state = None if ckpt is None else RunState.from_json(ckpt["state"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise RunDirError(f"{rundir.path}: checkpoint.json is corrupt: {e}") from None
+    rundir.rewind(None if ckpt is None else ckpt["offsets"])
+    if state is None:
+        key = _key_from_meta(meta, rundir)
+    else:
+        key = _run_key(state)
+    return _loop(task, state, key, config, total, rundir, callback)
+
+
+def _key_from_meta(meta: dict, rundir: RunDir) -> jax.Array:
+    if "key" not in meta:
+        raise RunDirError(f"{rundir.path}: config.json has no key; the run cannot be resumed")
+    return jax.random.wrap_key_data(jnp.asarray(np.array(meta["key"], dtype=np.uint32)))
+
+
+def _loop(task, state, key, config, generations, rundir, callback) -> RunResult:
+    gen_records = [] if rundir is None else rundir.generations()
+    prune_records = [] if rundir is None else rundir.pruning()
+    while state is None or state.generation < generations:
+        state, record, prune = _generation(task, state, key, config, callback)
+        gen_records.append(record)
+        prune_records.extend(prune)
+        if rundir is not None:
+            rundir.commit([record], prune, str(state.best().genome), state.to_json())
+        if callback is not None:
+            callback({"event": "generation", **record})
+    return RunResult(
+        list(state.population),
+        state.best().genome,
+        {"generations": gen_records, "pruning": prune_records},
+    )

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+import time
+from pathlib import Path
 
 import numpy as np
 
@@ -47,23 +50,232 @@ def _demo(args: argparse.Namespace) -> int:
     return 0 if solved else 1
 
 
+class _Progress:
+    """Renders the library's progress events: one live line on a terminal, else a line per
+    generation."""
+
+    def __init__(self, total: int, stream=sys.stderr):
+        self.total = total
+        self.stream = stream
+        self.live = stream.isatty()
+        self.last = None
+        self.t0 = time.perf_counter()
+
+    def __call__(self, event: dict) -> None:
+        if event["event"] == "exploit":
+            if self.live:
+                best = "" if self.last is None else f" | best {self.last['best_cost']:.4g}"
+                self._line(
+                    f"gen {event['generation']}/{self.total} | exploit iter {event['iteration']}"
+                    f" ({event['running']} running){best}"
+                )
+            return
+        self.last = event
+        rate = event["evaluations"] / max(time.perf_counter() - self.t0, 1e-9)
+        text = (
+            f"gen {event['generation']}/{self.total} | best {event['best_cost']:.4g}"
+            f" | size {event['best_size']} ({event['best_neurons']} neurons)"
+            f" | pruned {event['prune_accepted']}/{event['prune_attempts']}"
+            f" | {event['evaluations']} evals, {rate:,.0f}/s"
+        )
+        if self.live:
+            self._line(text)
+            self.stream.write("\n")
+        else:
+            print(text, file=self.stream, flush=True)
+
+    def _line(self, text: str) -> None:
+        self.stream.write("\r" + text[:160].ljust(100))
+        self.stream.flush()
+
+
+def _task_options(pairs: list[str]) -> dict:
+    out = {}
+    for pair in pairs:
+        if "=" not in pair:
+            raise ValueError(f"--task-option expects KEY=VALUE, got {pair!r}")
+        k, v = pair.split("=", 1)
+        try:
+            out[k] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k] = v
+    return out
+
+
+def _free_dir(task: str, seed: int) -> Path:
+    base = Path("runs") / f"{task}-s{seed}"
+    path, n = base, 1
+    while path.exists():
+        n += 1
+        path = Path(f"{base}-{n}")
+    return path
+
+
+def _finish(result, out: Path) -> int:
+    last = result.records["generations"][-1]
+    print(f"best cost {last['best_cost']:.6g}, size {last['best_size']}: {result.best}")
+    print(f"run directory: {out}")
+    return 0
+
+
+def _run(args: argparse.Namespace) -> int:
+    import jax
+
+    import eant2_jax
+    from eant2_jax.exploitation import ExploitConfig
+    from eant2_jax.loop import EANT2Config
+
+    options = _task_options(args.task_option)
+    task = eant2_jax.tasks.make(args.task, **options)
+    exploit = {"pruner": "none" if not args.prune else args.pruner}
+    if args.max_iters is not None:
+        exploit["max_iters"] = args.max_iters
+    config = EANT2Config(population=args.population, exploit=ExploitConfig(**exploit))
+    out = Path(args.out) if args.out else _free_dir(args.task, args.seed)
+    meta = {"task": args.task, "task_options": options, "seed": args.seed}
+    print(f"eant2 run {args.task}: writing {out}", file=sys.stderr)
+    result = eant2_jax.run(
+        task,
+        key=jax.random.key(args.seed),
+        config=config,
+        generations=args.generations,
+        out=str(out),
+        callback=_Progress(args.generations),
+        meta=meta,
+    )
+    return _finish(result, out)
+
+
+def _resume(args: argparse.Namespace) -> int:
+    import eant2_jax
+    from eant2_jax.rundir import RunDir, RunDirError
+
+    rundir = RunDir.open(args.dir)
+    meta = rundir.config()
+    if "task" not in meta:
+        raise RunDirError(f"{args.dir}: config.json names no task (was it written by the CLI?)")
+    task = eant2_jax.tasks.make(meta["task"], **meta.get("task_options", {}))
+    total = args.generations if args.generations is not None else meta.get("generations", 0)
+    print(f"eant2 resume {args.dir}", file=sys.stderr)
+    result = eant2_jax.resume(
+        args.dir, task, generations=args.generations, callback=_Progress(total)
+    )
+    return _finish(result, Path(args.dir))
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _non_negative(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
+    from eant2_jax.kernels.pruning import PRUNERS
+
     p = argparse.ArgumentParser(prog="eant2", description="EANT2 neuro-evolution in JAX.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     demo = sub.add_parser(
         "demo", help="evaluate a small recurrent genome, then tune a network on XOR with CMA-ES"
     )
     demo.add_argument("--seed", type=int, default=0, help="seed of inputs and CMA-ES")
-    demo.add_argument("--iters", type=int, default=600, help="CMA-ES iteration budget")
+    demo.add_argument("--iters", type=_positive, default=600, help="CMA-ES iteration budget")
     demo.set_defaults(func=_demo)
+
+    run = sub.add_parser("run", help="run EANT2 on a task, writing a run directory")
+    run.add_argument("task", help="task name (xor, servo, dpv, dpnv, ...)")
+    run.add_argument(
+        "--prune",
+        dest="prune",
+        action="store_true",
+        default=True,
+        help="prune connections during exploitation (default)",
+    )
+    run.add_argument("--no-prune", dest="prune", action="store_false", help="do not prune")
+    run.add_argument(
+        "--pruner",
+        choices=[x for x in PRUNERS if x != "none"],
+        default="covariance",
+        help="pruning method (default: covariance)",
+    )
+    run.add_argument(
+        "--generations",
+        type=_non_negative,
+        default=15,
+        help="generations after the initial one (default 15)",
+    )
+    run.add_argument("--population", type=_positive, default=20, help="population size")
+    run.add_argument("--seed", type=int, default=0, help="seed of the run's PRNG key")
+    run.add_argument(
+        "--max-iters",
+        type=_positive,
+        default=None,
+        help="CMA-ES iteration budget per structure and generation",
+    )
+    run.add_argument(
+        "--task-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="option of the task (repeatable); VALUE is JSON or a string",
+    )
+    run.add_argument(
+        "--out",
+        default=None,
+        help="run directory to create (default: runs/TASK-sSEED, numbered if taken)",
+    )
+    run.set_defaults(func=_run)
+
+    resume = sub.add_parser("resume", help="continue a run directory from its last generation")
+    resume.add_argument("dir", help="the run directory")
+    resume.add_argument(
+        "--generations",
+        type=_non_negative,
+        default=None,
+        help="new total number of generations (default: as first asked)",
+    )
+    resume.set_defaults(func=_resume)
     return p
+
+
+def _compilation_cache() -> None:
+    """Keep compiled XLA programs between runs (the application's choice; the library never
+    touches global JAX settings). EANT2_CACHE_DIR overrides the place; an empty value
+    turns the cache off."""
+    import os
+
+    import jax
+
+    path = os.environ.get("EANT2_CACHE_DIR", str(Path.home() / ".cache" / "eant2_jax" / "xla"))
+    if path:
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
+    _compilation_cache()
     try:
         return args.func(args)
+    except KeyboardInterrupt:
+        print(
+            "\neant2: interrupted; every completed generation is saved"
+            + (
+                f" (continue with: eant2 resume {args.out or args.dir})"
+                if getattr(args, "out", None) or getattr(args, "dir", None)
+                else ""
+            ),
+            file=sys.stderr,
+        )
+        return 130
     except (ValueError, OSError) as e:
         print(f"eant2: error: {e}", file=sys.stderr)
         return 2

@@ -20,6 +20,7 @@ from .genome import GenomeError as GenomeError
 from .reference import interpret as interpret
 
 __version__ = "0.1.0"
+from . import distributed as distributed
 from . import tasks as tasks
 from .exploitation import ExploitConfig as ExploitConfig
 from .exploitation import OptimizeResult as OptimizeResult
@@ -30,3 +31,4 @@ from .loop import Individual as Individual
 from .loop import RunResult as RunResult
 from .loop import resume as resume
 from .loop import run as run
+from .loop import run_many as run_many

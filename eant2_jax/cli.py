@@ -130,7 +130,9 @@ def _run(args: argparse.Namespace) -> int:
     exploit = {"pruner": "none" if not args.prune else args.pruner}
     if args.max_iters is not None:
         exploit["max_iters"] = args.max_iters
-    config = EANT2Config(population=args.population, exploit=ExploitConfig(**exploit))
+    config = EANT2Config(
+        population=args.population, devices=args.devices, exploit=ExploitConfig(**exploit)
+    )
     out = Path(args.out) if args.out else _free_dir(args.task, args.seed)
     meta = {"task": args.task, "task_options": options, "seed": args.seed}
     print(f"eant2 run {args.task}: writing {out}", file=sys.stderr)
@@ -175,6 +177,15 @@ def _non_negative(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
     return value
+
+
+def _devices(text: str) -> int | str:
+    if text == "all":
+        return text
+    try:
+        return _positive(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'all' or a count >= 1, got {text!r}") from None
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -263,6 +274,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
     _compilation_cache()
+    from eant2_jax.distributed import initialize
+
+    initialize()  # joins a multi-process run when EANT2_COORDINATOR etc. are set
     try:
         return args.func(args)
     except KeyboardInterrupt:

@@ -142,6 +142,7 @@ def compile_genomes(
     bucket: Bucket | None = None,
     pad_count: bool = True,
     min_rows: int = 1,
+    multiple_of: int = 1,
 ) -> CompiledBatch:
     """Compile genomes into one padded batch.
 
@@ -153,6 +154,7 @@ def compile_genomes(
         similar counts share a program (padding rows are empty networks).
       min_rows: pad to at least this many rows (a caller that knows its usual batch size
         keeps one program for all of them).
+      multiple_of: round the rows up to a multiple of this (the devices they split over).
 
     Returns:
       The :class:`CompiledBatch`.
@@ -180,6 +182,7 @@ def compile_genomes(
     count = len(genomes)
     rows = max(count, min_rows)
     rows = bucket_size(rows, BATCH_FLOOR) if pad_count else rows
+    rows = -(-rows // multiple_of) * multiple_of
     trash = buffer_size(h, n_inputs, n_out) - 1
     slot = np.full((rows, p), trash, dtype=np.int32)
     gene_mask = np.zeros((rows, p), dtype=bool)

@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import distributed
 from . import exploitation as ex
 from .compiler import compile_genomes
 from .exploration import OPERATORS, initial_genome, mutate, select
@@ -45,6 +46,7 @@ __all__ = [
     "exploit",
     "resume",
     "run",
+    "run_many",
 ]
 
 
@@ -67,6 +69,9 @@ class EANT2Config:
       prefer_smaller: of two costs within ``size_tolerance`` the smaller network ranks first.
       size_tolerance, size_atol: relative and absolute cost tolerance of that rule.
       exploit: the CMA-ES / pruning configuration (its ``pruner`` turns pruning on).
+      devices: where exploitation runs: None (the default device), ``"all"`` or a count N —
+        the structures are split over a 1-D mesh of those devices (every process's, in a
+        multi-process run). Placement only: the results are identical.
     """
 
     population: int = 20
@@ -81,6 +86,7 @@ class EANT2Config:
     prefer_smaller: bool = True
     size_tolerance: float = 1e-3
     size_atol: float = 1e-9
+    devices: int | str | None = None
     exploit: ex.ExploitConfig = dataclasses.field(
         default_factory=lambda: ex.ExploitConfig(pruner="covariance")
     )
@@ -103,6 +109,13 @@ class EANT2Config:
             ("similar_limit", self.similar_limit >= 1, ">= 1"),
             ("size_tolerance", self.size_tolerance >= 0, ">= 0"),
             ("size_atol", self.size_atol >= 0, ">= 0"),
+            (
+                "devices",
+                self.devices is None
+                or self.devices == "all"
+                or (isinstance(self.devices, int) and self.devices >= 1),
+                "None, 'all' or a count >= 1",
+            ),
         ]
         for name, ok, want in checks:
             if not ok:
@@ -211,6 +224,7 @@ def exploit(
     config: ex.ExploitConfig,
     on_chunk: Callable[[dict], None] | None = None,
     min_rows: int = 1,
+    mesh: jax.sharding.Mesh | None = None,
 ) -> tuple[list[Genome], list[float], int, list[dict]]:
     """Tune (and prune) a batch of structures together: ONE batched CMA-ES run.
 
@@ -221,12 +235,15 @@ def exploit(
       config: the exploitation configuration.
       on_chunk: progress callback (see :func:`eant2_jax.exploitation.run`).
       min_rows: pad the batch to at least this many structures (one program per bucket).
+      mesh: split the structures over these devices (see :mod:`eant2_jax.distributed`).
 
     Returns:
       ``(tuned genomes, costs, evaluations spent, pruning records)``; records name the
       structure by its index in ``genomes``.
     """
-    batch = compile_genomes(genomes, task.n_inputs, min_rows=min_rows)
+    batch = compile_genomes(
+        genomes, task.n_inputs, min_rows=min_rows, multiple_of=distributed.size(mesh)
+    )
     rows = batch.layout.slot.shape[0]
     # The popsize follows the gene bucket, not the batch's largest member, so batches of one
     # bucket share one compiled program.
@@ -239,11 +256,19 @@ def exploit(
     )
     tables = tables_for(genomes, batch.bucket.genes, rows)
     st, hist = ex.run(
-        st, batch.layout, task, key=run_key, config=config, tables=tables, on_chunk=on_chunk
+        st,
+        batch.layout,
+        task,
+        key=run_key,
+        config=config,
+        tables=tables,
+        on_chunk=on_chunk,
+        mesh=mesh,
     )
-    best_x = np.asarray(st.cma.best_x, np.float64)
-    best_cost = np.asarray(st.cma.best_cost, np.float64)
-    mask = np.asarray(st.cma.mask)
+    best_x, best_cost, mask, spent = distributed.gather(
+        (st.cma.best_x, st.cma.best_cost, st.cma.mask, st.evals)
+    )
+    best_x, best_cost = np.asarray(best_x, np.float64), np.asarray(best_cost, np.float64)
     tuned, costs = [], []
     for i, g in enumerate(genomes):
         n = g.n_params
@@ -253,7 +278,7 @@ def exploit(
         else:  # never saw a finite cost: keep the structure, rank it last
             tuned.append(g)
             costs.append(float("inf"))
-    evals = int(np.sum(np.asarray(st.evals)[: batch.count]))
+    evals = int(np.sum(spent[: batch.count]))
     return tuned, costs, evals, attempt_records(hist, genomes, config.pruner)
 
 
@@ -331,7 +356,7 @@ def _generation_record(state: RunState, evaluated: int, prune: list[dict], t: fl
 
 
 def _generation(
-    task: Task, state: RunState | None, key: jax.Array, config: EANT2Config, callback
+    task: Task, state: RunState | None, key: jax.Array, config: EANT2Config, callback, mesh=None
 ) -> tuple[RunState, dict, list[dict]]:
     """One generation (generation 0 initialises); returns the new state and its records."""
     t0 = time.perf_counter()
@@ -363,6 +388,7 @@ def _generation(
             key=exp_key,
             config=config.exploit,
             on_chunk=progress,
+            mesh=mesh,
             # Every generation's batch gets the same number of rows: one program per bucket.
             min_rows=(config.offspring or config.population)
             + (config.population if config.reexploit else 0),
@@ -438,6 +464,99 @@ def run(
     return _loop(task, None, _run_key_from(key), config, generations, rundir, callback)
 
 
+def run_many(
+    task: Task,
+    keys: Sequence[jax.Array],
+    *,
+    config: EANT2Config | Sequence[EANT2Config] | None = None,
+    generations: int,
+    outs: Sequence[str | None] | None = None,
+    devices: int | str | Sequence[jax.Device] = "all",
+    callback: Callable[[dict], None] | None = None,
+    meta: dict | None = None,
+) -> list[RunResult]:
+    """Independent runs (seeds, or arms with different configs) spread over devices.
+
+    One worker thread per device takes runs from a queue; a run is pinned to its device
+    with ``jax.default_device`` and is exactly the run :func:`run` would make there.
+
+    Args:
+      task: the task, shared by all runs.
+      keys: one PRNG key per run.
+      config: one config for all runs, or one per run (their ``devices`` must be None).
+      generations: as for :func:`run`.
+      outs: optional run directory per run (None entries write nothing).
+      devices: ``"all"`` (this process's devices), a count, or explicit devices.
+      callback: progress events, with ``run`` (the run's index) added.
+      meta: extra ``config.json`` fields for every run directory.
+
+    Returns:
+      The results, in the order of ``keys``.
+    """
+    import queue
+    import threading
+
+    keys = list(keys)
+    configs = list(config) if isinstance(config, Sequence) else [config] * len(keys)
+    configs = [EANT2Config() if c is None else c for c in configs]
+    outs = [None] * len(keys) if outs is None else list(outs)
+    if not (len(configs) == len(outs) == len(keys)):
+        raise ValueError("run_many: keys, configs and outs must have the same length")
+    if any(c.devices is not None for c in configs):
+        raise ValueError("run_many places each run on one device: leave config.devices None")
+    local = jax.local_devices()
+    if devices == "all":
+        chosen = local
+    elif isinstance(devices, int):
+        if not 1 <= devices <= len(local):
+            raise ValueError(f"devices={devices}: this process has {len(local)} device(s)")
+        chosen = local[:devices]
+    else:
+        chosen = list(devices)
+    todo: queue.Queue = queue.Queue()
+    for i in range(len(keys)):
+        todo.put(i)
+    results: list[RunResult | None] = [None] * len(keys)
+    errors: list[BaseException] = []
+    lock = threading.Lock()
+
+    def worker(device):
+        while not errors:
+            try:
+                i = todo.get_nowait()
+            except queue.Empty:
+                return
+            cb = None
+            if callback is not None:
+
+                def cb(event, i=i):
+                    with lock:
+                        callback({**event, "run": i})
+
+            try:
+                with jax.default_device(device):
+                    results[i] = run(
+                        task,
+                        key=keys[i],
+                        config=configs[i],
+                        generations=generations,
+                        out=outs[i],
+                        callback=cb,
+                        meta=meta,
+                    )
+            except BaseException as e:  # re-raised in the caller's thread
+                errors.append(e)
+
+    threads = [threading.Thread(target=worker, args=(d,), daemon=True) for d in chosen]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if errors:
+        raise errors[0]
+    return results
+
+
 def _run_key_from(key: jax.Array) -> jax.Array:
     return jax.random.wrap_key_data(jnp.asarray(np.array(_key_data(key), dtype=np.uint32)))
 
@@ -486,8 +605,9 @@ def _key_from_meta(meta: dict, rundir: RunDir) -> jax.Array:
 def _loop(task, state, key, config, generations, rundir, callback) -> RunResult:
     gen_records = [] if rundir is None else rundir.generations()
     prune_records = [] if rundir is None else rundir.pruning()
+    mesh = distributed.make_mesh(config.devices)
     while state is None or state.generation < generations:
-        state, record, prune = _generation(task, state, key, config, callback)
+        state, record, prune = _generation(task, state, key, config, callback, mesh)
         gen_records.append(record)
         prune_records.extend(prune)
         if rundir is not None:

@@ -1,0 +1,423 @@
+"""Reports of runs: figures, statistics and network drawings (host side, matplotlib).
+
+``report(dirs, out)`` reads run directories (see :mod:`eant2_jax.rundir`), groups them into
+arms by their pruner, and writes ``report.md`` with
+
+* fitness (= -cost) and size of the best individual against generation, every run a thin
+  line and each arm's mean a thick one (the paper's figure 8);
+* cond(C) against CMA-ES iteration for a network before and after pruning, when the
+  directory holds the V.A experiment's ``condition.json`` (figure 7);
+* the best network drawn as a graph (figure 6);
+* a table per arm: final fitness and size (mean +- sd), size reduction, generations and
+  evaluations to reach 99% of the final fitness, and Welch t-test p-values between arms.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .genome import GeneKind, Genome
+
+__all__ = ["draw_genome", "genome_stats", "load_runs", "report", "summarise"]
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only; never a window
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def genome_stats(genome: Genome) -> dict:
+    """Counts of a genome's genes by kind, and its sizes."""
+    kinds = {k.name.lower(): 0 for k in GeneKind}
+    for g in genome:
+        kinds[g.kind.name.lower()] += 1
+    return {
+        "parameters": genome.n_params,
+        "inputs_read": genome.n_inputs,
+        "outputs": genome.n_outputs,
+        "neurons": genome.n_neurons,
+        "hidden_neurons": genome.n_neurons - genome.n_outputs,
+        "depth": genome.depth(),
+        "genes": kinds,
+    }
+
+
+def draw_genome(
+    genome: Genome,
+    path: str | Path,
+    *,
+    pruned: Genome | None = None,
+    title: str | None = None,
+    n_inputs: int | None = None,
+) -> Path:
+    """Draw a network as a graph (inputs bottom, outputs top) into a PNG.
+
+    Solid black: a neuron's own inputs (inputs, biases, sub-neurons); solid blue: forward
+    jumpers; dashed red: recurrent jumpers. With ``pruned`` (the same network after
+    pruning), connections that pruning removed are drawn dashed grey.
+
+    Args:
+      genome: the network to draw (the unpruned one when ``pruned`` is given).
+      path: PNG file to write.
+      pruned: optional pruned version of ``genome`` (gene order preserved).
+      title: figure title.
+      n_inputs: number of input nodes to show (default: those the genome reads).
+
+    Returns:
+      The path written.
+    """
+    plt = _pyplot()
+    path = Path(path)
+    n_in = max(n_inputs or 0, genome.n_inputs)
+    removed = _removed_genes(genome, pruned) if pruned is not None else set()
+    # Levels: inputs at 0, each neuron one above its deepest current-step source.
+    level: dict[int, int] = {}
+    for i in reversed(range(len(genome))):
+        g = genome[i]
+        if g.kind != GeneKind.NEURON:
+            continue
+        srcs = [genome[c] for c in genome.children(i)]
+        lv = 1
+        for s in srcs:
+            if s.kind == GeneKind.NEURON or s.kind == GeneKind.FORWARD:
+                lv = max(lv, level[s.ref] + 1)
+        level[g.ref] = lv
+    top = max(level.values()) + 1
+    for r in genome.roots:  # outputs on the top row
+        level[genome[r].ref] = top
+    pos: dict[tuple[str, int], tuple[float, float]] = {}
+    for j in range(n_in):
+        pos[("in", j)] = (j - (n_in - 1) / 2, 0.0)
+    pos[("bias", 0)] = (n_in / 2 + 0.8, 0.0)
+    rows: dict[int, list[int]] = {}
+    for nid in genome.neuron_ids:
+        rows.setdefault(level[nid], []).append(nid)
+    for lv, ids in rows.items():
+        if lv == top:
+            ids = [genome[r].ref for r in genome.roots]
+        for k, nid in enumerate(ids):
+            pos[("n", nid)] = (k - (len(ids) - 1) / 2, float(lv))
+
+    fig, ax = plt.subplots(figsize=(max(6, n_in * 0.8), 1.6 * (top + 1)))
+    for i, g in enumerate(genome):
+        p = genome.parent[i]
+        if p < 0:
+            continue
+        dst = pos[("n", genome[p].ref)]
+        style = {"color": "black", "lw": 1.2, "ls": "-"}
+        if g.kind == GeneKind.INPUT:
+            src = pos[("in", g.ref)]
+        elif g.kind == GeneKind.BIAS:
+            src = pos[("bias", 0)]
+        else:
+            src = pos[("n", g.ref)]
+            if g.kind == GeneKind.FORWARD:
+                style = {"color": "tab:blue", "lw": 1.2, "ls": "-"}
+            elif g.kind == GeneKind.RECURRENT:
+                style = {"color": "tab:red", "lw": 1.0, "ls": "--"}
+        if i in removed:
+            style = {"color": "0.6", "lw": 1.0, "ls": ":"}
+        if src == dst:  # a neuron reading its own previous output: a small loop above it
+            from matplotlib.patches import Arc
+
+            ax.add_patch(
+                Arc(
+                    (dst[0] + 0.12, dst[1] + 0.18),
+                    0.32,
+                    0.34,
+                    theta1=-60,
+                    theta2=240,
+                    color=style["color"],
+                    lw=style["lw"],
+                    ls=style["ls"],
+                    zorder=2,
+                )
+            )
+            continue
+        rad = 0.3 if g.kind == GeneKind.RECURRENT else 0.0
+        ax.annotate(
+            "",
+            xy=dst,
+            xytext=src,
+            arrowprops={
+                "arrowstyle": "-|>",
+                "connectionstyle": f"arc3,rad={rad}",
+                "shrinkA": 9,
+                "shrinkB": 9,
+                **{k: v for k, v in (("color", style["color"]), ("lw", style["lw"]))},
+                "linestyle": style["ls"],
+            },
+        )
+    roots = {genome[r].ref for r in genome.roots}
+    for (kind, ident), (x, y) in pos.items():
+        if kind == "in":
+            label, face = f"x{ident}", "#e8f0ff"
+        elif kind == "bias":
+            label, face = "1", "#f0f0f0"
+        else:
+            label, face = f"N{ident}", "#ffe9c7" if ident in roots else "#fff8e6"
+        ax.scatter([x], [y], s=520, c=face, edgecolors="black", zorder=3)
+        ax.text(x, y, label, ha="center", va="center", fontsize=8, zorder=4)
+    ax.set_axis_off()
+    stats = f"{genome.n_params} parameters, {genome.n_neurons} neurons"
+    if pruned is not None:
+        stats += f"; pruned: {pruned.n_params} parameters (dotted grey: removed)"
+    ax.set_title((title + "\n" if title else "") + stats, fontsize=9)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def _removed_genes(genome: Genome, pruned: Genome) -> set[int]:
+    """Gene indices of ``genome`` missing from ``pruned`` (pruning keeps gene order)."""
+    removed, j = set(), 0
+    for i, g in enumerate(genome):
+        if j < len(pruned) and (pruned[j].kind, pruned[j].ref) == (g.kind, g.ref):
+            j += 1
+        else:
+            removed.add(i)
+    return removed
+
+
+def load_runs(dirs: Sequence[str | Path]) -> list[dict]:
+    """Read run directories: config, generation records and arm label of each."""
+    from .rundir import RunDir
+
+    runs = []
+    for d in dirs:
+        rd = RunDir.open(d)
+        meta = rd.config()
+        gens = rd.generations()
+        if not gens:
+            raise ValueError(f"{d}: no completed generation to report")
+        pruner = meta.get("config", {}).get("exploit", {}).get("pruner", "none")
+        runs.append(
+            {
+                "dir": str(d),
+                "arm": meta.get("arm", pruner),
+                "task": meta.get("task", "?"),
+                "seed": meta.get("seed"),
+                "generations": gens,
+                "pruning": rd.pruning(),
+            }
+        )
+    return runs
+
+
+def _to_target(gens: list[dict], key: str = "best_cost") -> tuple[int, int]:
+    """Generation and evaluations at which the best cost first came within 1% of its final
+    value (i.e. the fitness reached 99% of its final value)."""
+    final = gens[-1][key]
+    for g in gens:
+        if g[key] <= final + 0.01 * abs(final):
+            return g["generation"], g["evaluations"]
+    return gens[-1]["generation"], gens[-1]["evaluations"]
+
+
+def summarise(runs: list[dict]) -> dict[str, dict]:
+    """Per arm: final fitness/size mean and sd, size reduction, time to 99%, p-values."""
+    from scipy import stats
+
+    arms: dict[str, list[dict]] = {}
+    for r in runs:
+        arms.setdefault(r["arm"], []).append(r)
+    out: dict[str, dict] = {}
+    for arm, rs in arms.items():
+        fit = np.array([-r["generations"][-1]["best_cost"] for r in rs])
+        size = np.array([r["generations"][-1]["best_size"] for r in rs], float)
+        reach = np.array([_to_target(r["generations"]) for r in rs], float)
+        out[arm] = {
+            "runs": len(rs),
+            "fitness": fit,
+            "size": size,
+            "fitness_mean": float(fit.mean()),
+            "fitness_sd": float(fit.std(ddof=1)) if len(rs) > 1 else 0.0,
+            "size_mean": float(size.mean()),
+            "size_sd": float(size.std(ddof=1)) if len(rs) > 1 else 0.0,
+            "generations_to_99": float(reach[:, 0].mean()),
+            "evaluations_to_99": float(reach[:, 1].mean()),
+            "prune_accepted": int(sum(sum(x["accepted"] for x in r["pruning"]) for r in rs)),
+            "prune_attempts": int(sum(len(r["pruning"]) for r in rs)),
+        }
+    reference = "none" if "none" in out else None
+    for arm, s in out.items():
+        if reference is None or arm == reference:
+            s["size_reduction_pct"] = None
+            s["p_fitness"] = s["p_size"] = None
+            continue
+        ref = out[reference]
+        s["size_reduction_pct"] = 100.0 * (1 - s["size_mean"] / ref["size_mean"])
+        if s["runs"] > 1 and ref["runs"] > 1:
+            s["p_fitness"] = _welch(s["fitness"], ref["fitness"], stats)
+            s["p_size"] = _welch(s["size"], ref["size"], stats)
+        else:
+            s["p_fitness"] = s["p_size"] = None
+    return out
+
+
+def _welch(a, b, stats) -> float | None:
+    if np.all(a == a[0]) and np.all(b == b[0]):
+        return 1.0 if a[0] == b[0] else 0.0
+    p = float(stats.ttest_ind(a, b, equal_var=False).pvalue)
+    return None if math.isnan(p) else p
+
+
+def _fmt(x, digits: int = 4) -> str:
+    if x is None:
+        return "—"
+    if isinstance(x, float) and (abs(x) >= 1e4 or (abs(x) < 1e-3 and x != 0)):
+        return f"{x:.{digits - 1}e}"
+    return f"{x:.{digits}g}" if isinstance(x, float) else str(x)
+
+
+def report(
+    dirs: Sequence[str | Path],
+    out: str | Path,
+    *,
+    extra: dict | None = None,
+    condition: dict | None = None,
+) -> Path:
+    """Write ``report.md`` and its figures for the given run directories.
+
+    Args:
+      dirs: run directories (arms are told apart by their pruner, or an ``arm`` field in
+        their ``config.json``).
+      out: folder for ``report.md`` and the PNGs (created; existing files of the same names
+        are replaced, nothing else is touched).
+      extra: optional sections: ``baselines`` (dict name -> cost), ``generalisation`` (dict
+        arm -> list of held-out costs), ``wall_s``, ``device``, ``notes`` (markdown).
+      condition: optional V.A experiment result: ``{"before": [cond...], "after": [...],
+        "size_before": n, "size_after": m}``.
+
+    Returns:
+      The path of ``report.md``.
+    """
+    plt = _pyplot()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    runs = load_runs(dirs)
+    summary = summarise(runs)
+    extra = extra or {}
+    colours = dict(zip(summary, plt.rcParams["axes.prop_cycle"].by_key()["color"], strict=False))
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for arm in summary:
+        rs = [r for r in runs if r["arm"] == arm]
+        n = min(len(r["generations"]) for r in rs)
+        fit = np.array([[-g["best_cost"] for g in r["generations"][:n]] for r in rs])
+        size = np.array([[g["best_size"] for g in r["generations"][:n]] for r in rs])
+        gens = np.arange(n)
+        for f, s in zip(fit, size, strict=True):
+            axes[0].plot(gens, f, color=colours[arm], lw=0.7, alpha=0.5)
+            axes[1].plot(gens, s, color=colours[arm], lw=0.7, alpha=0.5)
+        axes[0].plot(gens, fit.mean(0), color=colours[arm], lw=2.5, label=f"{arm} (mean)")
+        axes[1].plot(gens, size.mean(0), color=colours[arm], lw=2.5, label=f"{arm} (mean)")
+    axes[0].set(xlabel="generation", ylabel="fitness = -cost", title="fitness of the best")
+    axes[1].set(xlabel="generation", ylabel="parameters", title="size of the best")
+    for a in axes:
+        a.grid(alpha=0.3)
+        a.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "fitness_size.png", dpi=110)
+    plt.close(fig)
+
+    figures = ["fitness_size.png"]
+    if condition is not None:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        ax.semilogy(condition["before"], label=f"original ({condition.get('size_before')} params)")
+        ax.semilogy(condition["after"], label=f"pruned ({condition.get('size_after')} params)")
+        ax.set(xlabel="CMA-ES iteration", ylabel="cond(C)", title="condition of C")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(out / "condition.png", dpi=110)
+        plt.close(fig)
+        figures.append("condition.png")
+
+    best_run = min(runs, key=lambda r: r["generations"][-1]["best_cost"])
+    best = Genome.parse(best_run["generations"][-1]["best_genome"])
+    draw_genome(best, out / "best_network.png", title=f"best network ({best_run['arm']})")
+    figures.append("best_network.png")
+    if condition is not None and "genome_before" in condition and "genome_after" in condition:
+        draw_genome(
+            Genome.parse(condition["genome_before"]),
+            out / "pruned_network.png",
+            pruned=Genome.parse(condition["genome_after"]),
+            title="network before and after pruning",
+        )
+        figures.append("pruned_network.png")
+
+    lines = ["# EANT2 report", ""]
+    tasks = sorted({r["task"] for r in runs})
+    lines.append(f"Task: {', '.join(tasks)}; {len(runs)} runs in {len(summary)} arms.")
+    if "device" in extra:
+        lines.append(f"Device: {extra['device']}.")
+    if "wall_s" in extra:
+        lines.append(f"Wall time: {extra['wall_s']:.1f} s.")
+    lines += [
+        "",
+        "| arm | runs | final fitness (mean ± sd) | size (mean ± sd) | size reduction | "
+        "generations to 99% | evaluations to 99% | pruned (accepted/attempts) | "
+        "p (fitness) | p (size) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for arm, s in summary.items():
+        red = None if s["size_reduction_pct"] is None else f"{s['size_reduction_pct']:.1f}%"
+        lines.append(
+            f"| {arm} | {s['runs']} | {_fmt(s['fitness_mean'])} ± {_fmt(s['fitness_sd'], 2)} | "
+            f"{s['size_mean']:.1f} ± {s['size_sd']:.1f} | {red or '—'} | "
+            f"{s['generations_to_99']:.1f} | {s['evaluations_to_99']:.3g} | "
+            f"{s['prune_accepted']}/{s['prune_attempts']} | {_fmt(s['p_fitness'], 3)} | "
+            f"{_fmt(s['p_size'], 3)} |"
+        )
+    lines += ["", "p-values: Welch's t-test against the arm without pruning.", ""]
+    if "baselines" in extra:
+        lines += [
+            "Baselines (same cost): "
+            + ", ".join(f"{k} {_fmt(float(v))}" for k, v in extra["baselines"].items()),
+            "",
+        ]
+    if "generalisation" in extra:
+        lines += [
+            "Generalisation (cost of each run's best on the held-out set, mean ± sd): "
+            + ", ".join(
+                f"{k} {_fmt(float(np.mean(v)))} ± {_fmt(float(np.std(v)), 2)}"
+                for k, v in extra["generalisation"].items()
+            ),
+            "",
+        ]
+    if condition is not None:
+        lines += [
+            f"Condition experiment (V.A): cond(C) peaked at {max(condition['before']):.3g} for "
+            f"the original network ({condition.get('size_before')} parameters) and at "
+            f"{max(condition['after']):.3g} after pruning ({condition.get('size_after')}).",
+            "",
+        ]
+    if "notes" in extra:
+        lines += [extra["notes"], ""]
+    for f in figures:
+        lines += [f"![{f}]({f})", ""]
+    path = out / "report.md"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    (out / "summary.json").write_text(
+        json.dumps(
+            {
+                arm: {k: v for k, v in s.items() if not isinstance(v, np.ndarray)}
+                for arm, s in summary.items()
+            },
+            indent=2,
+        )
+        + "\n",
+        encoding="utf-8",
+    )
+    return path

@@ -54,14 +54,20 @@ class _Progress:
     """Renders the library's progress events: one live line on a terminal, else a line per
     generation."""
 
-    def __init__(self, total: int, stream=sys.stderr):
+    def __init__(self, total: int, stream=sys.stderr, header: str | None = None):
         self.total = total
+        # Printed with the first event, i.e. once the run directory has been accepted: an
+        # error before that is then the only line on stderr.
+        self.header = header
         self.stream = stream
         self.live = stream.isatty()
         self.last = None
         self.t0 = time.perf_counter()
 
     def __call__(self, event: dict) -> None:
+        if self.header is not None:
+            print(self.header, file=self.stream, flush=True)
+            self.header = None
         if event["event"] == "exploit":
             if self.live:
                 best = "" if self.last is None else f" | best {self.last['best_cost']:.4g}"
@@ -135,14 +141,13 @@ def _run(args: argparse.Namespace) -> int:
     )
     out = Path(args.out) if args.out else _free_dir(args.task, args.seed)
     meta = {"task": args.task, "task_options": options, "seed": args.seed}
-    print(f"eant2 run {args.task}: writing {out}", file=sys.stderr)
     result = eant2_jax.run(
         task,
         key=jax.random.key(args.seed),
         config=config,
         generations=args.generations,
         out=str(out),
-        callback=_Progress(args.generations),
+        callback=_Progress(args.generations, header=f"eant2 run {args.task}: writing {out}"),
         meta=meta,
     )
     return _finish(result, out)
@@ -158,11 +163,84 @@ def _resume(args: argparse.Namespace) -> int:
         raise RunDirError(f"{args.dir}: config.json names no task (was it written by the CLI?)")
     task = eant2_jax.tasks.make(meta["task"], **meta.get("task_options", {}))
     total = args.generations if args.generations is not None else meta.get("generations", 0)
-    print(f"eant2 resume {args.dir}", file=sys.stderr)
     result = eant2_jax.resume(
-        args.dir, task, generations=args.generations, callback=_Progress(total)
+        args.dir,
+        task,
+        generations=args.generations,
+        callback=_Progress(total, header=f"eant2 resume {args.dir}"),
     )
     return _finish(result, Path(args.dir))
+
+
+def _report(args: argparse.Namespace) -> int:
+    from eant2_jax.report import report
+
+    out = Path(args.out) if args.out else Path(args.dirs[0]).parent / "report"
+    path = report(args.dirs, out)
+    print(f"report: {path}")
+    return 0
+
+
+def _show(args: argparse.Namespace) -> int:
+    import eant2_jax
+    from eant2_jax.report import draw_genome, genome_stats
+
+    src = Path(args.genome_file)
+    try:
+        text = src.read_text(encoding="utf-8")
+    except OSError as e:
+        raise ValueError(f"cannot read {src}: {e.strerror}") from None
+    genome = eant2_jax.Genome.parse(text)
+    out = Path(args.out) if args.out else src.with_suffix(src.suffix + ".png")
+    if out.exists() and not args.force:
+        raise ValueError(f"{out} exists; not overwriting (use --out or --force)")
+    print(genome)
+    for k, v in genome_stats(genome).items():
+        print(f"{k:>14}: {v}")
+    draw_genome(genome, out, title=src.name)
+    print(f"drawing: {out}")
+    return 0
+
+
+def _reproduce(args: argparse.Namespace) -> int:
+    import eant2_jax
+    from eant2_jax.experiments import reproduce
+    from eant2_jax.exploitation import ExploitConfig
+    from eant2_jax.loop import EANT2Config
+
+    options = {"mode": args.mode} if args.task == "servo" else {}
+    task = eant2_jax.tasks.make(args.task, **options)
+    pruners = [p.strip() for p in args.pruners.split(",") if p.strip()]
+    exploit = {} if args.max_iters is None else {"max_iters": args.max_iters}
+    config = EANT2Config(population=args.population, exploit=ExploitConfig(**exploit))
+    out = Path(args.out) if args.out else _free_dir(f"reproduce-{args.task}", args.seed)
+    total = args.generations
+
+    def progress(event):
+        if event["event"] == "generation":
+            print(
+                f"[{event['arm']} run {event['run']}] gen {event['generation']}/{total} "
+                f"best {event['best_cost']:.4g} size {event['best_size']}",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    print(f"eant2 reproduce: writing {out}", file=sys.stderr)
+    path = reproduce(
+        task,
+        out,
+        task_meta={"task": args.task, "task_options": options},
+        runs=args.runs,
+        generations=args.generations,
+        pruners=pruners,
+        config=config,
+        seed=args.seed,
+        workers_per_device=args.workers,
+        condition=not args.no_condition,
+        callback=progress,
+    )
+    print(f"report: {path}")
+    return 0
 
 
 def _positive(text: str) -> int:
@@ -231,6 +309,12 @@ def _parser() -> argparse.ArgumentParser:
         help="CMA-ES iteration budget per structure and generation",
     )
     run.add_argument(
+        "--devices",
+        type=_devices,
+        default=None,
+        help="split exploitation over devices: 'all' or a count (default: JAX's default device)",
+    )
+    run.add_argument(
         "--task-option",
         action="append",
         default=[],
@@ -243,6 +327,49 @@ def _parser() -> argparse.ArgumentParser:
         help="run directory to create (default: runs/TASK-sSEED, numbered if taken)",
     )
     run.set_defaults(func=_run)
+
+    rep = sub.add_parser(
+        "reproduce", help="the paper's experiments (with/without pruning) + report"
+    )
+    rep.add_argument("--runs", type=_positive, default=5, help="runs per arm (default 5)")
+    rep.add_argument("--generations", type=_non_negative, default=15, help="default 15")
+    rep.add_argument(
+        "--mode",
+        choices=["kinematic", "dynamic"],
+        default="kinematic",
+        help="servo physics mode (default kinematic)",
+    )
+    rep.add_argument(
+        "--pruners",
+        default="covariance",
+        help="comma-separated pruning arms, e.g. covariance,obs,obd,magnitude",
+    )
+    rep.add_argument("--population", type=_positive, default=20, help="population size")
+    rep.add_argument(
+        "--max-iters",
+        type=_positive,
+        default=None,
+        help="CMA-ES iteration budget per structure and generation",
+    )
+    rep.add_argument("--task", default="servo", help="task (default: servo, the paper's)")
+    rep.add_argument("--seed", type=int, default=0, help="first seed")
+    rep.add_argument("--workers", type=_positive, default=1, help="concurrent runs per device")
+    rep.add_argument(
+        "--no-condition", action="store_true", help="skip the condition experiment (paper V.A)"
+    )
+    rep.add_argument("--out", default=None, help="new output directory")
+    rep.set_defaults(func=_reproduce)
+
+    report = sub.add_parser("report", help="report.md and figures from run directories")
+    report.add_argument("dirs", nargs="+", help="run directories")
+    report.add_argument("--out", default=None, help="output folder (default: DIR/../report)")
+    report.set_defaults(func=_report)
+
+    show = sub.add_parser("show", help="print a genome file's statistics and draw it")
+    show.add_argument("genome_file", help="a file holding a genome in text form")
+    show.add_argument("--out", default=None, help="PNG to write (default: GENOME_FILE.png)")
+    show.add_argument("--force", action="store_true", help="replace an existing PNG")
+    show.set_defaults(func=_show)
 
     resume = sub.add_parser("resume", help="continue a run directory from its last generation")
     resume.add_argument("dir", help="the run directory")

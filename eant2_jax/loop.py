@@ -472,6 +472,7 @@ def run_many(
     generations: int,
     outs: Sequence[str | None] | None = None,
     devices: int | str | Sequence[jax.Device] = "all",
+    workers_per_device: int = 1,
     callback: Callable[[dict], None] | None = None,
     meta: dict | None = None,
 ) -> list[RunResult]:
@@ -487,6 +488,8 @@ def run_many(
       generations: as for :func:`run`.
       outs: optional run directory per run (None entries write nothing).
       devices: ``"all"`` (this process's devices), a count, or explicit devices.
+      workers_per_device: runs in flight per device (>1 overlaps one run's host-side work
+        with another's device work).
       callback: progress events, with ``run`` (the run's index) added.
       meta: extra ``config.json`` fields for every run directory.
 
@@ -547,7 +550,13 @@ def run_many(
             except BaseException as e:  # re-raised in the caller's thread
                 errors.append(e)
 
-    threads = [threading.Thread(target=worker, args=(d,), daemon=True) for d in chosen]
+    if workers_per_device < 1:
+        raise ValueError(f"workers_per_device must be >= 1, got {workers_per_device}")
+    threads = [
+        threading.Thread(target=worker, args=(d,), daemon=True)
+        for d in chosen
+        for _ in range(workers_per_device)
+    ]
     for t in threads:
         t.start()
     for t in threads:

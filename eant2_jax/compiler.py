@@ -173,6 +173,12 @@ def compile_genomes(
             raise ValueError(
                 f"genome {i} reads input {g.n_inputs - 1} but the data has {n_inputs} inputs"
             )
+        big = np.abs(g.weights) > np.finfo(np.float32).max
+        if np.any(big):
+            j = int(np.flatnonzero(big)[0])
+            raise ValueError(
+                f"genome {i}: weight {g.weights[j]!r} of gene {j} does not fit in float32"
+            )
     need = bucket_for(genomes)
     if bucket is None:
         bucket = need

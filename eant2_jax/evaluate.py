@@ -85,8 +85,8 @@ def evaluate(
     x = np.asarray(inputs)
     if x.ndim != 3:
         raise ValueError(f"inputs must have shape [T, M, n_in], got shape {x.shape}")
-    if not np.issubdtype(x.dtype, np.number):
-        raise TypeError(f"inputs must be numeric, got dtype {x.dtype}")
+    if not np.issubdtype(x.dtype, np.number) or np.iscomplexobj(x):
+        raise TypeError(f"inputs must be real numbers, got dtype {x.dtype}")
     batch = compile_genomes(genomes, n_inputs=x.shape[2])
     ys = rollout_batch(
         batch.layout, batch.weights, jnp.asarray(x, jnp.float32), hidden=hidden, output=output

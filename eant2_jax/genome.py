@@ -329,8 +329,13 @@ def _validate(genes: tuple[Gene, ...]) -> tuple[np.ndarray, tuple[int, ...], dic
                     str(g),
                 )
             neuron_position[g.ref] = i
-        elif g.kind == GeneKind.INPUT and g.ref < 0:
-            raise GenomeError("input index must be non-negative", i, str(g))
+        else:
+            if g.arity != 0:
+                raise GenomeError("only neurons have inputs (arity must be 0)", i, str(g))
+            if g.kind == GeneKind.INPUT and g.ref < 0:
+                raise GenomeError("input index must be non-negative", i, str(g))
+            if g.kind == GeneKind.BIAS and g.ref != -1:
+                raise GenomeError("a bias gene has ref -1", i, str(g))
     for i, g in enumerate(genes):
         if g.kind in (GeneKind.FORWARD, GeneKind.RECURRENT):
             if g.ref not in neuron_position:

@@ -36,8 +36,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from eant2_jax.kernels import cmaes
-from eant2_jax.kernels import pruning as kp
 from hypothesis import given
 from hypothesis import strategies as st
 from strategies import fewer_examples, genomes
@@ -46,6 +44,8 @@ import eant2_jax
 from eant2_jax import exploitation as ex
 from eant2_jax.compiler import compile_genomes
 from eant2_jax.genome import GeneKind, Genome
+from eant2_jax.kernels import cmaes
+from eant2_jax.kernels import pruning as kp
 from eant2_jax.pruning import attempt_records, prune_genome, tables_for
 from eant2_jax.reference import interpret
 from eant2_jax.tasks import regression
@@ -264,7 +264,8 @@ def _attempt_state(weights, mask, covariances):
 @functools.partial(jax.jit, static_argnames="config")
 def _attempt(st, layout, tables, task, config):
     trigger = jnp.ones(st.stop.shape, bool)
-    return ex._prune(st, trigger, layout, tables, task, jax.random.key(0), config)
+    static, limits = ex._program_config(config)
+    return ex._prune(st, trigger, layout, tables, task, jax.random.key(0), static, limits)
 
 
 @functools.partial(jax.jit, static_argnames="pruner")

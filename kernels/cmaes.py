@@ -1,0 +1,422 @@
+"""Masked CMA-ES for ONE parameter structure, batched over structures by the caller.
+
+EANT2 tunes the weights of many network structures at once (Siebel, Botel & Sommer 2009,
+sec. III "Structural Exploitation"). Each structure has its own dimension ``n``; all are
+padded to one static size ``P`` with a boolean coordinate mask, so ``jax.vmap(tell)`` over the
+structures is one batched program. A padded structure follows the trajectory it would follow
+unpadded (same key, equal up to float rounding) because
+
+* the hyper-parameters come from the structure's own ``n`` (``default_params``, traceable),
+* coordinate ``i`` draws its normals from ``jax.random.fold_in(key, i)``, whatever ``P`` is,
+* sampling uses the symmetric square root ``C^{1/2} = B diag(D) B^T``, which does not depend
+  on the order or sign of the eigenvectors, and
+* the padded block of ``C`` (and of the mean and the paths) stays exactly 0.
+
+The update is evosax's ``CMA_ES`` (v0.3.2) with active (negative) weights, equation for
+equation; equation numbers refer to Hansen, "The CMA Evolution Strategy: A Tutorial",
+arXiv:1604.00772. Deviations from evosax, all deliberate:
+
+* the eigendecomposition runs at the end of ``tell`` (and exactly at ``init``), so ``B`` and
+  ``D`` in the state always belong to the ``C`` next to them: the pruner (paper sec. IV-B)
+  reads them. evosax runs it in ``ask`` and adds ``1e-8 I`` to ``C`` every generation; here
+  eigenvalues are instead clipped at ``lambda_max / max_condition`` (the paper, sec. V, limits
+  the condition the same way) and ``C`` is rebuilt from the clipped spectrum only when a clip
+  bit.
+* costs that are NaN or +-inf rank after all finite ones (evosax ranks ``-inf`` first) and
+  never receive a positive weight, so a diverging network cannot pull the mean; a generation
+  with no finite cost leaves the distribution unchanged. Ties rank by index (evosax averages
+  tied ranks and truncates).
+
+Minimisation throughout.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+__all__ = ["Params", "State", "ask", "default_params", "eigen", "init", "sqrt_cov", "tell"]
+
+# evosax caps the dimension in c_1, c_mu and chi_n at floor(sqrt(int32 max)) so that
+# n**2 cannot overflow int32 (evosax/algorithms/base.py, ``max_num_dims_sq``).
+_MAX_NUM_DIMS_SQ = float(np.floor(np.sqrt(np.iinfo(np.int32).max)))
+
+
+@struct.dataclass
+class Params:
+    """Hyper-parameters of one structure; a pytree, so it can be vmapped with the state.
+
+    All leaves are 0-d except ``weights`` ``[popsize]``. They depend on the structure's own
+    dimension ``n`` (not on the padded size), so removing a coordinate means recomputing them
+    with ``default_params(n - 1, popsize)``.
+    """
+
+    n: jax.Array  # [] the structure's dimension, as a float
+    weights: jax.Array  # [popsize] rank weights, positive then negative, Eq. (53)
+    mu_eff: jax.Array  # [] variance-effective selection mass, Eq. (8)
+    c_mean: jax.Array  # [] learning rate of the mean, Eq. (54)
+    c_sigma: jax.Array  # [] cumulation of the step-size path, Eq. (55)
+    d_sigma: jax.Array  # [] step-size damping, Eq. (55)
+    c_c: jax.Array  # [] cumulation of the rank-one path, Eq. (56)
+    c_1: jax.Array  # [] rank-one learning rate, Eq. (57)
+    c_mu: jax.Array  # [] rank-mu learning rate, Eq. (58)
+    chi_n: jax.Array  # [] E||N(0, I_n)||, page 28
+    sigma_min: jax.Array  # [] step-size clip (evosax std_min)
+    sigma_max: jax.Array  # [] step-size clip (evosax std_max)
+    max_condition: jax.Array  # [] bound on cond(C) over the valid axes
+
+
+@struct.dataclass
+class State:
+    """State of one masked CMA-ES over ``P`` padded coordinates.
+
+    Padded coordinates (``mask`` False) hold exactly 0 in ``mean``, the paths, ``C``,
+    ``best_x`` and in the rows of ``B``; padded eigen-axes (``valid_axes`` False) hold ``D = 0``.
+    """
+
+    mean: jax.Array  # [P] distribution mean m
+    sigma: jax.Array  # [] step size
+    p_sigma: jax.Array  # [P] step-size (conjugate) evolution path
+    p_c: jax.Array  # [P] rank-one evolution path
+    C: jax.Array  # [P, P] covariance matrix, symmetric, padded block 0
+    B: jax.Array  # [P, P] eigenvectors of C as columns, C = B diag(D**2) B^T
+    D: jax.Array  # [P] square roots of the eigenvalues of C, 0 on padded axes
+    mask: jax.Array  # [P] bool, valid coordinates
+    valid_axes: jax.Array  # [P] bool, columns of B that span the valid coordinates
+    n: jax.Array  # [] int32, number of valid coordinates
+    generation: jax.Array  # [] int32, number of ``tell`` calls
+    cond: jax.Array  # [] cond(C) over the valid axes, after the bound
+    cond_bounded: jax.Array  # [] bool, the condition bound clipped eigenvalues in the last tell
+    num_nonfinite: jax.Array  # [] int32, NaN/inf costs in the last tell
+    best_x: jax.Array  # [P] best finite-cost candidate seen so far
+    best_cost: jax.Array  # [] its cost (+inf before any finite cost)
+
+
+def _float_dtype(dtype) -> jnp.dtype:
+    if dtype is None:
+        return jnp.result_type(float)  # float32, or float64 under jax_enable_x64
+    return jnp.dtype(dtype)
+
+
+def default_params(
+    n: jax.Array | int,
+    popsize: int,
+    *,
+    max_condition: float = 1e14,
+    dtype=None,
+) -> Params:
+    """Hyper-parameters of evosax ``CMA_ES._default_params`` for dimension ``n``.
+
+    Args:
+      n: the structure's dimension; may be a traced scalar (e.g. under vmap over structures).
+      popsize: lambda, the number of candidates per generation (static, >= 2).
+      max_condition: bound on cond(C) over the valid axes; eigenvalues below
+        ``lambda_max / max_condition`` are clipped up (the paper, sec. V, limits it too).
+      dtype: float dtype of the leaves; default float32, or float64 under jax_enable_x64.
+
+    Returns:
+      ``Params`` with ``weights`` of shape ``[popsize]`` and 0-d leaves otherwise.
+    """
+    if popsize < 2:
+        raise ValueError(f"popsize must be >= 2, got {popsize}")
+    dtype = _float_dtype(dtype)
+    n = jnp.asarray(n).astype(dtype)
+    # evosax: elite_ratio 0.5, num_elites = max(1, int(0.5 * popsize)).
+    num_elites = max(1, int(0.5 * popsize))
+
+    weights_prime = jnp.log(jnp.asarray((popsize + 1) / 2, dtype)) - jnp.log(
+        jnp.arange(1, popsize + 1, dtype=dtype)
+    )  # Eq. (48)
+    w_pos, w_neg = weights_prime[:num_elites], weights_prime[num_elites:]
+    mu_eff = jnp.sum(w_pos) ** 2 / jnp.sum(w_pos**2)  # Eq. (8)
+    mu_eff_minus = jnp.sum(w_neg) ** 2 / jnp.sum(w_neg**2)  # Table 1
+
+    n_sq = jnp.minimum(n, _MAX_NUM_DIMS_SQ)
+    alpha_cov = 2.0
+    c_c = (4 + mu_eff / n) / (n + 4 + 2 * mu_eff / n)  # Eq. (56)
+    c_1 = alpha_cov / ((n_sq + 1.3) ** 2 + mu_eff)  # Eq. (57)
+    c_mu = jnp.minimum(
+        1 - c_1 - 1e-8,  # 1e-8 is for large population size (as evosax)
+        alpha_cov * (mu_eff + 1 / mu_eff - 2) / ((n_sq + 2) ** 2 + alpha_cov * mu_eff / 2),
+    )  # Eq. (58)
+
+    min_alpha = jnp.minimum(
+        1 + c_1 / c_mu,  # Eq. (50)
+        1 + (2 * mu_eff_minus) / (mu_eff + 2),  # Eq. (51)
+    )
+    min_alpha = jnp.minimum(min_alpha, (1 - c_1 - c_mu) / (n * c_mu))  # Eq. (52)
+    positive_sum = jnp.sum(weights_prime * (weights_prime > 0))
+    negative_sum = jnp.sum(jnp.abs(weights_prime * (weights_prime < 0)))
+    weights = jnp.where(
+        weights_prime >= 0,
+        weights_prime / positive_sum,
+        min_alpha * weights_prime / negative_sum,
+    )  # Eq. (53)
+
+    c_sigma = (mu_eff + 2) / (n + mu_eff + 5)  # Eq. (55)
+    d_sigma = 1 + 2 * jnp.maximum(0, jnp.sqrt((mu_eff - 1) / (n + 1)) - 1) + c_sigma  # Eq. (55)
+    chi_n = jnp.sqrt(n) * (1.0 - 1.0 / (4.0 * n) + 1.0 / (21.0 * n_sq**2))  # page 28
+
+    def scalar(v):
+        return jnp.asarray(v, dtype)
+
+    return Params(
+        n=n,
+        weights=weights.astype(dtype),
+        mu_eff=scalar(mu_eff),
+        c_mean=scalar(1.0),  # Eq. (54)
+        c_sigma=scalar(c_sigma),
+        d_sigma=scalar(d_sigma),
+        c_c=scalar(c_c),
+        c_1=scalar(c_1),
+        c_mu=scalar(c_mu),
+        chi_n=scalar(chi_n),
+        sigma_min=scalar(0.0),
+        sigma_max=scalar(1e8),
+        max_condition=scalar(max_condition),
+    )
+
+
+def _cast_params(params: Params, dtype) -> Params:
+    # Params built under x64 may meet a float32 state; keep the state's dtype stable (scan carry).
+    return jax.tree.map(lambda a: jnp.asarray(a).astype(dtype), params)
+
+
+def eigen(
+    C: jax.Array, mask: jax.Array, max_condition: jax.Array
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array, jax.Array, jax.Array]:
+    """Safe eigendecomposition of a masked covariance matrix.
+
+    Args:
+      C: ``[P, P]`` covariance; only the valid block (``mask`` x ``mask``) is read.
+      mask: ``[P]`` bool, valid coordinates.
+      max_condition: ``[]`` bound on lambda_max / lambda_min over the valid axes.
+
+    Returns:
+      ``(C, B, D, valid_axes, cond, bounded)``: the symmetrised (and, if an eigenvalue was
+      clipped, rebuilt) ``C`` ``[P, P]`` with padded block 0; eigenvectors ``B`` ``[P, P]``
+      (columns); ``D`` ``[P]`` square roots of the clipped eigenvalues, 0 on padded axes;
+      ``valid_axes`` ``[P]`` bool; ``cond`` ``[]`` of the returned ``C`` over the valid axes;
+      ``bounded`` ``[]`` bool, whether ``max_condition`` clipped an eigenvalue.
+    """
+    dtype = C.dtype
+    both = mask[:, None] & mask[None, :]
+    C = jnp.where(both, 0.5 * (C + C.T), 0)
+    # Padded axes would be exact zero eigenvalues, degenerate with any tiny valid eigenvalue,
+    # and eigh may then mix valid and padded directions. Shifting the padded diagonal to
+    # -max(diag C_valid) separates them by a gap >= lambda_max / n (C_valid is PSD, so
+    # lambda_max <= trace <= n * max diag) while keeping the matrix norm of the same order
+    # (so the valid eigenvalues lose no accuracy). Only eigh sees the shift.
+    diag = jnp.diagonal(C)
+    d_max = jnp.max(jnp.where(mask, jnp.abs(diag), 0))
+    shift = jnp.where(d_max > 0, d_max, 1)
+    lam, B = jnp.linalg.eigh(C - jnp.diag(jnp.where(mask, 0, shift)))
+    # A valid axis has (up to rounding, thanks to the gap) all its mass on valid coordinates.
+    mass = jnp.sum(jnp.where(mask[:, None], B**2, 0), axis=0)
+    valid_axes = mass > 0.5
+    # Zero the leakage so padded coordinates of samples are exactly 0 (and the pruner, which
+    # reads b_ij of valid axes, sees 0 on padded coordinates).
+    B = jnp.where(mask[:, None] == valid_axes[None, :], B, 0)
+
+    any_valid = jnp.any(valid_axes)
+    lam_max = jnp.max(jnp.where(valid_axes, lam, -jnp.inf))
+    bound = lam_max / max_condition
+    # An absolute floor keeps 1/D finite when C has collapsed (lambda_max <= 0 or tiny):
+    # sqrt(tiny) makes 1/D <= 1/tiny**0.25 (about 1e9 in float32), far from overflow.
+    floor = jnp.sqrt(jnp.asarray(jnp.finfo(dtype).tiny, dtype))
+    lower = jnp.maximum(bound, floor)
+    bounded = jnp.any(valid_axes & (lam < bound))
+    clipped = jnp.any(valid_axes & (lam < lower))
+    lam = jnp.where(valid_axes, jnp.maximum(lam, lower), 0)
+    D = jnp.sqrt(lam)
+    cond = jnp.max(jnp.where(valid_axes, lam, -jnp.inf)) / jnp.min(
+        jnp.where(valid_axes, lam, jnp.inf)
+    )
+    cond = jnp.where(any_valid, cond, 1)  # an empty structure (n = 0) has no spectrum
+    # Rebuild C only when the spectrum was changed, so that C stays B diag(D^2) B^T.
+    C = jnp.where(clipped, (B * lam[None, :]) @ B.T, C)
+    return C, B, D, valid_axes, cond, bounded
+
+
+def sqrt_cov(state: State, inverse: bool = False) -> jax.Array:
+    """Symmetric square root ``C^{1/2} = B diag(D) B^T`` (or ``C^{-1/2}``), ``[P, P]``.
+
+    Padded rows and columns are exactly 0 in both.
+    """
+    d = state.D
+    if inverse:
+        d = jnp.where(state.valid_axes, 1 / jnp.where(state.valid_axes, d, 1), 0)
+    return (state.B * d[None, :]) @ state.B.T
+
+
+def init(mean: jax.Array, sigma: jax.Array | float, mask: jax.Array, params: Params) -> State:
+    """Initial state ``N(mean, sigma^2 I)`` on the valid coordinates.
+
+    Args:
+      mean: ``[P]`` initial mean; its float dtype (float32 by default) is the state's dtype.
+        Padded entries are ignored (set to 0).
+      sigma: ``[]`` initial step size.
+      mask: ``[P]`` bool, valid coordinates; ``params`` must come from ``n = mask.sum()``.
+      params: hyper-parameters (only their dtype-independent meaning is used here).
+
+    Returns:
+      ``State`` with ``C = B = I`` on the valid block and ``D = mask``.
+    """
+    del params  # The initial state does not depend on them; kept for an evosax-like call.
+    mean = jnp.asarray(mean)
+    if not jnp.issubdtype(mean.dtype, jnp.floating):
+        mean = mean.astype(_float_dtype(None))
+    dtype = mean.dtype
+    mask = jnp.asarray(mask, bool)
+    P = mean.shape[-1]
+    valid = mask.astype(dtype)
+    zeros = jnp.zeros((P,), dtype)
+    # C = I is diagonal: its eigendecomposition is exact, so eigh is not needed here.
+    return State(
+        mean=jnp.where(mask, mean, 0),
+        sigma=jnp.asarray(sigma, dtype),
+        p_sigma=zeros,
+        p_c=zeros,
+        C=jnp.diag(valid),
+        B=jnp.eye(P, dtype=dtype),
+        D=valid,
+        mask=mask,
+        valid_axes=mask,
+        n=jnp.sum(mask, dtype=jnp.int32),
+        generation=jnp.asarray(0, jnp.int32),
+        cond=jnp.asarray(1, dtype),
+        cond_bounded=jnp.asarray(False),
+        num_nonfinite=jnp.asarray(0, jnp.int32),
+        best_x=zeros,
+        best_cost=jnp.asarray(jnp.inf, dtype),
+    )
+
+
+def ask(key: jax.Array, state: State, params: Params) -> tuple[jax.Array, State]:
+    """Sample ``popsize`` candidates ``x = m + sigma C^{1/2} z``, Eq. (38)-(40).
+
+    ``popsize`` is ``params.weights.shape[0]`` (static). Coordinate ``i`` draws its ``popsize``
+    normals from ``jax.random.fold_in(key, i)``, so the first ``n`` coordinates of ``z`` do not
+    depend on the padded size ``P``; ``C^{1/2} = B diag(D) B^T`` is the symmetric square root.
+
+    Args:
+      key: PRNG key.
+      state: current state.
+      params: hyper-parameters (for ``popsize``).
+
+    Returns:
+      ``(x, state)``: candidates ``[popsize, P]`` with padded coordinates exactly 0, and the
+      state unchanged (returned for evosax-shaped call sites).
+    """
+    popsize = params.weights.shape[0]
+    dtype = state.mean.dtype
+    P = state.mean.shape[-1]
+    keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(P))
+    z = jax.vmap(lambda k: jax.random.normal(k, (popsize,), dtype))(keys).T  # Eq. (38)
+    z = jnp.where(state.mask[None, :], z, 0)
+    # Eq. (39) with C^{1/2} = B diag(D) B^T (symmetric), applied as two [popsize, P] x [P, P]
+    # products rather than forming C^{1/2}.
+    y = ((z @ state.B) * state.D[None, :]) @ state.B.T
+    x = state.mean[None, :] + state.sigma * y  # Eq. (40)
+    return jnp.where(state.mask[None, :], x, 0), state
+
+
+def _rank_weights(cost: jax.Array, weights: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Weight of each candidate by its rank; non-finite costs rank last, never positive."""
+    popsize = cost.shape[0]
+    finite = jnp.isfinite(cost)
+    order = jnp.argsort(jnp.where(finite, cost, jnp.inf), stable=True)
+    ranks = jnp.zeros((popsize,), jnp.int32).at[order].set(jnp.arange(popsize, dtype=jnp.int32))
+    w = weights[ranks]
+    # A diverging candidate may still teach C where not to sample (negative weight), but it
+    # must not attract the mean (this only bites when fewer than mu costs are finite).
+    w = jnp.where(finite | (w < 0), w, 0)
+    return w, finite
+
+
+def tell(state: State, x: jax.Array, cost: jax.Array, params: Params) -> State:
+    """One CMA-ES update from candidates and their costs (minimisation), Eq. (41)-(47).
+
+    Args:
+      state: the state ``x`` was sampled from.
+      x: ``[popsize, P]`` candidates (padded coordinates are ignored).
+      cost: ``[popsize]`` costs; NaN and +-inf rank after all finite costs.
+      params: hyper-parameters from ``default_params(state.n, popsize)``.
+
+    Returns:
+      The new state, with ``B``, ``D``, ``cond`` and ``cond_bounded`` of the new ``C``. If no
+      cost is finite, only ``generation`` and ``num_nonfinite`` change.
+    """
+    dtype = state.mean.dtype
+    p = _cast_params(params, dtype)
+    mask = state.mask
+    x = x.astype(dtype)
+    cost = cost.astype(dtype)
+    w, finite = _rank_weights(cost, p.weights)
+
+    # Mean, Eq. (41)-(42); y_k ~ N(0, C).
+    y_k = jnp.where(mask[None, :], (x - state.mean[None, :]) / state.sigma, 0)
+    y_w = jnp.where(w > 0, w, 0) @ y_k
+    mean = state.mean + p.c_mean * state.sigma * y_w
+
+    # Step-size path and CSA, Eq. (43)-(44); C^{-1/2} = B diag(1/D) B^T, 1/D = 0 off valid axes.
+    inv_d = jnp.where(state.valid_axes, 1 / jnp.where(state.valid_axes, state.D, 1), 0)
+    p_sigma = (1 - p.c_sigma) * state.p_sigma + jnp.sqrt(p.c_sigma * (2 - p.c_sigma) * p.mu_eff) * (
+        state.B @ ((y_w @ state.B) * inv_d)
+    )  # Eq. (43)
+    norm_p_sigma = jnp.linalg.norm(p_sigma)
+    sigma = state.sigma * jnp.exp((p.c_sigma / p.d_sigma) * (norm_p_sigma / p.chi_n - 1))
+    sigma = jnp.clip(sigma, p.sigma_min, p.sigma_max)  # Eq. (44)
+
+    # Stall of the rank-one path, page 28. evosax passes generation_counter + 1 and adds 1
+    # again, i.e. exponent 2 (g + 2) for the (g + 1)-th update; matched so that trajectories
+    # agree (the difference fades after a few generations).
+    g = state.generation.astype(dtype) + 1
+    h_sigma = (
+        norm_p_sigma / jnp.sqrt(1 - (1 - p.c_sigma) ** (2 * (g + 1)))
+        < (1.4 + 2 / (p.n + 1)) * p.chi_n
+    )
+    h_sigma = h_sigma.astype(dtype)
+    p_c = (1 - p.c_c) * state.p_c + h_sigma * jnp.sqrt(
+        p.c_c * (2 - p.c_c) * p.mu_eff
+    ) * y_w  # Eq. (45)
+    delta_h_sigma = (1 - h_sigma) * p.c_c * (2 - p.c_c)
+
+    # Active rank-mu: negative weights rescaled by n / ||C^{-1/2} y_k||^2, Eq. (46).
+    # ||C^{-1/2} y||^2 = ||diag(1/D) B^T y||^2 as B is orthonormal on the valid axes.
+    norm2 = jnp.sum(((y_k @ state.B) * inv_d[None, :]) ** 2, axis=-1)
+    w_o = w * jnp.where(w >= 0, 1, p.n / jnp.maximum(norm2, 1e-8))
+    rank_mu = (w_o[:, None] * y_k).T @ y_k
+    C = (
+        (1 + p.c_1 * delta_h_sigma - p.c_1 - p.c_mu * jnp.sum(p.weights)) * state.C
+        + p.c_1 * jnp.outer(p_c, p_c)
+        + p.c_mu * rank_mu
+    )  # Eq. (47)
+    C, B, D, valid_axes, cond, bounded = eigen(C, mask, p.max_condition)
+
+    # Best-so-far over finite costs.
+    masked_cost = jnp.where(finite, cost, jnp.inf)
+    i_best = jnp.argmin(masked_cost)
+    improved = masked_cost[i_best] < state.best_cost
+
+    updated = state.replace(
+        mean=mean,
+        sigma=sigma,
+        p_sigma=p_sigma,
+        p_c=p_c,
+        C=C,
+        B=B,
+        D=D,
+        valid_axes=valid_axes,
+        cond=cond,
+        cond_bounded=bounded,
+        best_x=jnp.where(improved, jnp.where(mask, x[i_best], 0), state.best_x),
+        best_cost=jnp.where(improved, masked_cost[i_best], state.best_cost),
+    )
+    new = jax.tree.map(lambda a, b: jnp.where(jnp.any(finite), a, b), updated, state)
+    return new.replace(
+        generation=state.generation + 1,
+        num_nonfinite=jnp.sum(~finite, dtype=jnp.int32),
+    )

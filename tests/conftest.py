@@ -1,0 +1,42 @@
+"""Test-wide settings: hypothesis profiles and strict JAX numerics.
+
+Profiles (select with HYPOTHESIS_PROFILE=<name>; the "ci" profile is the default when the CI
+environment variable is set):
+
+* ``default``: 100 examples per property, fresh random draws each run (finds new cases).
+* ``ci``: 60 examples, derandomized, so a CI run is reproducible and its time predictable.
+
+``deadline=None`` in both: the first example of a test pays for XLA compilation, which would
+otherwise trip hypothesis' per-example deadline.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+import jax
+from hypothesis import settings
+
+# When a property fails, hypothesis' pytest plugin imports libcst (to write a patch of the
+# failing example); libcst's import emits a DeprecationWarning, which "warnings are errors"
+# turns into an INTERNALERROR that ends the whole session and hides the failure. Import it
+# once here, with that warning silenced, so that failures are reported normally.
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", DeprecationWarning)
+    try:
+        import libcst  # noqa: F401
+    except ImportError:
+        pass
+
+# Implicit rank promotion hides shape bugs (a [H] bias broadcast against [G, H] by accident);
+# the library and these tests pass with it as an error, as equinox's tests run.
+jax.config.update("jax_numpy_rank_promotion", "raise")
+
+settings.register_profile("default", deadline=None, max_examples=100, print_blob=True)
+settings.register_profile(
+    "ci", deadline=None, max_examples=60, derandomize=True, print_blob=True, database=None
+)
+settings.load_profile(
+    os.environ.get("HYPOTHESIS_PROFILE", "ci" if os.environ.get("CI") else "default")
+)

@@ -1,0 +1,444 @@
+"""Tests of the pure-JAX kernels (``kernels/``, installed as ``eant2_jax.kernels``).
+
+Kernel level: the scatter of ``network()`` against a NumPy construction of the dense matrices
+straight from the genome; ``step`` and ``rollout`` under jit and vmap, without retracing;
+padding; gradients. Packaging: ``eant2_jax.kernels`` is this repository's ``kernels/`` folder
+(never the unrelated ``kernels`` distribution on PyPI), in the editable install and in a
+built wheel, and it imports nothing from the rest of eant2_jax.
+"""
+
+from __future__ import annotations
+
+import ast
+import functools
+import os
+import subprocess
+import sys
+import textwrap
+import tomllib
+import zipfile
+from pathlib import Path
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+from strategies import fewer_examples, genomes
+
+import eant2_jax
+from eant2_jax.compiler import Bucket, compile_genomes
+from eant2_jax.genome import GeneKind, Genome
+from eant2_jax.kernels import network as kn
+from eant2_jax.reference import interpret
+
+REPO = Path(__file__).resolve().parents[1]
+KERNELS = REPO / "kernels"
+N_IN, H, P, SWEEPS = 3, 6, 24, 6  # a bucket that holds every genome strategies.genomes draws
+EXAMPLE = "N0/3*1.0 F2*0.3 N1/2*0.5 I0*1 I1*-2 R0*0.7 N2/2*-1.2 B*0.1 I2*0.4"
+
+
+def one_layout(g: Genome, *, neurons: int = H, genes: int = P, sweeps: int = SWEEPS):
+    """The unbatched Layout of one genome and its float32 weights ``[genes]``."""
+    compiled = compile_genomes(
+        [g], N_IN, bucket=Bucket(neurons=neurons, genes=genes, sweeps=sweeps)
+    )
+    return jax.tree.map(lambda a: a[0], compiled.layout), compiled.weights[0]
+
+
+def dense_numpy(g: Genome, h: int, n_in: int) -> dict[str, np.ndarray]:
+    """The dense tensors of a genome, built directly from the gene table of the compiler's
+    docstring (no flat buffer, no slots array): neuron slots by descending gene index."""
+    order = sorted((i for i, x in enumerate(g) if x.kind == GeneKind.NEURON), reverse=True)
+    slot = {g[i].ref: s for s, i in enumerate(order)}
+    out = {
+        "w_in": np.zeros((h, n_in)),
+        "bias": np.zeros(h),
+        "w_ff": np.zeros((h, h)),
+        "w_rec": np.zeros((h, h)),
+        "w_out": np.zeros((g.n_outputs, h)),
+        "is_root": np.zeros(h, bool),
+        "neuron_mask": np.zeros(h, bool),
+    }
+    out["neuron_mask"][: len(order)] = True
+    w = g.weights.astype(np.float32)
+    for i, gene in enumerate(g):
+        p = g.parent[i]
+        if p < 0:  # a root: its own weight selects its output
+            out["w_out"][g.roots.index(i), slot[gene.ref]] += w[i]
+            out["is_root"][slot[gene.ref]] = True
+            continue
+        row = slot[g[p].ref]
+        if gene.kind == GeneKind.INPUT:
+            out["w_in"][row, gene.ref] += w[i]
+        elif gene.kind == GeneKind.BIAS:
+            out["bias"][row] += w[i]
+        elif gene.kind == GeneKind.RECURRENT:
+            out["w_rec"][row, slot[gene.ref]] += w[i]
+        else:  # a sub-neuron or a forward jumper: a current-step edge
+            out["w_ff"][row, slot[gene.ref]] += w[i]
+    return out
+
+
+# ------------------------------------------------------------------------------- network()
+_network = jax.jit(kn.network)
+
+
+@given(g=genomes(), junk=hnp.arrays(np.float32, P, elements=st.floats(-9, 9, width=32)))
+def test_network_scatter_matches_numpy(g, junk):
+    layout, w = one_layout(g)
+    # Padding gene slots carry junk: network() must ignore it (gene_mask).
+    params = jnp.where(layout.gene_mask, w, jnp.asarray(junk))
+    net = _network(layout, params)
+    want = dense_numpy(g, H, N_IN)
+    for name, value in want.items():
+        # Sums of a few float32 weights (repeated genes) in another order; XLA on CPU flushes
+        # float32 subnormals to zero, hence the absolute floor at the smallest normal.
+        np.testing.assert_allclose(
+            np.asarray(getattr(net, name)), value, rtol=1e-6, atol=np.finfo(np.float32).tiny
+        )
+    assert net.sweeps == SWEEPS
+    # Slot order is topological: a neuron reads only earlier slots at the current step.
+    assert not np.any(np.triu(np.asarray(net.w_ff)))
+
+
+def test_buffer_size_and_activation_errors():
+    assert kn.buffer_size(4, 3, 2) == 4 * 3 + 4 + 2 * 16 + 2 * 4 + 1
+    with pytest.raises(ValueError, match="unknown activation 'gelu'; known: identity, relu"):
+        kn.activation("gelu")
+    assert set(kn.ACTIVATIONS) == {"identity", "tanh", "sigmoid", "relu"}
+
+
+# ------------------------------------------------------------------------ step and rollout
+@functools.cache
+def _example():
+    layout, w = one_layout(Genome.parse(EXAMPLE), neurons=8, genes=12, sweeps=3)
+    rng = np.random.default_rng(0)
+    xs = jnp.asarray(rng.normal(size=(5, 4, N_IN)), jnp.float32)  # [T, B, n_in]
+    return layout, w, xs
+
+
+def test_rollout_matches_reference_and_steps():
+    layout, w, xs = _example()
+    net = kn.network(layout, w)
+    ys = kn.rollout(net, xs[:, 0], hidden="sigmoid", output="tanh")
+    want = interpret(
+        Genome.parse(EXAMPLE), np.asarray(xs[:, :1], np.float64), hidden="sigmoid", output="tanh"
+    )
+    np.testing.assert_allclose(np.asarray(ys), want[:, 0], rtol=1e-5, atol=1e-6)
+    step = jax.jit(functools.partial(kn.step, hidden="sigmoid", output="tanh"))
+    h = jnp.zeros(8)
+    for t in range(xs.shape[0]):
+        y, h = step(net, xs[t, 0], h)
+        np.testing.assert_allclose(np.asarray(y), np.asarray(ys[t]), rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize(("hidden", "output"), [("tanh", "identity"), ("relu", "sigmoid")])
+def test_step_and_rollout_jit_equal_eager(hidden, output):
+    layout, w, xs = _example()
+    net = kn.network(layout, w)
+    h0 = jnp.asarray(np.random.default_rng(1).normal(size=8), jnp.float32)
+    h0 = jnp.where(layout.neuron_mask, h0, 0.0)
+    step = functools.partial(kn.step, hidden=hidden, output=output)
+    rollout = functools.partial(kn.rollout, hidden=hidden, output=output)
+    for a, b in zip(step(net, xs[0, 0], h0), jax.jit(step)(net, xs[0, 0], h0), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(
+        np.asarray(rollout(net, xs[:, 0], h0=h0)),
+        np.asarray(jax.jit(rollout)(net, xs[:, 0], h0=h0)),
+        rtol=1e-6,
+        atol=1e-7,
+    )
+
+
+def test_step_and_rollout_under_vmap():
+    layout, w, xs = _example()
+    net = kn.network(layout, w)
+    hs = jnp.asarray(np.random.default_rng(2).normal(size=(4, 8)), jnp.float32)
+    # Over examples (and states): vmap equals a Python loop.
+    ys, h_next = jax.vmap(kn.step, in_axes=(None, 0, 0))(net, xs[0], hs)
+    step = jax.jit(kn.step)
+    for b in range(4):
+        y, h = step(net, xs[0, b], hs[b])
+        np.testing.assert_allclose(np.asarray(ys[b]), np.asarray(y), rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(np.asarray(h_next[b]), np.asarray(h), rtol=1e-6, atol=1e-7)
+    # Over networks: a batched Layout and parameters, one stream each.
+    g2 = Genome.parse("N0/2*0.5 I2*1 R0*-1 N5/1*2 B*0.3")
+    layout2, w2 = one_layout(g2, neurons=8, genes=12, sweeps=3)
+    layouts = jax.tree.map(lambda a, b: jnp.stack([a, b]), layout, layout2)
+    run = jax.jit(jax.vmap(lambda lay, p, x: kn.rollout(kn.network(lay, p), x)))
+    ys = run(layouts, jnp.stack([w, w2]), jnp.stack([xs[:, 0], xs[:, 1]]))
+    for k, (lay, p, x) in enumerate([(layout, w, xs[:, 0]), (layout2, w2, xs[:, 1])]):
+        alone = kn.rollout(kn.network(lay, p), x)  # eager
+        np.testing.assert_allclose(np.asarray(ys[k]), np.asarray(alone), rtol=1e-6, atol=1e-7)
+
+
+def test_no_retrace_for_new_values():
+    chex.clear_trace_counter()
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def run(layout, params, xs):
+        return kn.rollout(kn.network(layout, params), xs)
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def one_step(layout, params, x, h):
+        return kn.step(kn.network(layout, params), x, h)
+
+    layout, w, xs = _example()
+    # Another structure in the same bucket: new values, same shapes and static fields.
+    other = Genome.parse("N4/2*1 I1*1 F9*2 N9/1*1 R4*1")
+    layout2, w2 = one_layout(other, neurons=8, genes=12, sweeps=3)
+    for lay, p in [(layout, w), (layout2, w2), (layout, 2 * w)]:
+        run(lay, p, xs[:, 0]).block_until_ready()
+        jax.block_until_ready(one_step(lay, p, xs[0, 0], jnp.ones(8)))
+    # The check can fail: a new sequence length is a new trace.
+    with pytest.raises(AssertionError, match="traced > 1 times"):
+        run(layout, w, xs[:3, 0])
+
+
+# ---------------------------------------------------------------------------------- padding
+@given(
+    g=genomes(max_neurons=3),
+    h_prev=hnp.arrays(np.float32, H, elements=st.floats(-3, 3, width=32)),
+)
+def test_padding_neurons_stay_zero(g, h_prev):
+    # sigmoid(0) = 0.5: without the mask, the padding slots would light up.
+    layout, w = one_layout(g)
+    real = np.asarray(layout.neuron_mask)
+    assert real.sum() == g.n_neurons < H
+    y, h = _sigmoid_step(layout, w, jnp.ones(N_IN), jnp.asarray(h_prev))
+    assert np.all(np.asarray(h)[~real] == 0.0)
+    assert np.all(np.asarray(h)[real] > 0.0)
+    assert np.all(np.isfinite(np.asarray(y)))
+
+
+@jax.jit
+def _sigmoid_step(layout, params, x, h_prev):
+    return kn.step(kn.network(layout, params), x, h_prev, hidden="sigmoid", output="sigmoid")
+
+
+def test_empty_padding_rows_output_zero():
+    from eant2_jax.evaluate import rollout_batch
+
+    batch = [Genome.parse("N0/1*1 I0*1")] * 5  # five genomes: padded to six rows
+    compiled = compile_genomes(batch, N_IN)
+    assert compiled.layout.slot.shape[0] == 6 and compiled.count == 5
+    xs = jnp.ones((3, 2, N_IN))
+    ys = rollout_batch(compiled.layout, compiled.weights, xs, hidden="sigmoid", output="sigmoid")
+    assert np.all(np.asarray(ys[5]) == 0.0)
+    np.testing.assert_allclose(np.asarray(ys[0]), 1 / (1 + np.exp(-1.0)), rtol=1e-6)
+
+
+# -------------------------------------------------------------------------------- gradients
+@fewer_examples(0.1)
+@given(
+    g=genomes(max_outputs=2),  # one compilation of the gradient per number of outputs
+    x=hnp.arrays(np.float32, (4, N_IN), elements=st.floats(-2, 2, width=32)),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_grad_through_network_and_rollout(g, x, seed):
+    """Finite, zero on padding genes, and equal to central differences of the reference.
+
+    Smooth activations only (relu has a kink). The float64 central difference with step 1e-6
+    is exact to ~1e-9; the float32 gradient to ~1e-5 relative, hence rtol 1e-3 on the
+    directional derivative, with the size of the summed terms as absolute floor.
+    """
+    rng = np.random.default_rng(seed)
+    layout, w = one_layout(g)
+    cot = rng.normal(size=(4, g.n_outputs))
+    grad = np.asarray(_grad(layout, w, jnp.asarray(x), jnp.asarray(cot, jnp.float32)))
+    assert np.all(np.isfinite(grad))
+    assert np.all(grad[len(g) :] == 0.0)
+    v = rng.normal(size=len(g))
+
+    def ref_loss(wts):
+        xs = x[:, None].astype(np.float64)
+        y = interpret(g, xs, hidden="tanh", output="sigmoid", weights=wts)
+        return float(np.sum(y[:, 0] * cot))
+
+    w64 = np.asarray(w[: len(g)], np.float64)
+    eps = 1e-6
+    fd = (ref_loss(w64 + eps * v) - ref_loss(w64 - eps * v)) / (2 * eps)
+    scale = float(np.sum(np.abs(v))) * float(np.sum(np.abs(cot)))
+    np.testing.assert_allclose(grad[: len(g)] @ v, fd, rtol=1e-3, atol=1e-4 * scale)
+
+
+@jax.jit
+def _grad(layout, w, x, cot):
+    """d/dp of sum(rollout(network(layout, p), x) * cot) at p = w."""
+
+    def loss(p):
+        ys = kn.rollout(kn.network(layout, p), x, hidden="tanh", output="sigmoid")
+        return jnp.sum(ys * cot)
+
+    return jax.grad(loss)(w)
+
+
+# ---------------------------------------------------------------------- packaging: imports
+def _run_python(code: str, *, python: str = sys.executable, cwd: Path) -> str:
+    """Run ``code`` in a fresh interpreter from ``cwd`` (not the repository, whose own
+    ``kernels/`` folder would otherwise be importable as a top-level ``kernels``)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    env["JAX_PLATFORMS"] = "cpu"
+    done = subprocess.run(
+        [python, "-c", textwrap.dedent(code)],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, f"stdout:\n{done.stdout}\nstderr:\n{done.stderr}"
+    return done.stdout
+
+
+def test_kernels_resolve_to_this_repository():
+    assert Path(kn.__file__).resolve() == KERNELS / "network.py"
+    assert Path(eant2_jax.kernels.__file__).resolve() == KERNELS / "__init__.py"
+
+
+def test_kernels_resolve_in_a_fresh_interpreter(tmp_path):
+    out = _run_python(
+        """
+        import importlib.util, sys
+        import eant2_jax, eant2_jax.kernels.network as n
+        print(eant2_jax.__file__)
+        print(n.__file__)
+        # Nothing in eant2_jax imports a top-level `kernels` (ours, or PyPI's).
+        print("kernels" in sys.modules)
+        spec = importlib.util.find_spec("kernels")
+        print(spec.origin if spec else None)
+        """,
+        cwd=tmp_path,
+    )
+    package, network, imported, top_level = out.split("\n")[:4]
+    package_dir = Path(package).resolve().parent
+    if package_dir == REPO / "eant2_jax":  # the editable install: the repository's folder
+        assert Path(network).resolve() == KERNELS / "network.py"
+    else:  # a regular install: the copy next to the package
+        assert Path(network).resolve() == package_dir / "kernels" / "network.py"
+    assert imported == "False"
+    assert top_level == "None" or not Path(top_level).resolve().is_relative_to(REPO)
+
+
+def test_kernels_import_nothing_from_the_package(tmp_path):
+    # Statically: no import names eant2_jax, and no relative import leaves kernels/.
+    for path in sorted(KERNELS.glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                assert node.level <= 1, f"{path.name}: relative import out of kernels/"
+                names = [node.module or ""]
+            else:
+                continue
+            assert not any(n.split(".")[0] == "eant2_jax" for n in names), path.name
+    # Dynamically: load kernels/ as a standalone package; eant2_jax never gets imported.
+    _run_python(
+        f"""
+        import importlib, importlib.util, pathlib, sys
+        folder = pathlib.Path({str(KERNELS)!r})
+        spec = importlib.util.spec_from_file_location(
+            "standalone_kernels", folder / "__init__.py", submodule_search_locations=[str(folder)]
+        )
+        package = importlib.util.module_from_spec(spec)
+        sys.modules["standalone_kernels"] = package
+        spec.loader.exec_module(package)
+        for path in sorted(folder.glob("*.py")):
+            if path.stem != "__init__":
+                importlib.import_module("standalone_kernels." + path.stem)
+        leaked = sorted(m for m in sys.modules if m.split(".")[0] in ("eant2_jax", "kernels"))
+        assert not leaked, leaked
+        """,
+        cwd=tmp_path,
+    )
+
+
+# ----------------------------------------------------------------------- packaging: a wheel
+def _copy_sources(dest: Path) -> None:
+    """The files a wheel is built from: pyproject.toml, its readme/license, its packages."""
+    import shutil
+
+    meta = tomllib.loads((REPO / "pyproject.toml").read_text())
+    project, tool = meta["project"], meta["tool"]["setuptools"]
+    files = ["pyproject.toml"]
+    readme = project.get("readme")
+    files += [readme] if isinstance(readme, str) else [readme["file"]] if readme else []
+    license_ = project.get("license", {})
+    files += [license_["file"]] if isinstance(license_, dict) and "file" in license_ else []
+    for f in files:
+        shutil.copy2(REPO / f, dest / f)
+    package_dir = tool.get("package-dir", {})
+    folders = {package_dir.get(p, p.replace(".", "/")) for p in tool["packages"]}
+    for folder in sorted(folders):
+        if not (dest / folder).exists():
+            shutil.copytree(
+                REPO / folder, dest / folder, ignore=shutil.ignore_patterns("__pycache__")
+            )
+
+
+@pytest.mark.slow
+def test_wheel_installs_kernels_inside_the_package(tmp_path):
+    """Build a wheel, install it in a fresh venv, import from outside the repository."""
+    src, dist, venv, elsewhere = (tmp_path / d for d in ("src", "dist", "venv", "elsewhere"))
+    for d in (src, dist, elsewhere):
+        d.mkdir()
+    # Build from a copy, so the build leaves no build/ or *.egg-info in the working tree.
+    _copy_sources(src)
+    build = subprocess.run(
+        [sys.executable, "-m", "build", "--wheel", "--outdir", str(dist), str(src)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
+    (wheel,) = dist.glob("eant2_jax-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    assert "eant2_jax/kernels/network.py" in names
+    assert not any(n.startswith("kernels/") for n in names), "a top-level kernels/ was packaged"
+    top_level = [n for n in names if n.endswith(".dist-info/top_level.txt")]
+    if top_level:
+        assert zipfile.ZipFile(wheel).read(top_level[0]).decode().split() == ["eant2_jax"]
+
+    # jax and the other dependencies come from this interpreter's site-packages: no network.
+    subprocess.run(
+        [sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", str(venv)],
+        check=True,
+        timeout=120,
+    )
+    python = str(venv / ("Scripts/python.exe" if os.name == "nt" else "bin/python"))
+    install = subprocess.run(
+        [python, "-m", "pip", "install", "--no-deps", "--no-index", "-q", str(wheel)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert install.returncode == 0, install.stdout[-3000:] + install.stderr[-3000:]
+    out = _run_python(
+        """
+        import sys
+        import numpy as np
+        import eant2_jax
+        import eant2_jax.kernels.network as n
+        print(sys.prefix)
+        print(eant2_jax.__file__)
+        print(n.__file__)
+        y = eant2_jax.evaluate("N0/2*2 I0*0.5 R0*1", np.array([[[1.0]], [[2.0]], [[3.0]]]))
+        print(np.asarray(y).ravel().tolist())
+        print("kernels" in sys.modules)
+        """,
+        python=python,
+        cwd=elsewhere,
+    )
+    prefix, package, network, y, imported = out.split("\n")[:5]
+    assert Path(prefix).resolve() == venv.resolve()
+    for f in (package, network):
+        assert Path(f).resolve().is_relative_to(venv.resolve()), f
+    assert Path(network).resolve().parent == Path(package).resolve().parent / "kernels"
+    assert y == "[1.0, 3.0, 6.0]"
+    assert imported == "False"

@@ -1,0 +1,32 @@
+"""One entry point for the benchmark suites: ``python -m bench SUITE [options]``.
+
+Suites: forward (the evaluator kernel), cmaes (batched CMA-ES), servo (the MJX task),
+generation (whole EANT2 generations, pruning overhead, scaling). Each writes JSON (device,
+versions, config, compile time apart from steady state) and a markdown table; ``--help``
+after the suite name lists its options.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+SUITES = {
+    "forward": "bench.bench_forward",
+    "cmaes": "bench.bench_cmaes",
+    "servo": "bench.bench_servo",
+    "generation": "bench.bench_generation",
+}
+
+
+def main(argv: list[str]) -> int:
+    if not argv or argv[0] in ("-h", "--help") or argv[0] not in SUITES:
+        print(__doc__)
+        print("usage: python -m bench {" + ",".join(SUITES) + "} [options]")
+        return 0 if argv and argv[0] in ("-h", "--help") else 2
+    importlib.import_module(SUITES[argv[0]]).main(argv[1:])
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,287 @@
+"""Whole EANT2 generations on the servo task, pruning overhead, and scaling.
+
+Three parts, each optional:
+
+* ``generation``: an EANT2 run (default 20 structures, 1023 moves, kinematic mode) for a few
+  generations; per generation its wall time, evaluations, moves per second and the number of
+  XLA compilations, counted through ``jax.monitoring``. After the warm-up generations the
+  compilations must stop growing beyond one per new padding bucket.
+* ``pruning``: the cost of one pruning attempt (every structure tries, batched) relative to
+  one CMA-ES iteration of the same batch.
+* ``scaling``: one exploitation batch of random genomes for a fixed number of iterations,
+  against the number of structures, the number of moves and the network size.
+
+Run: ``python -m bench generation [--quick] [--out PATH]`` (see ``--help``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bench.common import (
+    Column,
+    default_out,
+    environment,
+    markdown_table,
+    random_population,
+    write_results,
+)
+from eant2_jax import exploitation as ex
+from eant2_jax import loop, tasks
+from eant2_jax.compiler import compile_genomes
+from eant2_jax.pruning import tables_for
+
+
+class CompileCounter:
+    """Counts XLA backend compilations (all programs, any caller) while alive."""
+
+    def __init__(self):
+        self.count = 0
+        jax.monitoring.register_event_duration_secs_listener(self._listen)
+
+    def _listen(self, name: str, duration: float, **kwargs) -> None:
+        if name == "/jax/core/compile/backend_compile_duration":
+            self.count += 1
+
+
+def bench_generations(args, counter: CompileCounter) -> list[dict]:
+    task = tasks.make("servo", mode=args.mode, n_starts=args.moves)
+    config = loop.EANT2Config(
+        population=args.population,
+        exploit=ex.ExploitConfig(max_iters=args.max_iters, pruner=args.pruner),
+    )
+    rows: list[dict] = []
+    marks = {"compiles": counter.count, "t": time.perf_counter()}
+
+    def on_event(event):
+        if event["event"] != "generation":
+            return
+        now = time.perf_counter()
+        rows.append(
+            {
+                "generation": event["generation"],
+                "seconds": now - marks["t"],
+                "exploited": event["exploited"],
+                "evaluations": event["evaluations"],
+                "compiles": counter.count - marks["compiles"],
+                "best_cost": event["best_cost"],
+                "best_size": event["best_size"],
+            }
+        )
+        marks["t"], marks["compiles"] = now, counter.count
+
+    loop.run(
+        task,
+        key=jax.random.key(args.seed),
+        config=config,
+        generations=args.generations,
+        callback=on_event,
+    )
+    prev = 0
+    for r in rows:
+        r["new_evaluations"] = r["evaluations"] - prev
+        prev = r["evaluations"]
+        r["evals_per_s"] = r["new_evaluations"] / r["seconds"]
+        r["moves_per_s"] = r["evals_per_s"] * args.moves
+    return rows
+
+
+def _batch(seed: int, count: int, n_genes: int, n_inputs: int, config: ex.ExploitConfig):
+    genomes = random_population(seed, count, n_genes)
+    batch = compile_genomes(genomes, n_inputs, pad_count=False)
+    popsize = config.popsize or ex.default_popsize(batch.bucket.genes)
+    keys = jax.random.split(jax.random.key(seed), count)
+    st = ex.init(keys, batch.weights, batch.layout.gene_mask, config, popsize=popsize)
+    return genomes, batch, st, tables_for(genomes, batch.bucket.genes)
+
+
+def _pruning_case(args, task, n_genes: int) -> dict:
+    config = ex.ExploitConfig(pruner="covariance", max_iters=1, chunk=1)
+    _, batch, st, tables = _batch(args.seed, args.population, n_genes, task.n_inputs, config)
+    static, limits = ex._program_config(config)
+    plain = dataclasses.replace(static, pruner="none")
+    key = jax.random.key(0)
+    step = jax.jit(lambda s: ex._step(s, batch.layout, tables, task, key, plain, limits)[0])
+    trigger = jnp.ones(st.stop.shape, bool)
+    attempt = jax.jit(
+        lambda s: ex._prune(s, trigger, batch.layout, tables, task, key, static, limits)[0]
+    )
+    t_step = _time(lambda: step(st), args.repeats)
+    t_prune = _time(lambda: attempt(st), args.repeats)
+    return {
+        "structures": args.population,
+        "genes": n_genes,
+        "P": batch.bucket.genes,
+        "iteration_ms": 1e3 * t_step,
+        "attempt_ms": 1e3 * t_prune,
+        "ratio": t_prune / t_step,
+    }
+
+
+def bench_pruning(args) -> list[dict]:
+    """One pruning attempt of every structure vs one CMA-ES iteration, same batch."""
+    task = tasks.make("servo", mode=args.mode, n_starts=args.moves)
+    return [_pruning_case(args, task, n) for n in args.scaling_genes]
+
+
+def _time(fn, repeats: int) -> float:
+    jax.block_until_ready(fn())  # compile
+    jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def bench_scaling(args) -> list[dict]:
+    """Time of ``iters`` exploitation iterations against structures, moves and size."""
+    rows = []
+    cases = [(s, args.moves, args.scaling_genes[0]) for s in args.scaling_structures]
+    cases += [(args.population, m, args.scaling_genes[0]) for m in args.scaling_moves]
+    cases += [(args.population, args.moves, g) for g in args.scaling_genes[1:]]
+    for structures, moves, n_genes in dict.fromkeys(cases):
+        task = tasks.make("servo", mode=args.mode, n_starts=moves)
+        config = ex.ExploitConfig(
+            pruner="none",
+            max_iters=args.scaling_iters,
+            chunk=args.scaling_iters,
+            patience=10**6,
+            sigma_tol=0.0,
+        )
+        _, batch, st, tables = _batch(args.seed, structures, n_genes, task.n_inputs, config)
+        popsize = st.params.weights.shape[-1]
+
+        def go(st=st, batch=batch, task=task, config=config, tables=tables):
+            return ex.run(
+                st, batch.layout, task, key=jax.random.key(1), config=config, tables=tables
+            )[0].evals
+
+        t0 = time.perf_counter()
+        jax.block_until_ready(go())
+        first = time.perf_counter() - t0
+        t = _time(go, max(1, args.repeats // 3))
+        evals = structures * popsize * args.scaling_iters
+        rows.append(
+            {
+                "structures": structures,
+                "moves": moves,
+                "genes": n_genes,
+                "P": batch.bucket.genes,
+                "popsize": popsize,
+                "first_s": first,
+                "iteration_ms": 1e3 * t / args.scaling_iters,
+                "moves_per_s": evals * moves / t,
+            }
+        )
+    return rows
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m bench generation", description=__doc__)
+    p.add_argument("--parts", default="generation,pruning,scaling")
+    p.add_argument("--population", type=int, default=20)
+    p.add_argument("--generations", type=int, default=4)
+    p.add_argument("--max-iters", type=int, default=300)
+    p.add_argument("--moves", type=int, default=1023)
+    p.add_argument("--mode", default="kinematic")
+    p.add_argument("--pruner", default="covariance")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--repeats", type=int, default=9)
+    p.add_argument("--scaling-structures", type=int, nargs="+", default=[8, 20, 40, 80])
+    p.add_argument("--scaling-moves", type=int, nargs="+", default=[256, 1023, 4092])
+    p.add_argument("--scaling-genes", type=int, nargs="+", default=[40, 80, 160])
+    p.add_argument("--scaling-iters", type=int, default=50)
+    p.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
+    p.add_argument("--out", default=None)
+    args = p.parse_args(argv)
+    if args.quick:
+        args.population, args.generations, args.max_iters, args.moves = 3, 1, 20, 16
+        args.scaling_structures, args.scaling_moves, args.scaling_genes = [2], [16], [34]
+        args.scaling_iters, args.repeats = 5, 2
+    return args
+
+
+def render(payload: dict[str, Any]) -> str:
+    env = payload["environment"]
+    out = [f"Device: {env['device_kind']} ({env['platform']}), jax {env['jax_version']}.\n"]
+    if payload.get("generation"):
+        out.append("\n### EANT2 generations on servo\n\n")
+        out.append(
+            markdown_table(
+                payload["generation"],
+                [
+                    Column("generation", "gen"),
+                    Column("seconds", "wall s", "{:.2f}"),
+                    Column("exploited", "structures"),
+                    Column("new_evaluations", "evaluations"),
+                    Column("moves_per_s", "moves/s", "{:.3g}"),
+                    Column("compiles", "XLA compiles"),
+                    Column("best_cost", "best cost", "{:.4g}"),
+                    Column("best_size", "size"),
+                ],
+            )
+        )
+    if payload.get("pruning"):
+        out.append("\n### Pruning attempt vs one CMA-ES iteration\n\n")
+        out.append(
+            markdown_table(
+                payload["pruning"],
+                [
+                    Column("structures", "S"),
+                    Column("genes", "genes"),
+                    Column("P", "P"),
+                    Column("iteration_ms", "iteration ms", "{:.3g}"),
+                    Column("attempt_ms", "attempt ms", "{:.3g}"),
+                    Column("ratio", "ratio", "{:.2f}"),
+                ],
+            )
+        )
+    if payload.get("scaling"):
+        out.append("\n### Scaling of one exploitation batch\n\n")
+        out.append(
+            markdown_table(
+                payload["scaling"],
+                [
+                    Column("structures", "S"),
+                    Column("moves", "moves"),
+                    Column("genes", "genes"),
+                    Column("P", "P"),
+                    Column("popsize", "popsize"),
+                    Column("first_s", "first call s", "{:.2f}"),
+                    Column("iteration_ms", "ms / iteration", "{:.3g}"),
+                    Column("moves_per_s", "moves/s", "{:.3g}"),
+                ],
+            )
+        )
+    return "".join(out)
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    args = parse_args(argv)
+    counter = CompileCounter()
+    parts = set(args.parts.split(","))
+    payload: dict[str, Any] = {"environment": environment(), "config": vars(args)}
+    if "generation" in parts:
+        payload["generation"] = bench_generations(args, counter)
+    if "pruning" in parts:
+        payload["pruning"] = bench_pruning(args)
+    if "scaling" in parts:
+        payload["scaling"] = bench_scaling(args)
+    md = render(payload)
+    write_results(args.out or default_out("generation"), payload, md)
+    print(md)
+    return payload
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,21 @@
+"""Smoke test of the generation benchmark (tiny sizes): it runs and reports sane numbers."""
+
+import json
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+
+def test_generation_bench_quick(tmp_path):
+    from bench import bench_generation
+
+    out = tmp_path / "gen.json"
+    payload = bench_generation.main(["--quick", "--parts", "generation,pruning", "--out", str(out)])
+    saved = json.loads(out.read_text())
+    assert saved["environment"]["platform"] == payload["environment"]["platform"]
+    gens = payload["generation"]
+    assert [r["generation"] for r in gens] == [0, 1]
+    assert all(r["seconds"] > 0 and r["new_evaluations"] > 0 for r in gens)
+    assert all(r["attempt_ms"] > 0 and r["iteration_ms"] > 0 for r in payload["pruning"])
+    assert out.with_suffix(".md").read_text().startswith("Device:")

@@ -116,12 +116,25 @@ class RunDir:
         return data
 
     def rewind(self, offsets: dict | None) -> None:
-        """Truncate the ``.jsonl`` files to the lengths recorded with a checkpoint."""
+        """Truncate the ``.jsonl`` files to the lengths recorded with a checkpoint.
+
+        Every length is checked before any file is touched, so a corrupt checkpoint leaves
+        the directory as it was.
+        """
+        sizes = {}
         for name in (GENERATIONS, PRUNING):
-            size = 0 if offsets is None else int(offsets[name])
+            try:
+                size = 0 if offsets is None else int(offsets[name])
+            except (KeyError, TypeError, ValueError):
+                raise RunDirError(
+                    f"{self.path / CHECKPOINT} is corrupt: no valid offset of {name}"
+                ) from None
             p = self.path / name
-            if p.stat().st_size < size:
+            if size < 0 or p.stat().st_size < size:
                 raise RunDirError(f"{p} is shorter than its checkpoint says; the run is corrupt")
+            sizes[name] = size
+        for name, size in sizes.items():
+            p = self.path / name
             with open(p, "r+b") as f:
                 f.truncate(size)
                 f.flush()

@@ -1,0 +1,572 @@
+"""Tests of the EANT2 loop, its run directories and the ``eant2`` command line.
+
+* a short XOR run through the Python API: record fields, monotone bookkeeping, solved;
+* determinism: the same key and config give the same run;
+* crash safety: a simulated crash inside a checkpoint write (``rundir``), a real subprocess
+  killed with SIGKILL and one interrupted with SIGINT, each resumed to exactly the result of
+  an uninterrupted run;
+* command-line errors: exit code 2, one line, nothing in the directory changed.
+
+The in-process runs share one configuration, so they share compiled programs (the first one
+pays for compilation). The subprocess runs share a persistent compilation cache
+(``EANT2_CACHE_DIR``) in a temporary directory of the session.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+import eant2_jax
+from eant2_jax import EANT2Config, ExploitConfig, tasks
+from eant2_jax.cli import main
+from eant2_jax.rundir import CHECKPOINT, GENERATIONS, PRUNING, RunDirError
+
+RECORD_FIELDS = (
+    "generation",
+    "best_cost",
+    "best_size",
+    "mean_size",
+    "best_neurons",
+    "evaluations",
+    "wall_s",
+    "prune_attempts",
+    "prune_accepted",
+)
+WALL_FIELDS = ("wall_s", "generation_s")  # the only fields that may differ between runs
+XOR_IN = np.array([[[0.0, 0.0], [0.0, 1.0], [1.0, 0.0], [1.0, 1.0]]])
+XOR_OUT = np.array([False, True, True, False])
+
+# Seed 0 solves XOR in generation 1 (its first structural mutation: one hidden neuron).
+SEED = 0
+GENERATIONS_API = 1
+CONFIG = EANT2Config(population=6, exploit=ExploitConfig(max_iters=300, pruner="covariance"))
+
+# The command-line runs: small and short (their cost is compilation and process start-up).
+CLI_RUN = ["--population", "4", "--seed", "1", "--max-iters", "200"]
+CLI_GENERATIONS = 2
+
+
+def solves_xor(genome) -> bool:
+    out = np.asarray(eant2_jax.evaluate(genome, XOR_IN)).ravel()
+    return bool(np.all((out > 0.5) == XOR_OUT))
+
+
+def _without_wall(records: list[dict]) -> list[str]:
+    """Records as canonical JSON text without the wall-clock fields (NaN-safe equality)."""
+    return [
+        json.dumps({k: v for k, v in r.items() if k not in WALL_FIELDS}, sort_keys=True)
+        for r in records
+    ]
+
+
+def _state_without_wall(directory: Path) -> dict:
+    state = json.loads((directory / CHECKPOINT).read_text())["state"]
+    state.pop("wall_s")
+    return state
+
+
+def _jsonl(directory: Path, name: str) -> list[dict]:
+    return [json.loads(line) for line in (directory / name).read_text().splitlines()]
+
+
+def _snapshot(directory: Path) -> dict[str, bytes]:
+    """Every file under ``directory`` (hidden ones too) with its bytes."""
+    if not directory.exists():
+        return {}
+    return {
+        str(p.relative_to(directory)): p.read_bytes()
+        for p in sorted(directory.rglob("*"))
+        if p.is_file()
+    }
+
+
+def _assert_same_run(a: Path, b: Path) -> None:
+    """Two run directories hold exactly the same run (wall-clock fields aside)."""
+    assert (a / "best.genome").read_bytes() == (b / "best.genome").read_bytes()
+    assert _state_without_wall(a) == _state_without_wall(b)
+    assert _without_wall(_jsonl(a, GENERATIONS)) == _without_wall(_jsonl(b, GENERATIONS))
+    assert (a / PRUNING).read_bytes() == (b / PRUNING).read_bytes()
+
+
+# ------------------------------------------------------------------------------ Python API
+@pytest.fixture(scope="module")
+def xor_run():
+    """The reference in-process run (compiles; later runs of CONFIG reuse the programs)."""
+    events = []
+    t0 = time.perf_counter()
+    result = eant2_jax.run(
+        tasks.make("xor"),
+        key=jax.random.key(SEED),
+        config=CONFIG,
+        generations=GENERATIONS_API,
+        callback=events.append,
+    )
+    return result, events, time.perf_counter() - t0
+
+
+@pytest.mark.slow
+def test_short_xor_run(xor_run):
+    result, events, _ = xor_run
+    gens = result.records["generations"]
+    assert [r["generation"] for r in gens] == list(range(GENERATIONS_API + 1))
+    for r in gens:
+        assert set(RECORD_FIELDS) <= set(r)
+        assert r["population"] <= CONFIG.population
+        assert r["best_size"] >= 1 and r["best_neurons"] >= 1 and r["mean_size"] >= 1
+        assert 0 <= r["prune_accepted"] <= r["prune_attempts"]
+    evals = [r["evaluations"] for r in gens]
+    assert all(b > a for a, b in zip(evals, evals[1:], strict=False)) and evals[0] > 0
+    walls = [r["wall_s"] for r in gens]
+    assert all(b >= a for a, b in zip(walls, walls[1:], strict=False))
+    # Selection keeps the parents, so the best cost never rises — except by the tolerance
+    # within which a smaller network is preferred to a larger one (EANT2Config.size_*).
+    costs = [r["best_cost"] for r in gens]
+    for a, b in zip(costs, costs[1:], strict=False):
+        assert b <= a + CONFIG.size_tolerance * max(abs(a), abs(b)) + CONFIG.size_atol
+    # The generation events are the records; the pruning records add up.
+    assert [e for e in events if e["event"] == "generation"] == [
+        {"event": "generation", **r} for r in gens
+    ]
+    assert sum(r["prune_attempts"] for r in gens) == len(result.records["pruning"])
+    assert sum(r["prune_accepted"] for r in gens) == sum(
+        p["accepted"] for p in result.records["pruning"]
+    )
+    # The population is best first and its best is the result.
+    pop = result.population
+    assert pop[0].genome == result.best and str(result.best) == gens[-1]["best_genome"]
+    assert pop[0].cost == gens[-1]["best_cost"]
+    assert len({ind.genome.structure_key() for ind in pop}) == len(pop)
+    # Generation 0 exploits the minimal network: a linear unit cannot do XOR.
+    assert gens[0]["best_neurons"] == 1 and gens[0]["best_cost"] > 0.2
+    assert solves_xor(result.best), f"XOR not solved after {GENERATIONS_API} generation(s)"
+    assert result.best.n_neurons >= 2 and gens[-1]["best_cost"] < 1e-6
+
+
+@pytest.mark.slow
+def test_same_key_same_run(xor_run):
+    first, _, _ = xor_run
+    again = eant2_jax.run(
+        tasks.make("xor"), key=jax.random.key(SEED), config=CONFIG, generations=GENERATIONS_API
+    )
+    assert str(again.best) == str(first.best)
+    assert _without_wall(again.records["generations"]) == _without_wall(
+        first.records["generations"]
+    )
+    assert json.dumps(again.records["pruning"]) == json.dumps(first.records["pruning"])
+    assert [(str(i.genome), i.cost, i.origin) for i in again.population] == [
+        (str(i.genome), i.cost, i.origin) for i in first.population
+    ]
+    other = eant2_jax.run(
+        tasks.make("xor"), key=jax.random.key(SEED + 1), config=CONFIG, generations=0
+    )
+    # Generation 0 is the same minimal structure, tuned from other random weights.
+    assert str(other.best) != str(first.records["generations"][0]["best_genome"])
+
+
+# ------------------------------------------------------------------ crash safety (rundir)
+@pytest.mark.slow
+def test_resume_after_crash_inside_a_commit(xor_run, tmp_path):
+    """A crash after the .jsonl append but before the checkpoint replace (and with a
+    half-written temporary checkpoint left behind) resumes to exactly the reference run."""
+    reference, _, _ = xor_run
+    task = tasks.make("xor")
+    run_dir = tmp_path / "run"
+    eant2_jax.run(task, key=jax.random.key(SEED), config=CONFIG, generations=0, out=str(run_dir))
+    checkpoint = json.loads((run_dir / CHECKPOINT).read_text())
+    assert checkpoint["offsets"] == {
+        GENERATIONS: (run_dir / GENERATIONS).stat().st_size,
+        PRUNING: (run_dir / PRUNING).stat().st_size,
+    }
+    # What the next commit had written when it died: its log lines (one of them torn) and a
+    # temporary checkpoint and best genome that never got renamed.
+    with open(run_dir / GENERATIONS, "a") as f:
+        f.write(json.dumps(reference.records["generations"][1]) + "\n")
+        f.write('{"generation": 2, "best_co')
+    with open(run_dir / PRUNING, "a") as f:
+        f.write('{"structure": 0, "iteration"')
+    (run_dir / ".checkpoint.json.x1y2z3.tmp").write_text('{"offsets": {"generations.js')
+    (run_dir / ".best.genome.a1b2c3.tmp").write_text("N0/1*1.0 I0*")
+
+    resumed = eant2_jax.resume(str(run_dir), task, generations=GENERATIONS_API)
+
+    assert str(resumed.best) == str(reference.best)
+    assert _without_wall(resumed.records["generations"]) == _without_wall(
+        reference.records["generations"]
+    )
+    assert json.dumps(resumed.records["pruning"]) == json.dumps(reference.records["pruning"])
+    # On disk: the torn lines are gone, each generation appears once, and the files agree
+    # with the returned records.
+    on_disk = _jsonl(run_dir, GENERATIONS)
+    assert [r["generation"] for r in on_disk] == list(range(GENERATIONS_API + 1))
+    assert _without_wall(on_disk) == _without_wall(reference.records["generations"])
+    assert _jsonl(run_dir, PRUNING) == json.loads(json.dumps(reference.records["pruning"]))
+    assert (run_dir / "best.genome").read_text() == str(reference.best) + "\n"
+    state = json.loads((run_dir / CHECKPOINT).read_text())["state"]
+    assert state["generation"] == GENERATIONS_API
+    assert [(p["genome"], p["cost"]) for p in state["population"]] == [
+        (str(i.genome), i.cost) for i in reference.population
+    ]
+
+
+@pytest.mark.slow
+def test_resume_before_the_first_checkpoint(xor_run, tmp_path):
+    """Killed inside generation 0's commit: no checkpoint yet, so the run starts over."""
+    reference, _, _ = xor_run
+    task = tasks.make("xor")
+    run_dir = tmp_path / "run"
+    eant2_jax.run(task, key=jax.random.key(SEED), config=CONFIG, generations=0, out=str(run_dir))
+    (run_dir / CHECKPOINT).unlink()
+    (run_dir / "best.genome").unlink()
+    (run_dir / ".checkpoint.json.tmp42.tmp").write_text("")
+    resumed = eant2_jax.resume(str(run_dir), task, generations=0)
+    assert _without_wall(resumed.records["generations"]) == _without_wall(
+        reference.records["generations"][:1]
+    )
+    assert len(_jsonl(run_dir, GENERATIONS)) == 1
+
+
+def test_rewind_refuses_a_log_shorter_than_its_checkpoint(tmp_path):
+    from eant2_jax.rundir import RunDir
+
+    run_dir = RunDir.create(tmp_path / "run", {"generations": 1})
+    run_dir.commit([{"generation": 0}], [], "N0/1*1.0 I0*1.0", {"generation": 0})
+    offsets = json.loads((tmp_path / "run" / CHECKPOINT).read_text())["offsets"]
+    (tmp_path / "run" / GENERATIONS).write_text("")
+    with pytest.raises(RunDirError, match="shorter than its checkpoint"):
+        run_dir.rewind(offsets)
+
+
+# ------------------------------------------------------------------------- command line
+def _eant2(*args: str, cache: Path, **kw) -> subprocess.Popen:
+    env = {**os.environ, "EANT2_CACHE_DIR": str(cache), "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen(
+        [sys.executable, "-m", "eant2_jax.cli", *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kw,
+    )
+
+
+def _finish(proc: subprocess.Popen, timeout: float = 300) -> tuple[int, str, str]:
+    out, err = proc.communicate(timeout=timeout)
+    return proc.returncode, out, err
+
+
+def _wait_for_lines(path: Path, n: int, proc: subprocess.Popen, timeout: float = 300) -> None:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        if path.exists() and path.read_text().count("\n") >= n:
+            return
+        if proc.poll() is not None:
+            raise AssertionError(f"eant2 exited early ({proc.returncode}): {proc.stderr.read()}")
+        time.sleep(0.05)
+    proc.kill()
+    raise AssertionError(f"no {n} line(s) in {path} after {timeout} s")
+
+
+@pytest.fixture(scope="module")
+def cli_cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("xla-cache")
+
+
+@pytest.fixture(scope="module")
+def cli_reference(tmp_path_factory, cli_cache):
+    """An uninterrupted command-line run (it fills the compilation cache)."""
+    out = tmp_path_factory.mktemp("cli") / "reference"
+    rc, stdout, err = _finish(
+        _eant2(
+            "run",
+            "xor",
+            "--generations",
+            str(CLI_GENERATIONS),
+            *CLI_RUN,
+            "--out",
+            str(out),
+            cache=cli_cache,
+        )
+    )
+    assert rc == 0, err
+    assert stdout.splitlines()[-1] == f"run directory: {out}"
+    return out
+
+
+@pytest.mark.slow
+def test_cli_kill_and_resume_is_exact(cli_reference, cli_cache, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "killed"
+    proc = _eant2(
+        "run",
+        "xor",
+        "--generations",
+        str(CLI_GENERATIONS),
+        *CLI_RUN,
+        "--out",
+        str(out),
+        cache=cli_cache,
+    )
+    # The first line is appended before the checkpoint is written: the kill may land inside
+    # that commit, in a later generation's exploitation, or in a later commit.
+    _wait_for_lines(out / GENERATIONS, 1, proc)
+    proc.send_signal(signal.SIGKILL)
+    rc, _, _ = _finish(proc)
+    assert rc == -signal.SIGKILL
+    rc, _, err = _finish(_eant2("resume", str(out), cache=cli_cache))
+    assert rc == 0, err
+    _assert_same_run(out, cli_reference)
+    assert (out / "config.json").read_bytes() == (cli_reference / "config.json").read_bytes()
+    assert not list(out.glob(".*.tmp"))
+    # Resuming a finished run changes nothing but reports the same result (in-process: no
+    # generation is left to run, so nothing is compiled).
+    before = _snapshot(out)
+    rc, _, stdout = _run_main(["resume", str(out)], capsys, monkeypatch)
+    assert rc == 0
+    assert _snapshot(out) == before
+    assert (out / "best.genome").read_text().strip() in stdout
+
+
+@pytest.mark.slow
+def test_cli_ctrl_c_exits_130_and_resumes(cli_reference, cli_cache, tmp_path):
+    out = tmp_path / "interrupted"
+    # Many generations, so that the run is still going when the signal arrives.
+    proc = _eant2(
+        "run", "xor", "--generations", "200", *CLI_RUN, "--out", str(out), cache=cli_cache
+    )
+    _wait_for_lines(out / GENERATIONS, 1, proc)
+    proc.send_signal(signal.SIGINT)
+    rc, _, err = _finish(proc, timeout=120)
+    assert rc == 130, err
+    assert "interrupted" in err and f"eant2 resume {out}" in err
+    assert "Traceback" not in err
+    # It resumes: one more generation, and every generation the reference also ran is
+    # exactly the reference's.
+    done = len(_jsonl(out, GENERATIONS))  # a torn or uncheckpointed last line may be cut
+    rc, _, err = _finish(_eant2("resume", str(out), "--generations", str(done), cache=cli_cache))
+    assert rc == 0, err
+    gens = _jsonl(out, GENERATIONS)
+    assert [r["generation"] for r in gens] == list(range(done + 1))
+    n = min(len(gens), CLI_GENERATIONS + 1)
+    assert _without_wall(gens[:n]) == _without_wall(_jsonl(cli_reference, GENERATIONS)[:n])
+    assert not list(out.glob(".*.tmp"))
+
+
+def _run_main(argv: list[str], capsys, monkeypatch) -> tuple[int, list[str], str]:
+    """``eant2 ARGV`` in-process: (exit code, non-empty stderr lines, stdout)."""
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")  # leave the JAX configuration alone
+    try:
+        rc = main(argv)
+    except SystemExit as e:  # argparse
+        rc = e.code
+    captured = capsys.readouterr()
+    return rc, [line for line in captured.err.splitlines() if line.strip()], captured.out
+
+
+def _one_error(lines: list[str], *phrases: str) -> None:
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("eant2: error: "), lines
+    for phrase in phrases:
+        assert phrase in lines[0], lines
+
+
+@pytest.mark.parametrize(
+    "argv,phrases",
+    [
+        (["run", "nope"], ["unknown task 'nope'", "xor"]),
+        (["run", "xor", "--task-option", "hidden"], ["KEY=VALUE"]),
+        (["run", "xor", "--task-option", "bogus=1"], ["bad options for task 'xor'"]),
+        (["run", "xor", "--task-option", "hidden=nope"], ["nope"]),
+    ],
+)
+def test_cli_bad_task_or_option_is_one_line(argv, phrases, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "out"
+    rc, lines, _ = _run_main([*argv, "--out", str(out)], capsys, monkeypatch)
+    assert rc == 2
+    _one_error(lines, *phrases)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["run", "xor", "--population", "0"],
+        ["run", "xor", "--population", "x"],
+        ["run", "xor", "--generations", "-1"],
+        ["run", "xor", "--max-iters", "0"],
+        ["run", "xor", "--pruner", "nope"],
+        ["run", "xor", "--seed", "1.5"],
+        ["run"],
+        ["resume"],
+        ["frobnicate"],
+    ],
+)
+def test_cli_bad_arguments_exit_2(argv, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "out"
+    extra = ["--out", str(out)] if argv[:1] == ["run"] and len(argv) > 1 else []
+    rc, lines, _ = _run_main([*argv, *extra], capsys, monkeypatch)
+    assert rc == 2
+    # argparse writes its usage line(s), then one "eant2 ...: error: ..." line.
+    assert lines[-1].startswith("eant2") and ": error: " in lines[-1]
+    assert sum(": error: " in line for line in lines) == 1
+    assert not out.exists()
+
+
+def _good_run_dir(tmp_path: Path) -> Path:
+    """A small but genuine run directory, as the CLI writes it (no exploitation needed)."""
+    from eant2_jax.rundir import RunDir
+
+    d = tmp_path / "run"
+    rd = RunDir.create(
+        d,
+        {
+            "task": "xor",
+            "task_options": {},
+            "seed": 0,
+            "generations": 1,
+            "key": [0, 0],
+            "config": CONFIG.to_dict(),
+        },
+    )
+    state = {
+        "generation": 0,
+        "population": [{"genome": "N0/2*1.0 I0*0.5 I1*0.5", "cost": 0.3, "origin": "init"}],
+        "next_id": 1,
+        "evaluations": 10,
+        "key": [0, 0],
+        "wall_s": 0.1,
+    }
+    rd.commit([{"generation": 0}], [], "N0/2*1.0 I0*0.5 I1*0.5", state)
+    return d
+
+
+def _corrupt(d: Path, name: str, text: str | None) -> None:
+    if text is None:
+        (d / name).unlink()
+    else:
+        (d / name).write_text(text)
+
+
+@pytest.mark.parametrize(
+    "name,text,phrase",
+    [
+        ("config.json", None, "missing config.json"),
+        ("generations.jsonl", None, "missing generations.jsonl"),
+        ("config.json", "{not json", "config.json is unreadable or corrupt"),
+        ("config.json", "[1, 2]", "not a run configuration"),
+        ("config.json", '{"format": 1, "seed": 0}', "names no task"),
+        (
+            "config.json",
+            '{"format": 1, "task": "nope", "generations": 1, "key": [0, 0], "config": {}}',
+            "unknown task 'nope'",
+        ),
+        (
+            "config.json",
+            '{"format": 1, "task": "xor", "generations": 1, "key": [0, 0], '
+            '"config": {"population": 0}}',
+            "config.json is corrupt",
+        ),
+        (
+            "config.json",
+            '{"format": 1, "task": "xor", "generations": 1, "key": [0, 0], '
+            '"config": {"colour": "red"}}',
+            "config.json is corrupt",
+        ),
+        ("checkpoint.json", "", "checkpoint.json is corrupt"),
+        ("checkpoint.json", '{"offsets": {"generations.js', "checkpoint.json is corrupt"),
+        ("checkpoint.json", '{"state": {}}', "checkpoint.json is corrupt"),
+        (
+            "checkpoint.json",
+            '{"offsets": {"generations.jsonl": 0, "pruning.jsonl": 0}, "state": {"x": 1}}',
+            "checkpoint.json is corrupt",
+        ),
+        (
+            "checkpoint.json",
+            '{"offsets": {"generations.jsonl": 0, "pruning.jsonl": 0}, "state": {'
+            '"generation": 0, "population": [{"genome": "N0/1*1.0 F9*1.0", "cost": 1.0}], '
+            '"next_id": 1, "evaluations": 1, "key": [0, 0]}}',
+            "checkpoint.json is corrupt",
+        ),
+        (
+            "checkpoint.json",
+            '{"offsets": {"generations.jsonl": 99999, "pruning.jsonl": 0}, "state": {'
+            '"generation": 0, "population": [{"genome": "N0/1*1.0 I0*1.0", "cost": 1.0}], '
+            '"next_id": 1, "evaluations": 1, "key": [0, 0]}}',
+            "shorter than its checkpoint",
+        ),
+        (
+            "checkpoint.json",
+            '{"offsets": {"generations.jsonl": 0, "pruning.jsonl": 99999}, "state": {'
+            '"generation": 0, "population": [{"genome": "N0/1*1.0 I0*1.0", "cost": 1.0}], '
+            '"next_id": 1, "evaluations": 1, "key": [0, 0]}}',
+            "shorter than its checkpoint",
+        ),
+        (
+            "checkpoint.json",
+            '{"offsets": {}, "state": {'
+            '"generation": 0, "population": [{"genome": "N0/1*1.0 I0*1.0", "cost": 1.0}], '
+            '"next_id": 1, "evaluations": 1, "key": [0, 0]}}',
+            "checkpoint.json is corrupt",
+        ),
+    ],
+)
+def test_cli_resume_of_a_bad_run_dir(name, text, phrase, tmp_path, capsys, monkeypatch):
+    d = _good_run_dir(tmp_path)
+    _corrupt(d, name, text)
+    before = _snapshot(d)
+    rc, lines, _ = _run_main(["resume", str(d)], capsys, monkeypatch)
+    assert rc == 2
+    _one_error(lines, phrase)
+    assert _snapshot(d) == before
+
+
+def test_cli_resume_of_a_missing_dir(tmp_path, capsys, monkeypatch):
+    rc, lines, _ = _run_main(["resume", str(tmp_path / "nowhere")], capsys, monkeypatch)
+    assert rc == 2
+    _one_error(lines, "no such run directory")
+    assert not (tmp_path / "nowhere").exists()
+    (tmp_path / "file").write_text("x")
+    rc, lines, _ = _run_main(["resume", str(tmp_path / "file")], capsys, monkeypatch)
+    assert rc == 2
+    _one_error(lines, "no such run directory")
+    assert (tmp_path / "file").read_text() == "x"
+
+
+@pytest.mark.parametrize("kind", ["run-dir", "other-files", "a-file"])
+def test_cli_run_refuses_an_existing_target(kind, tmp_path, capsys, monkeypatch):
+    if kind == "run-dir":
+        target = _good_run_dir(tmp_path)
+    elif kind == "other-files":
+        target = tmp_path / "mine"
+        target.mkdir()
+        (target / "notes.txt").write_text("precious")
+    else:
+        target = tmp_path / "a-file"
+        target.write_text("precious")
+    before = _snapshot(target) if target.is_dir() else target.read_bytes()
+    rc, lines, _ = _run_main(["run", "xor", "--out", str(target)], capsys, monkeypatch)
+    assert rc == 2
+    _one_error(lines, "not overwriting")
+    after = _snapshot(target) if target.is_dir() else target.read_bytes()
+    assert after == before
+
+
+def test_cli_errors_in_a_real_process(tmp_path):
+    """The installed entry point: exit code 2 and a one-line message, no traceback."""
+    cmd = [sys.executable, "-m", "eant2_jax.cli", "resume", str(tmp_path / "nowhere")]
+    proc = subprocess.run(
+        cmd, capture_output=True, text=True, env={**os.environ, "EANT2_CACHE_DIR": ""}
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [
+        f"eant2: error: {tmp_path / 'nowhere'}: no such run directory"
+    ]
+    assert proc.stdout == ""

@@ -137,7 +137,10 @@ def _run(args: argparse.Namespace) -> int:
     if args.max_iters is not None:
         exploit["max_iters"] = args.max_iters
     config = EANT2Config(
-        population=args.population, devices=args.devices, exploit=ExploitConfig(**exploit)
+        population=args.population,
+        devices=args.devices,
+        target_cost=args.target_cost,
+        exploit=ExploitConfig(**exploit),
     )
     out = Path(args.out) if args.out else _free_dir(args.task, args.seed)
     meta = {"task": args.task, "task_options": options, "seed": args.seed}
@@ -313,6 +316,12 @@ def _parser() -> argparse.ArgumentParser:
         type=_devices,
         default=None,
         help="split exploitation over devices: 'all' or a count (default: JAX's default device)",
+    )
+    run.add_argument(
+        "--target-cost",
+        type=float,
+        default=None,
+        help="stop once the best cost is at or below this",
     )
     run.add_argument(
         "--task-option",

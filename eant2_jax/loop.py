@@ -69,6 +69,8 @@ class EANT2Config:
       prefer_smaller: of two costs within ``size_tolerance`` the smaller network ranks first.
       size_tolerance, size_atol: relative and absolute cost tolerance of that rule.
       exploit: the CMA-ES / pruning configuration (its ``pruner`` turns pruning on).
+      target_cost: stop the run once the best cost is at or below this (None: run all
+        generations). A stopped run's directory holds fewer generations than asked.
       devices: where exploitation runs: None (the default device), ``"all"`` or a count N —
         the structures are split over a 1-D mesh of those devices (every process's, in a
         multi-process run). Placement only: the results are identical.
@@ -86,6 +88,7 @@ class EANT2Config:
     prefer_smaller: bool = True
     size_tolerance: float = 1e-3
     size_atol: float = 1e-9
+    target_cost: float | None = None
     devices: int | str | None = None
     exploit: ex.ExploitConfig = dataclasses.field(
         default_factory=lambda: ex.ExploitConfig(pruner="covariance")
@@ -616,6 +619,9 @@ def _loop(task, state, key, config, generations, rundir, callback) -> RunResult:
     prune_records = [] if rundir is None else rundir.pruning()
     mesh = distributed.make_mesh(config.devices)
     while state is None or state.generation < generations:
+        if state is not None and config.target_cost is not None:
+            if state.best().cost <= config.target_cost:
+                break
         state, record, prune = _generation(task, state, key, config, callback, mesh)
         gen_records.append(record)
         prune_records.extend(prune)

@@ -1,0 +1,628 @@
+"""3-DOF visual servoing on a batched MJX arm: the paper's benchmark (section V.B).
+
+A SCARA-type arm (``arm.xml`` beside this file) moves an eye-in-hand camera over a table; the
+camera sees 5 markers on an object. A controller reads the 10 image measurements (each
+marker's image position minus its position in the goal image, taken at the goal pose:
+teach-by-showing) and answers with 3 joint increments; the arm executes them, and the cost of
+the move is the mean image distance between each marker and its goal position afterwards, plus
+penalties. The task's cost is the mean over 1023 fixed start poses (paper: "the simulation of
+1023 robot movements"); fitness = -cost (paper fig. 8).
+
+Everything is batched over (networks x start poses) in one jit-compiled call: the network's
+forward pass over all starts, the joint targets, the arm (``mjx.kinematics``, or position
+servos integrated with ``mjx.step`` inside ``lax.scan``), the projection and the cost.
+
+Every constant is documented here and in ``docs/tasks.md``:
+
+* **Camera**: pinhole, focal length ``FOCAL_PX = 500`` px, image ``640 x 480`` px, principal
+  point ``(320, 240)``; looks straight down from 0.40 m above the markers (MuJoCo camera
+  "eye", fovy 51.282 degrees, is the same pinhole).
+* **Normalised image coordinates**: ``u_n = (u - 320) / 320``, ``v_n = (v - 240) / 320``
+  (one unit = half the image width, the same scale on both axes so that distances are
+  isotropic); the image is ``|u_n| < 1``, ``|v_n| < 0.75``. Inputs and costs use these units.
+* **Inputs** (10): ``(u_n, v_n)`` of markers 0..4 minus the same at the goal pose, in the order
+  ``u0, v0, u1, v1, ..., u4, v4``. Over the training starts they lie in about [-1, 1].
+* **Outputs** (3): the network's outputs ``y`` (identity output neurons by default) become
+  joint increments ``dq = MAX_STEP * tanh(y)``, ``MAX_STEP = 0.1 x`` each joint's range
+  (0.349, 0.524, 0.593 rad); the new target is clipped to the joint range.
+* **Move cost**: ``mean_k |s_k - s*_k|`` (image distance of marker k from its goal position,
+  normalised units) ``+ 0.1`` per marker outside the image ``+ 0.1`` per joint at a limit
+  (its command ``q + dq`` reached or passed the range and was clipped).
+* **Start poses**: ``q* + U(-(0.2, 0.3, 0.4), +(0.2, 0.3, 0.4))`` rad around the goal pose
+  ``q*``, kept only if all 5 markers are inside the image; NumPy generator seeded
+  ``[2009, 0]`` (training) and ``[2009, 1]`` (held out, a disjoint set for generalisation).
+* **Modes**: ``kinematic`` (default): the new joint angles are the clipped targets, the camera
+  pose comes from ``mjx.kinematics``. ``dynamic``: the position servos track the target for
+  ``substeps = 60`` ``mjx.step`` calls of 5 ms (0.3 s) from the arm's current state, and the
+  pose reached is measured. Joint limit *constraints* are switched off in the dynamic model:
+  targets are clamped to the ranges and the servos are critically damped, so the joints never
+  pass a limit by more than a fraction of a milliradian (tested), while the constraint solver
+  would multiply the cost of a step several times.
+* ``moves_per_start > 1``: closed-loop servoing; the network is applied again to the new
+  measurements, carrying its recurrent state (and the arm its velocity), and the start's cost
+  is the mean over its moves. Default 1, as in the paper.
+
+The cost is deterministic: the PRNG key of :meth:`Servo.cost` is unused.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+from mujoco import mjx
+
+from ..kernels import network as kn
+
+__all__ = [
+    "ARM_XML",
+    "FOCAL_PX",
+    "IBVS_GAINS",
+    "IMAGE_SIZE",
+    "LIMIT_PENALTY",
+    "MAX_STEP_FRACTION",
+    "MODES",
+    "NORM_PX",
+    "N_MARKERS",
+    "OUTSIDE_PENALTY",
+    "PRINCIPAL_POINT",
+    "SEED",
+    "START_HALF_WIDTH",
+    "SUBSTEPS",
+    "Servo",
+    "ibvs_start_costs",
+    "project",
+    "servo",
+    "start_poses",
+    "stripped_model",
+]
+
+ARM_XML = Path(__file__).with_name("arm.xml")
+
+# ----------------------------------------------------------------------------- constants
+FOCAL_PX = 500.0  # focal length, pixels (both axes)
+IMAGE_SIZE = (640, 480)  # width, height, pixels
+PRINCIPAL_POINT = (320.0, 240.0)  # pixels
+NORM_PX = 320.0  # pixels per normalised image unit: half the image width
+HALF_EXTENT = (IMAGE_SIZE[0] / 2 / NORM_PX, IMAGE_SIZE[1] / 2 / NORM_PX)  # (1.0, 0.75)
+N_MARKERS = 5
+START_HALF_WIDTH = (0.2, 0.3, 0.4)  # rad, half-widths of the uniform start box around q*
+MAX_STEP_FRACTION = 0.1  # largest joint increment of one move, as a fraction of the range
+OUTSIDE_PENALTY = 0.1  # added per marker outside the image after the move
+LIMIT_PENALTY = 0.1  # added per joint whose command reached or passed its range
+SUBSTEPS = 60  # mjx.step calls per move in dynamic mode (x 5 ms = 0.3 s)
+SEED = 2009  # start poses: np.random.default_rng([SEED, 0]) training, [SEED, 1] held out
+MODES = ("kinematic", "dynamic")
+# Gains tried by Servo.baselines() for image-based visual servoing (the best one is reported).
+IBVS_GAINS = tuple(round(0.4 + 0.05 * i, 2) for i in range(25))  # 0.40, 0.45, ..., 1.60
+
+_CAMERA_SITE = "camera"
+_CAMERA_BODY = "wrist"  # the body the camera is fixed to (for the arm Jacobian)
+_MARKER_SITES = tuple(f"marker{k}" for k in range(N_MARKERS))
+# Optical frame (x right, y down, z forward) from MuJoCo's camera frame (x right, y up,
+# looking along -z).
+_OPTICAL = np.diag([1.0, -1.0, -1.0])
+
+
+# ----------------------------------------------------------------------------- projection
+def project(cam_pos, cam_mat, points):
+    """Normalised image coordinates of world points seen by the pinhole camera.
+
+    Works on NumPy (float64, host) and JAX arrays alike; written for ONE camera.
+
+    Args:
+      cam_pos: ``[3]`` optical centre in the world frame.
+      cam_mat: ``[3, 3]`` camera frame in the world frame (columns: MuJoCo camera axes x
+        right, y up, -z viewing direction; ``site_xmat`` reshaped).
+      points: ``[K, 3]`` world points (in front of the camera).
+
+    Returns:
+      ``[K, 2]``: ``((u - 320) / 320, (v - 240) / 320)`` with ``u = 320 + 500 X / Z`` and
+      ``v = 240 + 500 Y / Z`` in the optical frame (X right, Y down, Z forward).
+    """
+    xp = np if isinstance(points, np.ndarray) else jnp
+    rel = points - cam_pos[None, :]
+    # Camera-frame coordinates: rel @ cam_mat, written as a sum of products so that no
+    # matrix unit (TF32 on GPUs) is involved.
+    pc = (rel[:, :, None] * cam_mat[None, :, :]).sum(axis=1)
+    x, y, z = pc[:, 0], -pc[:, 1], -pc[:, 2]
+    scale = FOCAL_PX / NORM_PX
+    return xp.stack([scale * x / z, scale * y / z], axis=-1)
+
+
+def _outside(s):
+    """``bool[K]`` markers outside the image, from ``[K, 2]`` normalised coordinates."""
+    return (abs(s[:, 0]) >= HALF_EXTENT[0]) | (abs(s[:, 1]) >= HALF_EXTENT[1])
+
+
+@contextlib.contextmanager
+def _mjx_numerics():
+    """The numerics MJX code runs under here.
+
+    MJX relies on implicit rank promotion internally, which this project's tests turn into an
+    error for its own code (tests/conftest.py); and its small float32 products must not use
+    TF32 on GPUs (1e-3 relative error), so that GPU and CPU runs score alike.
+    """
+    with jax.numpy_rank_promotion("allow"), jax.default_matmul_precision("highest"):
+        yield
+
+
+# ------------------------------------------------------------------------ the arm (host)
+class _Arm(NamedTuple):
+    """Host-side facts read once from ``arm.xml`` (float64)."""
+
+    mj: mujoco.MjModel
+    camera_site: int
+    marker_sites: tuple[int, ...]
+    q_goal: np.ndarray  # [3]
+    q_lo: np.ndarray  # [3]
+    q_hi: np.ndarray  # [3]
+    markers: np.ndarray  # [5, 3] world positions
+    goal: np.ndarray  # [5, 2] normalised image coordinates at the goal pose
+
+
+@functools.cache
+def _arm() -> _Arm:
+    mj = mujoco.MjModel.from_xml_path(str(ARM_XML))
+    site = functools.partial(mujoco.mj_name2id, mj, mujoco.mjtObj.mjOBJ_SITE)
+    cam = site(_CAMERA_SITE)
+    markers = tuple(site(n) for n in _MARKER_SITES)
+    q_goal = np.array(mj.key("goal").qpos, dtype=np.float64)
+    d = mujoco.MjData(mj)
+    d.qpos[:] = q_goal
+    mujoco.mj_kinematics(mj, d)
+    points = np.array(d.site_xpos[list(markers)])
+    goal = project(d.site_xpos[cam].copy(), d.site_xmat[cam].reshape(3, 3).copy(), points)
+    return _Arm(
+        mj=mj,
+        camera_site=cam,
+        marker_sites=markers,
+        q_goal=q_goal,
+        q_lo=np.array(mj.jnt_range[:, 0]),
+        q_hi=np.array(mj.jnt_range[:, 1]),
+        markers=points,
+        goal=goal,
+    )
+
+
+def _features_host(arm: _Arm, d: mujoco.MjData, q: np.ndarray) -> np.ndarray:
+    """``[5, 2]`` normalised marker coordinates at joint angles ``q`` (MuJoCo C, float64)."""
+    d.qpos[:] = q
+    mujoco.mj_kinematics(arm.mj, d)
+    c = arm.camera_site
+    return project(d.site_xpos[c].copy(), d.site_xmat[c].reshape(3, 3).copy(), arm.markers)
+
+
+@functools.cache
+def _start_poses(n: int, held_out: bool) -> tuple[np.ndarray, np.ndarray]:
+    arm = _arm()
+    rng = np.random.default_rng([SEED, int(held_out)])
+    d = mujoco.MjData(arm.mj)
+    half = np.asarray(START_HALF_WIDTH)
+    qs, ss = [], []
+    while len(qs) < n:
+        q = arm.q_goal + rng.uniform(-half, half)
+        s = _features_host(arm, d, q)
+        if not np.any(_outside(s)):
+            qs.append(q)
+            ss.append(s)
+    q = np.stack(qs)
+    s = np.stack(ss)
+    q.flags.writeable = False
+    s.flags.writeable = False
+    return q, s
+
+
+def start_poses(n_starts: int = 1023, *, held_out: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The task's start poses and their marker images (host side, float64, read-only).
+
+    Draws ``q = q* + U(-START_HALF_WIDTH, START_HALF_WIDTH)`` from
+    ``np.random.default_rng([SEED, 0])`` (``[SEED, 1]`` if ``held_out``) and keeps the first
+    ``n_starts`` poses at which every marker lies inside the image. A smaller ``n_starts``
+    gives a prefix of a larger one.
+
+    Returns:
+      ``(q [n_starts, 3] rad, s [n_starts, 5, 2] normalised image coordinates)``.
+    """
+    return _start_poses(int(n_starts), bool(held_out))
+
+
+# ------------------------------------------------------------------------------ the task
+@struct.dataclass
+class Servo:
+    """The visual servoing task (see the module docstring for every constant).
+
+    The MJX model is a pytree *leaf field*, not a static field: ``mjx.Model`` is itself a pytree
+    whose array fields are leaves and whose NumPy fields (joint types, tree structure) are
+    static metadata hashed and compared by content. So the task's arrays are passed into jit as
+    arguments (never baked into a program), and two separately built tasks with equal options
+    share one compiled program. A static field would need the model to be hashable, which an
+    object holding JAX arrays is not.
+
+    Attributes:
+      model: the MJX arm, :func:`stripped_model` (no geoms, no limit constraints).
+      q_start: ``[N, 3]`` start joint angles (rad).
+      x_start: ``[N, 10]`` the 10 normalised image measurements at each start.
+      q_test, x_test: the same for the disjoint held-out start poses.
+      goal: ``[5, 2]`` goal image (normalised coordinates).
+      markers: ``[5, 3]`` marker world positions (the object is fixed).
+      q_lo, q_hi: ``[3]`` joint ranges (rad).
+      max_step: ``[3]`` largest joint increment of one move (rad).
+      camera_site, camera_body: ids in ``model`` of the camera site and its body (static).
+      mode: ``"kinematic"`` or ``"dynamic"`` (static).
+      moves_per_start: moves per start pose, closed loop (static).
+      substeps: ``mjx.step`` calls per move in dynamic mode (static).
+      hidden, output: activation names of the networks' hidden and output neurons (static).
+    """
+
+    model: mjx.Model
+    q_start: jax.Array
+    x_start: jax.Array
+    q_test: jax.Array
+    x_test: jax.Array
+    goal: jax.Array
+    markers: jax.Array
+    q_lo: jax.Array
+    q_hi: jax.Array
+    max_step: jax.Array
+    camera_site: int = struct.field(pytree_node=False)
+    camera_body: int = struct.field(pytree_node=False)
+    mode: str = struct.field(pytree_node=False, default="kinematic")
+    moves_per_start: int = struct.field(pytree_node=False, default=1)
+    substeps: int = struct.field(pytree_node=False, default=SUBSTEPS)
+    hidden: str = struct.field(pytree_node=False, default="tanh")
+    output: str = struct.field(pytree_node=False, default="identity")
+
+    @property
+    def n_inputs(self) -> int:
+        return 2 * N_MARKERS
+
+    @property
+    def n_outputs(self) -> int:
+        return 3
+
+    @property
+    def n_starts(self) -> int:
+        return self.q_start.shape[0]
+
+    # ------------------------------------------------------------------ one arm, one pose
+    def features(self, q: jax.Array) -> jax.Array:
+        """``[5, 2]`` normalised marker image coordinates at joint angles ``q`` ``[3]``."""
+        with _mjx_numerics():
+            d = mjx.kinematics(self.model, mjx.make_data(self.model).replace(qpos=q))
+        c = self.camera_site
+        return project(d.site_xpos[c], d.site_xmat[c], self.markers)
+
+    def measure(self, q: jax.Array) -> jax.Array:
+        """``[10]`` network inputs at ``q``: image coordinates minus the goal image."""
+        return (self.features(q) - self.goal).reshape(-1)
+
+    def move_cost(self, s: jax.Array, at_limit: jax.Array) -> jax.Array:
+        """Cost of one move from the image ``s`` ``[5, 2]`` after it and ``bool[3]`` limits."""
+        dist = jnp.sqrt(jnp.sum(jnp.square(s - self.goal), axis=-1))
+        return (
+            jnp.mean(dist)
+            + OUTSIDE_PENALTY * jnp.sum(_outside(s), dtype=s.dtype)
+            + LIMIT_PENALTY * jnp.sum(at_limit, dtype=s.dtype)
+        )
+
+    def simulate(self, q: jax.Array, qd: jax.Array, target: jax.Array):
+        """``substeps`` physics steps of the servos tracking ``target``; ``(q, qd)`` after."""
+        d0 = mjx.make_data(self.model).replace(ctrl=target)
+
+        # Only (qpos, qvel) are carried: nothing else of mjx.Data is state for this model
+        # (no activations, no constraints, hence no solver warm start), and a small carry
+        # lets XLA drop every other field of each step.
+        def body(carry, _):
+            with _mjx_numerics():
+                d = mjx.step(self.model, d0.replace(qpos=carry[0], qvel=carry[1]))
+            return (d.qpos, d.qvel), None
+
+        (q, qd), _ = jax.lax.scan(body, (q, qd), None, length=self.substeps)
+        return q, qd
+
+    def move(self, q: jax.Array, qd: jax.Array, dq: jax.Array):
+        """Execute joint increments ``dq`` ``[3]`` from ``(q, qd)``.
+
+        Returns:
+          ``(q, qd, x, cost)`` after the move: joint angles and velocities, the 10 new
+          measurements and the move's cost.
+        """
+        command = q + dq
+        at_limit = (command <= self.q_lo) | (command >= self.q_hi)
+        target = jnp.clip(command, self.q_lo, self.q_hi)
+        if self.mode == "kinematic":
+            q_new, qd_new = target, qd
+        else:
+            q_new, qd_new = self.simulate(q, qd, target)
+        s = self.features(q_new)
+        return q_new, qd_new, (s - self.goal).reshape(-1), self.move_cost(s, at_limit)
+
+    def episode(self, policy: Callable, state0: Any, q0: jax.Array, x0: jax.Array) -> jax.Array:
+        """Mean move cost of one controller from one start pose (one arm, no batch).
+
+        Args:
+          policy: ``(state, q, x) -> (dq, state)``: joint increments from the joint angles
+            ``[3]`` and the 10 measurements ``x``, with a controller state carried between
+            moves.
+          state0: the controller's state before the first move.
+          q0, x0: start joint angles and the measurements there.
+        """
+
+        def one(carry):
+            q, qd, x, state = carry
+            dq, state = policy(state, q, x)
+            q, qd, x, c = self.move(q, qd, dq)
+            return (q, qd, x, state), c
+
+        carry = (q0, jnp.zeros_like(q0), x0, state0)
+        if self.moves_per_start == 1:
+            return one(carry)[1]
+        _, costs = jax.lax.scan(lambda c, _: one(c), carry, None, length=self.moves_per_start)
+        return jnp.mean(costs)
+
+    # -------------------------------------------------------------------- controllers
+    def network_policy(self, net: kn.Network) -> Callable:
+        """A network as a controller: ``dq = max_step * tanh(y)``; its state is ``h`` ``[H]``."""
+
+        def policy(h, q, x):
+            del q  # the network sees the image only
+            y, h = kn.step(net, x, h, hidden=self.hidden, output=self.output)
+            return self.max_step * jnp.tanh(y), h
+
+        return policy
+
+    def image_jacobian(self, q: jax.Array) -> jax.Array:
+        """``[10, 3]`` d(measurements)/d(joint angles) by the classic IBVS construction.
+
+        The point-feature interaction matrix (normalised coordinates, known depth Z;
+        Chaumette & Hutchinson 2006, eq. 11) times the arm Jacobian of the camera (its linear
+        and angular velocity per joint velocity, rotated into the optical frame).
+
+        The arm Jacobian is built from the joint anchors and axes that ``mjx.kinematics``
+        returns (hinge j: ``axis_j x (camera - anchor_j)`` and ``axis_j``), which is what
+        ``mjx.jac`` computes for a chain of hinges; ``mjx.jac`` would also need
+        ``mjx.com_pos`` and triples the compile time on a CPU.
+        """
+        c = self.camera_site
+        with _mjx_numerics():
+            d = mjx.kinematics(self.model, mjx.make_data(self.model).replace(qpos=q))
+        pos, mat = d.site_xpos[c], d.site_xmat[c]
+        # Every joint is an ancestor of the camera (a serial arm); [nv, 3] each.
+        jacp = jnp.cross(d.xaxis, pos[None, :] - d.xanchor)
+        jacr = d.xaxis
+        to_optical = jnp.asarray(_OPTICAL, mat.dtype) @ mat.T  # world -> optical frame
+        v = jnp.dot(to_optical, jacp.T, precision="highest")  # [3, nv] linear velocity
+        w = jnp.dot(to_optical, jacr.T, precision="highest")  # [3, nv] angular velocity
+        twist = jnp.concatenate([v, w], axis=0)  # [6, nv]
+        # Metric normalised coordinates x = X/Z, y = Y/Z (optical frame) and depths Z.
+        rel = self.markers - pos[None, :]
+        pc = (rel[:, :, None] * mat[None, :, :]).sum(axis=1)
+        z = -pc[:, 2]
+        x, y = pc[:, 0] / z, -pc[:, 1] / z
+        one, zero = jnp.ones_like(x), jnp.zeros_like(x)
+        # ds/dt = L (v, w) for a point feature (x, y) at depth Z.
+        lx = jnp.stack([-one / z, zero, x / z, x * y, -(1 + x * x), y], axis=-1)
+        ly = jnp.stack([zero, -one / z, y / z, 1 + y * y, -x * y, -x], axis=-1)
+        interaction = jnp.stack([lx, ly], axis=1).reshape(2 * N_MARKERS, 6)
+        return (FOCAL_PX / NORM_PX) * jnp.dot(interaction, twist, precision="highest")
+
+    def ibvs_policy(self, gain: jax.Array) -> Callable:
+        """Image-based visual servoing: ``dq = clip(-gain * pinv(J(q)) x, +-max_step)``."""
+
+        def policy(state, q, x):
+            dq = -gain * jnp.dot(jnp.linalg.pinv(self.image_jacobian(q)), x, precision="highest")
+            return jnp.clip(dq, -self.max_step, self.max_step), state
+
+        return policy
+
+    # ------------------------------------------------------------------------- costs
+    def cost(self, key: jax.Array, nets: kn.Network) -> jax.Array:
+        """Mean move cost ``[*batch]`` over the start poses (the key is unused).
+
+        The leading batch dims of ``nets`` are flattened into one, then every network runs on
+        every start pose as one batched computation (``vmap`` over networks of ``vmap`` over
+        starts: one forward pass, one batched arm, one projection).
+        """
+        del key
+        return _network_costs(self, nets, self.q_start, self.x_start)
+
+    def held_out(self) -> Servo:
+        """The same task on the held-out start poses (training and held-out sets swapped)."""
+        return self.replace(
+            q_start=self.q_test, x_start=self.x_test, q_test=self.q_start, x_test=self.x_start
+        )
+
+    def generalisation(self, nets: kn.Network) -> jax.Array:
+        """Costs ``[*batch]`` of ``nets`` on the held-out start poses (jit-compiled)."""
+        return _jit_cost(self.held_out(), nets)
+
+    def start_costs(self, policy: Callable, state0: Any = None) -> jax.Array:
+        """``[N]`` cost of one hand-written controller from each start pose.
+
+        Args:
+          policy: ``(state, q, x) -> (dq, state)`` as in :meth:`episode`.
+          state0: its state before the first move (the same at every start).
+        """
+        return jax.vmap(functools.partial(self.episode, policy, state0))(self.q_start, self.x_start)
+
+    def baselines(self) -> dict[str, float]:
+        """Costs of the reference controllers, by the task's own cost (host side).
+
+        Returns:
+          ``zero``: no move (the mean initial error, the start poses being penalty free);
+          ``ibvs``: image-based visual servoing with the best gain of ``IBVS_GAINS`` (see
+          :meth:`ibvs_gain`); ``ibvs_gain1``: the same with gain 1 (one Gauss-Newton step).
+        """
+        gains, costs = self.ibvs_sweep()
+        return {
+            "zero": float(costs[0]),
+            "ibvs": float(costs[1:].min()),
+            "ibvs_gain1": float(costs[gains.index(1.0)]),
+        }
+
+    def ibvs_gain(self) -> float:
+        """The gain of ``IBVS_GAINS`` with the lowest task cost."""
+        gains, costs = self.ibvs_sweep()
+        return gains[1 + int(np.argmin(costs[1:]))]
+
+    def ibvs_sweep(self) -> tuple[tuple[float, ...], np.ndarray]:
+        """``(gains, task cost of IBVS at each gain)`` for gain 0 (no move) and ``IBVS_GAINS``.
+
+        One compiled call on the host. Gain 0 is the zero controller exactly: its increments are
+        (signed) zeros.
+        """
+        gains = (0.0, *IBVS_GAINS)
+        costs = ibvs_start_costs(self, jnp.asarray(gains, jnp.float32))
+        return gains, np.asarray(costs).mean(axis=1)
+
+
+def _flatten(nets: kn.Network) -> tuple[kn.Network, tuple[int, ...]]:
+    batch = nets.bias.shape[:-1]
+    n = int(np.prod(batch, dtype=np.int64))
+    flat = jax.tree.map(lambda a: a.reshape((n,) + a.shape[len(batch) :]), nets)
+    return flat, batch
+
+
+def _network_costs(task: Servo, nets: kn.Network, q0: jax.Array, x0: jax.Array) -> jax.Array:
+    """Mean move cost ``[*batch]`` of networks over start poses ``q0`` ``[S, 3]``, ``x0``.
+
+    ``vmap`` over networks of ``vmap`` over starts of one whole episode (network, arm, cost).
+    The first move's inputs are data shared by every network, so the forward pass is one
+    matrix product per network over all starts. Writing the arm as one flat batch of
+    ``N * S`` instead measured slower (``bench/bench_servo.py``, ``task_flat``).
+    """
+    flat, batch = _flatten(nets)
+
+    def one_net(net):
+        run = functools.partial(task.episode, task.network_policy(net), jnp.zeros_like(net.bias))
+        return jnp.mean(jax.vmap(run)(q0, x0))
+
+    return jax.vmap(one_net)(flat).reshape(batch)
+
+
+@jax.jit
+def _jit_cost(task: Servo, nets: kn.Network) -> jax.Array:
+    return task.cost(None, nets)
+
+
+@jax.jit
+def ibvs_start_costs(task: Servo, gains: jax.Array) -> jax.Array:
+    """``[G, N]`` cost of IBVS at each of ``gains`` ``[G]`` from each start pose (jit)."""
+    return jax.vmap(lambda g: task.start_costs(task.ibvs_policy(g)))(gains)
+
+
+# ------------------------------------------------------------------------------ factory
+def stripped_model() -> mujoco.MjModel:
+    """``arm.xml`` with only what the task simulates: the arm's bodies, joints, servos and
+    camera site.
+
+    Removed: every geom (all visual only and massless: the links' masses and inertias are
+    given explicitly), the fixed object with its marker sites (the markers' world positions are
+    task data), the MuJoCo camera and the light. Kinematics and dynamics are unchanged
+    (tests/test_servo.py compares both with the full model); MJX has fewer bodies and sites to
+    carry through every kinematics call.
+
+    The joint limit *constraints* are switched off (``mjDSBL_LIMIT``): the servo targets are
+    clamped to the joint ranges and the servos are critically damped, so the limits are never
+    passed by more than about 1 mrad (tested), and without constraints a step has no constraint
+    rows and no solver to run.
+    """
+    spec = mujoco.MjSpec.from_file(str(ARM_XML))
+    for geom in list(spec.geoms):
+        spec.delete(geom)
+    for site in list(spec.sites):
+        if site.name != _CAMERA_SITE:
+            spec.delete(site)
+    for element in [*spec.cameras, *spec.lights, spec.body("object")]:
+        spec.delete(element)
+    mj = spec.compile()
+    mj.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_LIMIT
+    return mj
+
+
+@functools.cache
+def _mjx_model() -> tuple[mjx.Model, int, int]:
+    """The task's MJX model, its camera site id and the id of the body carrying the camera."""
+    mj = stripped_model()
+    site = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SITE, _CAMERA_SITE)
+    body = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_BODY, _CAMERA_BODY)
+    return mjx.put_model(mj), site, body
+
+
+def servo(
+    *,
+    mode: str = "kinematic",
+    moves_per_start: int = 1,
+    n_starts: int = 1023,
+    substeps: int = SUBSTEPS,
+    held_out: bool = False,
+    hidden: str = "tanh",
+    output: str = "identity",
+) -> Servo:
+    """The 3-DOF visual servoing task (``tasks.make("servo", ...)``).
+
+    Args:
+      mode: ``"kinematic"`` (default; targets reached exactly, ``mjx.kinematics``) or
+        ``"dynamic"`` (position servos, ``substeps`` ``mjx.step`` calls per move).
+      moves_per_start: moves per start pose, closed loop (1 = the paper).
+      n_starts: number of start poses (1023 = the paper); smaller sets are prefixes.
+      substeps: physics steps of 5 ms per move in dynamic mode (default 60 = 0.3 s).
+      held_out: score on the held-out start poses instead of the training ones.
+      hidden, output: activation names for hidden and output neurons. Output neurons are
+        ``identity`` by default: the task itself bounds the increments with ``tanh``.
+
+    Returns:
+      The :class:`Servo` task.
+
+    Raises:
+      ValueError: an unknown mode or activation, or a count that is not a positive integer.
+    """
+    if mode not in MODES:
+        raise ValueError(f"servo: mode must be one of {', '.join(MODES)}; got {mode!r}")
+    for name, value, top in (
+        ("moves_per_start", moves_per_start, 10_000),
+        ("n_starts", n_starts, 1_000_000),
+        ("substeps", substeps, 100_000),
+    ):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer):
+            raise ValueError(f"servo: {name} must be an integer; got {value!r}")
+        if not 1 <= value <= top:
+            raise ValueError(f"servo: {name} must be in [1, {top}]; got {value}")
+    kn.activation(hidden), kn.activation(output)
+    arm = _arm()
+    model, camera_site, camera_body = _mjx_model()
+    sets = [start_poses(n_starts, held_out=h) for h in (held_out, not held_out)]
+    (q_tr, s_tr), (q_te, s_te) = sets
+    goal = arm.goal[None]
+
+    def f32(a):
+        return jnp.asarray(a, jnp.float32)
+
+    return Servo(
+        model=model,
+        q_start=f32(q_tr),
+        x_start=f32((s_tr - goal).reshape(len(q_tr), -1)),
+        q_test=f32(q_te),
+        x_test=f32((s_te - goal).reshape(len(q_te), -1)),
+        goal=f32(arm.goal),
+        markers=f32(arm.markers),
+        q_lo=f32(arm.q_lo),
+        q_hi=f32(arm.q_hi),
+        max_step=f32(MAX_STEP_FRACTION * (arm.q_hi - arm.q_lo)),
+        camera_site=camera_site,
+        camera_body=camera_body,
+        mode=mode,
+        moves_per_start=int(moves_per_start),
+        substeps=int(substeps),
+        hidden=hidden,
+        output=output,
+    )

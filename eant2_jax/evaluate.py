@@ -8,6 +8,7 @@ from collections.abc import Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .compiler import compile_genomes
 from .genome import Genome
@@ -58,7 +59,7 @@ def rollout_batch(
 
 def evaluate(
     genomes: Genome | str | Sequence[Genome | str],
-    inputs,
+    inputs: ArrayLike,
     *,
     hidden: str = "tanh",
     output: str = "identity",

@@ -36,7 +36,8 @@ def interpret(
       genome: the network.
       inputs: ``[T, M, n_in]`` with ``n_in >= genome.n_inputs``; M independent streams, each
         with its own recurrent state.
-      hidden, output: activation names for hidden and root neurons.
+      hidden: activation name of hidden neurons.
+      output: activation name of root (output) neurons.
       weights: optional ``[n_params]`` weight vector replacing the genome's own.
 
     Returns:

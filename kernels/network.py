@@ -165,7 +165,8 @@ def step(
       net: the network.
       x: ``[n_in]`` inputs at this step.
       h_prev: ``[H]`` neuron outputs at the previous step (zeros at the first).
-      hidden, output: activation names for hidden and root neurons.
+      hidden: activation name of hidden neurons.
+      output: activation name of root (output) neurons.
 
     Returns:
       ``(y [n_out], h [H])``: the outputs and every neuron's output at this step.
@@ -201,7 +202,8 @@ def rollout(
     Args:
       net: the network.
       xs: ``[T, n_in]`` inputs.
-      hidden, output: activation names.
+      hidden: activation name of hidden neurons.
+      output: activation name of root (output) neurons.
       h0: ``[H]`` initial neuron outputs (default zeros: "0.0 at the first step").
 
     Returns:

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from numpy.typing import ArrayLike
 
 from ..kernels import network as kn
 from .base import map_networks
@@ -53,13 +54,16 @@ class Regression:
         return map_networks(one, nets)
 
 
-def regression(inputs, targets, *, hidden: str = "tanh", output: str = "identity") -> Regression:
+def regression(
+    inputs: ArrayLike, targets: ArrayLike, *, hidden: str = "tanh", output: str = "identity"
+) -> Regression:
     """A regression task from data.
 
     Args:
       inputs: ``[N, n_in]`` examples (each one step), or ``[T, M, n_in]`` sequences.
       targets: ``[N, n_out]`` or ``[T, M, n_out]`` to match.
-      hidden, output: activation names for hidden and output neurons.
+      hidden: activation name of hidden neurons.
+      output: activation name of output neurons.
 
     Returns:
       The :class:`Regression` task.

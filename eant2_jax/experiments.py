@@ -32,7 +32,11 @@ def condition_experiment(
     task: Task,
     *,
     key: jax.Array,
-    prune_iters: int = 3000,
+    prune_iters: int = 2000,
+    prune_window: int = 100,
+    prune_sigma0: float = 0.1,
+    rounds: int = 10,
+    prune_candidates: int = 4,
     iters: int = 2000,
     sigma0: float = 0.5,
     weight_scale: float = 0.5,
@@ -43,7 +47,11 @@ def condition_experiment(
       genome: an evolved network (with tuned weights).
       task: its task.
       key: PRNG key.
-      prune_iters: CMA-ES budget of the pruning run (from the tuned weights).
+      prune_iters: CMA-ES budget of each pruning round (from the current weights).
+      prune_window: W of the pruning trigger in those rounds.
+      prune_sigma0: initial step size of those rounds (small: the weights are tuned).
+      rounds: at most this many pruning rounds; they stop when one removes nothing.
+      prune_candidates: candidates tested per attempt (the best that passes is taken).
       iters: CMA-ES budget of each run from random weights (no pruning, no early stop).
       sigma0: initial step size of those runs.
       weight_scale: std of the random initial weights.
@@ -53,13 +61,30 @@ def condition_experiment(
       ``genome_before``/``genome_after``; ``removed``: accepted pruning records.
     """
     k_prune, k_init, k_a, k_b = jax.random.split(key, 4)
-    pruned = ex.optimize(
-        genome, task, key=k_prune, pruner="covariance", max_iters=prune_iters, patience=prune_iters
-    )
+    # Prune in rounds, each a CMA-ES run from the current weights, until a round removes
+    # nothing (the paper pruned its 38-parameter network until 8 connections were gone).
+    current, removed = genome, []
+    for r in range(rounds):
+        res = ex.optimize(
+            current,
+            task,
+            key=jax.random.fold_in(k_prune, r),
+            pruner="covariance",
+            prune_window=prune_window,
+            max_iters=prune_iters,
+            patience=prune_iters,
+            sigma0=prune_sigma0,
+            prune_candidates=prune_candidates,
+        )
+        accepted = [dict(x, round=r) for x in res.pruning if x["accepted"]]
+        removed += accepted
+        current = res.genome
+        if not accepted:
+            break
     rng = np.random.default_rng(np.asarray(jax.random.key_data(k_init)))
     start_a = genome.with_weights(rng.normal(0, weight_scale, genome.n_params))
     # The pruned network starts from the same random draw on the genes it kept.
-    start_b = pruned.genome.with_weights(rng.normal(0, weight_scale, pruned.genome.n_params))
+    start_b = current.with_weights(rng.normal(0, weight_scale, current.n_params))
     runs = []
     for start, k in ((start_a, k_a), (start_b, k_b)):
         r = ex.optimize(
@@ -79,10 +104,10 @@ def condition_experiment(
         "cost_before": runs[0].cost,
         "cost_after": runs[1].cost,
         "size_before": genome.n_params,
-        "size_after": pruned.genome.n_params,
+        "size_after": current.n_params,
         "genome_before": str(genome),
-        "genome_after": str(pruned.genome),
-        "removed": [r for r in pruned.pruning if r["accepted"]],
+        "genome_after": str(current),
+        "removed": removed,
     }
 
 

@@ -1,7 +1,9 @@
 """One entry point for the benchmark suites: ``python -m bench SUITE [options]``.
 
 Suites: forward (the evaluator kernel), cmaes (batched CMA-ES), servo (the MJX task),
-generation (whole EANT2 generations, pruning overhead, scaling). Each writes JSON (device,
+generation (whole EANT2 generations, pruning overhead, scaling), peers (CMA-ES, pycma,
+NEAT and EANT2 on the servo task at one evaluation budget), pole (evaluations to solve
+double pole balancing). Each writes JSON (device,
 versions, config, compile time apart from steady state) and a markdown table; ``--help``
 after the suite name lists its options.
 """
@@ -16,6 +18,9 @@ SUITES = {
     "cmaes": "bench.bench_cmaes",
     "servo": "bench.bench_servo",
     "generation": "bench.bench_generation",
+    "scaling": "bench.bench_scaling",
+    "peers": "bench.bench_peers",
+    "pole": "bench.bench_pole",
 }
 
 

@@ -1,0 +1,167 @@
+"""Evaluations to solve double pole balancing with EANT2, next to the published figures.
+
+For each of ``--tasks`` (``dpv``: with velocities, balanced-steps fitness; ``dpnv``: without,
+Gruau's damping fitness) and each of ``--seeds`` seeds, one ``eant2_jax.loop.run`` (EANT2
+with covariance pruning) from the minimal network. After every generation the best genome is
+checked with :func:`eant2_jax.tasks.pole.solved` (100,000 steps; for dpnv also the 625-start
+generalisation test); the run stops at the first solved generation or when its evaluations
+pass ``--budget`` (a failure). Evaluations are counted as the task module says (every
+network run by the cost during evolution, CMA-ES candidates and pruning trials; the
+``solved`` checks are tests and are not counted), at generation granularity: a run that
+finds a solution mid-generation is charged the whole generation (its CMA-ES runs continue
+until their stop rules fire, at most ``patience`` iterations after the last improvement).
+
+Reported per task: success rate, mean and median evaluations over solved runs, the mean with
+failures charged the budget, and wall time per solved run (compilation included: the first
+seed pays most of it), next to Gomez, Schmidhuber & Miikkulainen (2008), tables 3-4.
+
+Run: ``python -m bench pole [--quick] [--seeds N] [--tasks dpv dpnv] [--out PATH]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+
+from bench.common import Column, default_out, environment, markdown_table, write_results
+from eant2_jax import exploitation as ex
+from eant2_jax import loop
+from eant2_jax.tasks import pole
+
+__all__ = ["PUBLISHED", "main", "solve_once"]
+
+# Gomez, Schmidhuber & Miikkulainen (2008), JMLR 9: table 3 (DPV) and table 4 (DPNV, damping
+# fitness); mean evaluations to solve.
+PUBLISHED = {
+    "dpv": {"NEAT": 3600, "ESP": 3800, "CMA-ES": 895, "CoSyNE": 954},
+    "dpnv": {"NEAT": 6929, "ESP": 26342, "CMA-ES": 6061, "CoSyNE": 3416},
+}
+
+
+class _Solved(Exception):
+    pass
+
+
+def solve_once(task, seed: int, config: loop.EANT2Config, budget: int) -> dict:
+    """One EANT2 run until ``solved`` or ``budget`` evaluations; its record."""
+    t0 = time.perf_counter()
+    info: dict[str, Any] = {"seed": seed, "solved": False, "evaluations": None, "generations": 0}
+
+    def on_event(event):
+        if event["event"] != "generation":
+            return
+        info["generations"] = event["generation"]
+        info["evaluations"] = event["evaluations"]
+        info["best_cost"] = event["best_cost"]
+        check = pole.solved(task, event["best_genome"])
+        if check["solved"]:
+            info.update(solved=True, genome=event["best_genome"], check=check)
+            raise _Solved
+        if event["evaluations"] >= budget:
+            raise _Solved
+
+    try:
+        loop.run(
+            task, key=jax.random.key(seed), config=config, generations=10**6, callback=on_event
+        )
+    except _Solved:
+        pass
+    info["wall_s"] = time.perf_counter() - t0
+    return info
+
+
+def _row(name: str, runs: list[dict], budget: int) -> dict:
+    ok = [r for r in runs if r["solved"]]
+    evals = [r["evaluations"] for r in ok]
+    charged = [r["evaluations"] if r["solved"] else budget for r in runs]
+    return {
+        "task": name,
+        "seeds": len(runs),
+        "success_rate": len(ok) / len(runs),
+        "mean_evals_solved": statistics.mean(evals) if evals else None,
+        "median_evals_solved": statistics.median(evals) if evals else None,
+        "mean_evals_failures_as_budget": statistics.mean(charged),
+        "median_evals_failures_as_budget": statistics.median(charged),
+        "wall_per_solved_s": (sum(r["wall_s"] for r in runs) / len(ok)) if ok else None,
+        "median_wall_solved_s": statistics.median([r["wall_s"] for r in ok]) if ok else None,
+        **{f"published_{k}": v for k, v in PUBLISHED[name].items()},
+    }
+
+
+COLUMNS = [
+    Column("task", "task"),
+    Column("seeds", "seeds"),
+    Column("success_rate", "solved", "{:.0%}"),
+    Column("mean_evals_solved", "mean evals (solved)", "{:.0f}"),
+    Column("median_evals_solved", "median evals (solved)", "{:.0f}"),
+    Column("mean_evals_failures_as_budget", "mean evals (fail = budget)", "{:.0f}"),
+    Column("wall_per_solved_s", "wall s / solved run", "{:.1f}"),
+    Column("published_NEAT", "NEAT"),
+    Column("published_ESP", "ESP"),
+    Column("published_CMA-ES", "CMA-ES"),
+    Column("published_CoSyNE", "CoSyNE"),
+]
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m bench pole",
+        description="Evaluations for EANT2 to solve double pole balancing (dpv, dpnv).",
+    )
+    p.add_argument("--quick", action="store_true", help="smoke run: 1 seed, tiny budget")
+    p.add_argument("--seeds", type=int, default=20)
+    p.add_argument("--tasks", nargs="+", default=["dpv", "dpnv"], choices=["dpv", "dpnv"])
+    p.add_argument("--budget", type=int, default=40_000, help="evaluations before failure")
+    p.add_argument("--population", type=int, default=10)
+    p.add_argument("--max-iters", type=int, default=200)
+    p.add_argument("--patience", type=int, default=20)
+    p.add_argument("--prune-window", type=int, default=30)
+    p.add_argument("--out", default=None)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    args = _parser().parse_args(argv)
+    if args.quick:
+        args.seeds, args.budget, args.tasks = 1, 50, ["dpv"]
+        args.population, args.max_iters, args.patience, args.prune_window = 2, 3, 2, 2
+    config = loop.EANT2Config(
+        population=args.population,
+        exploit=ex.ExploitConfig(
+            pruner="covariance",
+            max_iters=args.max_iters,
+            patience=args.patience,
+            prune_window=args.prune_window,
+            chunk=min(10, args.max_iters),
+        ),
+    )
+    rows, runs = [], {}
+    for name in args.tasks:
+        task = pole.dpv() if name == "dpv" else pole.dpnv()
+        runs[name] = [solve_once(task, s, config, args.budget) for s in range(args.seeds)]
+        rows.append(_row(name, runs[name], args.budget))
+    payload = {
+        **environment(),
+        "suite": "pole",
+        "config": {
+            **{k: v for k, v in vars(args).items() if k != "out"},
+            "eant2": config.to_dict(),
+        },
+        "published_source": "Gomez, Schmidhuber & Miikkulainen 2008 (JMLR 9), tables 3-4",
+        "rows": rows,
+        "runs": runs,
+    }
+    head = (
+        f"EANT2 (covariance pruning) to solve double pole balancing; {args.seeds} seeds, "
+        f"budget {args.budget} evaluations (failures charged the budget in the fail = "
+        f"budget column); device {payload['device_kind']} ({payload['platform']}). "
+        "Published columns: mean evaluations, Gomez et al. 2008.\n\n"
+    )
+    md = head + markdown_table(rows, COLUMNS)
+    write_results(args.out or default_out("pole"), payload, md)
+    return payload

@@ -1,0 +1,67 @@
+"""Smoke tests of the peers and pole benchmarks (``--quick``), and of the NEAT scoring path."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+pytest.importorskip("cma")
+pytest.importorskip("neat")
+
+
+def test_outputs_cost_matches_network_cost():
+    # The NEAT path scores raw outputs; for a network it must equal task.cost exactly
+    # (same moves, same cost): float32, same ops, so a tight tolerance.
+    from bench import bench_peers
+    from eant2_jax import tasks
+    from eant2_jax.compiler import compile_genomes
+    from eant2_jax.kernels import network as kn
+
+    task = tasks.make("servo", n_starts=17)
+    genome = bench_peers.fixed_genome(np.random.default_rng(1), 2, scale=0.5)
+    batch = compile_genomes([genome], task.n_inputs, pad_count=False)
+    nets = jax.vmap(kn.network)(batch.layout, batch.weights)
+    want = np.asarray(task.cost(None, nets))
+    net = jax.tree.map(lambda a: a[0], nets)
+    h0 = jnp.zeros_like(net.bias)
+    y = jax.vmap(lambda x: kn.step(net, x, h0, hidden=task.hidden, output=task.output)[0])(
+        task.x_start
+    )
+    got = np.asarray(bench_peers.outputs_cost(task, y[None]))
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+
+
+def test_peers_quick(tmp_path):
+    from bench import bench_peers
+
+    out = tmp_path / "peers.json"
+    payload = bench_peers.main(["--quick", "--methods", "cmaes", "neat", "--out", str(out)])
+    saved = json.loads(out.read_text())
+    assert [r["method"] for r in saved["rows"]] == ["cmaes-h0", "cmaes-h2", "neat"]
+    for r in payload["rows"]:
+        assert r["evaluations_used"] >= 300
+        assert np.isfinite(r["best_cost_at_budget"])
+        costs = [p["best_cost"] for p in r["curve"]]
+        assert costs == sorted(costs, reverse=True)  # best so far never rises
+    assert out.with_suffix(".md").exists()
+
+
+@pytest.mark.slow
+def test_peers_quick_all_methods(tmp_path):
+    from bench import bench_peers
+
+    payload = bench_peers.main(["--quick", "--out", str(tmp_path / "p.json")])
+    assert {r["method"] for r in payload["rows"]} >= {"pycma-h0", "eant2"}
+
+
+def test_pole_quick(tmp_path):
+    from bench import bench_pole
+
+    out = tmp_path / "pole.json"
+    payload = bench_pole.main(["--quick", "--out", str(out)])
+    (row,) = payload["rows"]
+    assert row["task"] == "dpv" and row["seeds"] == 1
+    assert row["published_CMA-ES"] == 895
+    assert json.loads(out.read_text())["runs"]["dpv"][0]["evaluations"] > 0

@@ -24,7 +24,6 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from bench.common import (
     Column,
@@ -32,6 +31,7 @@ from bench.common import (
     environment,
     markdown_table,
     random_population,
+    time_call,
     write_results,
 )
 from eant2_jax import exploitation as ex
@@ -114,8 +114,8 @@ def _pruning_case(args, task, n_genes: int) -> dict:
     attempt = jax.jit(
         lambda s: ex._prune(s, trigger, batch.layout, tables, task, key, static, limits)[0]
     )
-    t_step = _time(lambda: step(st), args.repeats)
-    t_prune = _time(lambda: attempt(st), args.repeats)
+    t_step = time_call(lambda: step(st), repeats=args.repeats).median_s
+    t_prune = time_call(lambda: attempt(st), repeats=args.repeats).median_s
     return {
         "structures": args.population,
         "genes": n_genes,
@@ -130,17 +130,6 @@ def bench_pruning(args) -> list[dict]:
     """One pruning attempt of every structure vs one CMA-ES iteration, same batch."""
     task = tasks.make("servo", mode=args.mode, n_starts=args.moves)
     return [_pruning_case(args, task, n) for n in args.scaling_genes]
-
-
-def _time(fn, repeats: int) -> float:
-    jax.block_until_ready(fn())  # compile
-    jax.block_until_ready(fn())
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
 
 
 def bench_scaling(args) -> list[dict]:
@@ -169,7 +158,7 @@ def bench_scaling(args) -> list[dict]:
         t0 = time.perf_counter()
         jax.block_until_ready(go())
         first = time.perf_counter() - t0
-        t = _time(go, max(1, args.repeats // 3))
+        t = time_call(go, warmup=1, repeats=max(1, args.repeats // 3)).median_s
         evals = structures * popsize * args.scaling_iters
         rows.append(
             {

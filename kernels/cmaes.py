@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.typing import DTypeLike
 
 __all__ = ["Params", "State", "ask", "default_params", "eigen", "init", "sqrt_cov", "tell"]
 
@@ -94,7 +95,7 @@ class State:
     best_cost: jax.Array  # [] its cost (+inf before any finite cost)
 
 
-def _float_dtype(dtype) -> jnp.dtype:
+def _float_dtype(dtype: DTypeLike | None) -> np.dtype:
     if dtype is None:
         return jnp.result_type(float)  # float32, or float64 under jax_enable_x64
     return jnp.dtype(dtype)
@@ -105,7 +106,7 @@ def default_params(
     popsize: int,
     *,
     max_condition: float = 1e14,
-    dtype=None,
+    dtype: DTypeLike | None = None,
 ) -> Params:
     """Hyper-parameters of evosax ``CMA_ES._default_params`` for dimension ``n``.
 
@@ -179,7 +180,7 @@ def default_params(
     )
 
 
-def _cast_params(params: Params, dtype) -> Params:
+def _cast_params(params: Params, dtype: DTypeLike) -> Params:
     # Params built under x64 may meet a float32 state; keep the state's dtype stable (scan carry).
     return jax.tree.map(lambda a: jnp.asarray(a).astype(dtype), params)
 
@@ -294,12 +295,28 @@ def init(mean: jax.Array, sigma: jax.Array | float, mask: jax.Array, params: Par
     )
 
 
+def _normals(key: jax.Array, P: int, popsize: int, dtype: DTypeLike) -> jax.Array:
+    """``[popsize, P]`` standard normals; column ``i`` from ``fold_in(key, i)`` only.
+
+    Drawn as ONE flat vector of ``P * popsize`` scalar draws: with vmap over structures (and
+    seeds), per-coordinate ``normal(k_i, (popsize,))`` becomes a rank-3 threefry whose XLA:CPU
+    compilation costs ~1 s more; the flat form stays rank 2 and draws the same numbers
+    whatever the batching.
+    """
+    coord_keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(P))
+    c = jnp.arange(P * popsize)
+    keys = jax.vmap(lambda c: jax.random.fold_in(coord_keys[c // popsize], c % popsize))(c)
+    z = jax.vmap(lambda k: jax.random.normal(k, (), dtype))(keys)
+    return z.reshape(P, popsize).T
+
+
 def ask(key: jax.Array, state: State, params: Params) -> tuple[jax.Array, State]:
     """Sample ``popsize`` candidates ``x = m + sigma C^{1/2} z``, Eq. (38)-(40).
 
-    ``popsize`` is ``params.weights.shape[0]`` (static). Coordinate ``i`` draws its ``popsize``
-    normals from ``jax.random.fold_in(key, i)``, so the first ``n`` coordinates of ``z`` do not
-    depend on the padded size ``P``; ``C^{1/2} = B diag(D) B^T`` is the symmetric square root.
+    ``popsize`` is ``params.weights.shape[0]`` (static). ``z[j, i]`` (candidate ``j``,
+    coordinate ``i``) is ``jax.random.normal(fold_in(fold_in(key, i), j), ())``, so the first
+    ``n`` coordinates of ``z`` do not depend on the padded size ``P``; ``C^{1/2} =
+    B diag(D) B^T`` is the symmetric square root.
 
     Args:
       key: PRNG key.
@@ -313,8 +330,7 @@ def ask(key: jax.Array, state: State, params: Params) -> tuple[jax.Array, State]
     popsize = params.weights.shape[0]
     dtype = state.mean.dtype
     P = state.mean.shape[-1]
-    keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(P))
-    z = jax.vmap(lambda k: jax.random.normal(k, (popsize,), dtype))(keys).T  # Eq. (38)
+    z = _normals(key, P, popsize, dtype)  # Eq. (38)
     z = jnp.where(state.mask[None, :], z, 0)
     # Eq. (39) with C^{1/2} = B diag(D) B^T (symmetric), applied as two [popsize, P] x [P, P]
     # products rather than forming C^{1/2}.

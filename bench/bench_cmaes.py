@@ -1,0 +1,438 @@
+"""CMA-ES iterations per second for S structures at once: the batched masked engine vs loops.
+
+One *iteration* advances every one of the S structures by one CMA-ES generation (ask,
+evaluate ``popsize`` candidates, tell). The structures have different dimensions (spread over
+``--dims``, default 20..200) and each minimises its own rotated ellipsoid
+``f(x) = sum_i cond^{i/(n-1)} (R x)_i^2`` (``--cond``, default 1e6). Engines:
+
+* ``batched-P<size>``: :mod:`eant2_jax.kernels.cmaes`, all S structures padded into one size
+  (default 256) and advanced by ONE jit-compiled ``vmap(ask) -> evaluate -> vmap(tell)``;
+* ``batched-buckets``: the same, the structures grouped into power-of-two buckets
+  (32, 64, 128, 256), one compiled step per bucket per iteration (dispatched asynchronously);
+* ``batched-P<size>-scan<K>``: as ``batched-P<size>``, K iterations per call in ``lax.scan``
+  (how the exploitation engine runs); reported per iteration;
+* ``evosax-loop``: a Python loop over the S structures, each stepped by a jit-compiled
+  evosax ``CMA_ES`` step (ask, evaluate, tell) compiled once per distinct dimension;
+* ``pycma``: a Python loop over S ``cma.CMAEvolutionStrategy`` instances (NumPy, CPU), the
+  reference implementation (``pip install -e ".[bench]"``).
+
+All engines use the same popsize (``--popsize``, default ``4 + floor(3 ln 200) = 19``, the
+default of the largest dimension) so that an iteration does the same work. For each engine
+and S: ``compile_s`` is the first iteration minus a steady one (tracing + XLA compilation, 0
+for pycma), ``median_s`` the median of ``--repeats`` timed iterations after ``--warmup``
+untimed ones, each waiting for the device (``block_until_ready``).
+
+Run from the repository root::
+
+    python -m bench.bench_cmaes                       # S = 1, 8, 32, 128 (sized for a GPU)
+    python -m bench.bench_cmaes --structures 1 8 32   # a smaller sweep
+    python -m bench.bench_cmaes --quick --out /tmp/c.json
+
+Writes JSON to ``--out`` (default ``bench/results/cmaes-<platform>.json``) and the markdown
+table next to it (``.md``), and prints the table. Progress goes to stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bench.common import Column, default_out, environment, markdown_table, time_call, write_results
+from eant2_jax.kernels import cmaes
+
+BUCKETS = (32, 64, 128, 256)
+
+
+# ----------------------------------------------------------------------------- the problems
+def dimensions(s_count: int, grid: Sequence[int]) -> list[int]:
+    """Dimensions of S structures: evenly over ``grid`` (S = 1 takes its middle value)."""
+    k = len(grid)
+    return [int(grid[min(int((s + 0.5) * k / s_count), k - 1)]) for s in range(s_count)]
+
+
+def ellipsoid_data(n: int, cond: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation ``[n, n]`` and axis scales ``[n]`` of a rotated ellipsoid (float32)."""
+    rot, _ = np.linalg.qr(np.random.default_rng(seed).standard_normal((n, n)))
+    scale = cond ** (np.arange(n) / max(n - 1, 1))
+    return rot.astype(np.float32), scale.astype(np.float32)
+
+
+def ellipsoid(rot: jax.Array, scale: jax.Array, x: jax.Array) -> jax.Array:
+    """Costs ``[K]`` of candidates ``x`` ``[K, n]``; padded rows/scales of 0 ignore padding."""
+    return ((x @ rot.T) ** 2) @ scale
+
+
+def _pad(a: np.ndarray, size: int) -> np.ndarray:
+    out = np.zeros((size,) * a.ndim, a.dtype)
+    out[tuple(slice(0, d) for d in a.shape)] = a
+    return out
+
+
+# ------------------------------------------------------------------------------- engines
+def batched_engine(
+    dims: Sequence[int],
+    size: int,
+    popsize: int,
+    cond: float,
+    seed: int,
+    chunk: int = 1,
+) -> Callable[[], jax.Array]:
+    """One iteration (or ``chunk`` in a scan) of S structures padded into ``size``."""
+    s_count = len(dims)
+    data = [ellipsoid_data(n, cond, seed + s) for s, n in enumerate(dims)]
+    rot = jnp.asarray(np.stack([_pad(r, size) for r, _ in data]))
+    scale = jnp.asarray(np.stack([_pad(a, size) for _, a in data]))
+    mask = np.arange(size)[None, :] < np.asarray(dims)[:, None]
+
+    @jax.jit
+    def setup(mask):  # one compilation instead of many eager vmapped ops
+        params = jax.vmap(lambda n: cmaes.default_params(n, popsize))(jnp.sum(mask, axis=1))
+        states = jax.vmap(lambda m, p: cmaes.init(m.astype(jnp.float32), 1.0, m, p))(mask, params)
+        return params, states
+
+    params, states = setup(mask)
+    keys = jax.random.split(jax.random.key(seed), s_count)
+
+    def one(states, params, it):
+        ks = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, it)
+        xs, states = jax.vmap(cmaes.ask)(ks, states, params)
+        costs = jax.vmap(ellipsoid)(rot, scale, xs)
+        return jax.vmap(cmaes.tell)(states, xs, costs, params)
+
+    @jax.jit
+    def step(states, params, it):
+        if chunk == 1:
+            return one(states, params, it)
+        body = lambda i, s: one(s, params, i)  # noqa: E731
+        return jax.lax.fori_loop(it * chunk, (it + 1) * chunk, body, states)
+
+    holder = {"states": states, "it": 0}
+
+    def iteration():
+        holder["states"] = step(holder["states"], params, holder["it"])
+        holder["it"] += 1
+        return holder["states"].sigma
+
+    return iteration
+
+
+def bucketed_engine(
+    dims: Sequence[int], popsize: int, cond: float, seed: int
+) -> Callable[[], list[jax.Array]]:
+    """One iteration: one compiled batched step per power-of-two bucket."""
+    groups: dict[int, list[int]] = {}
+    for n in dims:
+        groups.setdefault(next(b for b in BUCKETS if b >= n), []).append(n)
+    engines = [
+        batched_engine(g, size, popsize, cond, seed + 1000 * i)
+        for i, (size, g) in enumerate(sorted(groups.items()))
+    ]
+
+    def iteration():
+        return [e() for e in engines]  # asynchronous dispatch: the buckets overlap
+
+    return iteration
+
+
+def evosax_loop_engine(
+    dims: Sequence[int], popsize: int, cond: float, seed: int
+) -> Callable[[], list[jax.Array]]:
+    """A Python loop over S evosax CMA-ES states, one compiled step per distinct dimension."""
+    from evosax.algorithms import CMA_ES
+
+    steps: dict[int, Callable] = {}
+    for n in sorted(set(dims)):
+        es = CMA_ES(popsize, jnp.zeros(n))
+        es_params = jax.jit(lambda es=es: es.default_params)()  # one compilation, not eager ops
+
+        def step(state, key, rot, scale, es=es, es_params=es_params):
+            k1, k2 = jax.random.split(key)
+            # evosax broadcasts [n] against [popsize, n]; allow it whatever the global config.
+            with jax.numpy_rank_promotion("allow"):
+                x, state = es.ask(k1, state, es_params)
+                state, _ = es.tell(k2, x, ellipsoid(rot, scale, x), state, es_params)
+            return state
+
+        steps[n] = (es, es_params, jax.jit(step))
+
+    structures = []
+    for s, n in enumerate(dims):
+        es, es_params, step = steps[n]
+        rot, scale = (jnp.asarray(a) for a in ellipsoid_data(n, cond, seed + s))
+        state = es.init(jax.random.key(seed), jnp.ones(n), es_params)
+        structures.append([step, state, rot, scale, jax.random.key(seed + s)])
+
+    holder = {"it": 0}
+
+    def iteration():
+        out = []
+        for st in structures:
+            step, state, rot, scale, key = st
+            st[1] = step(state, jax.random.fold_in(key, holder["it"]), rot, scale)
+            out.append(st[1].std)
+        holder["it"] += 1
+        return out
+
+    return iteration
+
+
+def pycma_engine(
+    dims: Sequence[int], popsize: int, cond: float, seed: int
+) -> Callable[[], list[float]]:
+    """A Python loop over S pycma instances (NumPy on the CPU)."""
+    import cma
+
+    structures = []
+    for s, n in enumerate(dims):
+        rot, scale = (a.astype(np.float64) for a in ellipsoid_data(n, cond, seed + s))
+        opts = {"popsize": popsize, "seed": seed + s + 1, "verbose": -9, "maxiter": 10**9}
+        es = cma.CMAEvolutionStrategy(np.ones(n), 1.0, opts)
+        structures.append((es, rot, scale))
+
+    def iteration():
+        for es, rot, scale in structures:
+            x = np.asarray(es.ask())
+            es.tell(list(x), list(((x @ rot.T) ** 2) @ scale))
+        return [es.sigma for es, _, _ in structures]
+
+    return iteration
+
+
+# ------------------------------------------------------------------------------ the sweep
+COLUMNS = [
+    Column("engine", "engine"),
+    Column("S", "S"),
+    Column(lambda r: f"{r['dim_min']}-{r['dim_max']}", "dims"),
+    Column("padding", "padded to"),
+    Column("popsize", "popsize"),
+    Column("compile_s", "compile s", "{:.2f}"),
+    Column(lambda r: r["median_s"] * 1e3, "ms / iteration", "{:.3g}"),
+    Column(lambda r: r["min_s"] * 1e3, "min ms", "{:.3g}"),
+    Column("iters_per_s", "iterations/s", "{:.3g}"),
+    Column("structure_iters_per_s", "structure-iterations/s", "{:.3g}"),
+    Column("speedup_vs_evosax_loop", "x evosax loop", "{:.2f}"),
+    Column("speedup_vs_pycma", "x pycma", "{:.2f}"),
+]
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(
+        prog="python -m bench.bench_cmaes",
+        description="CMA-ES iterations/s for S structures: batched masked engine vs evosax "
+        "and pycma loops.",
+    )
+    ap.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
+    ap.add_argument(
+        "--out", default=None, help="JSON path (default bench/results/cmaes-<platform>.json)"
+    )
+    ap.add_argument("--structures", type=int, nargs="+", default=None, help="values of S")
+    ap.add_argument(
+        "--dims", type=int, nargs="+", default=None, help="dimension grid the S structures use"
+    )
+    ap.add_argument("--pad", type=int, default=None, help="common padded size (default 256)")
+    ap.add_argument("--popsize", type=int, default=None, help="default 4 + 3 ln(max dim)")
+    ap.add_argument("--cond", type=float, default=1e6, help="ellipsoid condition number")
+    ap.add_argument("--chunk", type=int, default=10, help="K of the scan variant (0: skip)")
+    ap.add_argument(
+        "--engines",
+        nargs="+",
+        default=None,
+        choices=["batched", "buckets", "scan", "evosax", "pycma"],
+        help="engines to run (default all)",
+    )
+    ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=7, help="timed iterations per case (>= 3)")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    if args.repeats < 3:
+        ap.error("--repeats must be at least 3")
+    if args.quick:
+        # Each batched engine is one XLA compilation (~2 s on a CPU), each distinct dimension
+        # one evosax compilation: the smoke run keeps one of each.
+        args.structures = args.structures or [2]
+        args.dims = args.dims or [6]
+        args.pad = args.pad or 8
+        args.chunk = min(args.chunk, 2)
+        args.warmup = min(args.warmup, 1)
+        args.repeats = min(args.repeats, 3)
+        args.engines = args.engines or ["batched", "evosax", "pycma"]
+    else:
+        args.structures = args.structures or [1, 8, 32, 128]
+        args.dims = args.dims or list(range(20, 201, 20))
+        args.pad = args.pad or 256
+        args.engines = args.engines or ["batched", "buckets", "scan", "evosax", "pycma"]
+    if max(args.dims) > args.pad:
+        ap.error(f"--pad {args.pad} is smaller than the largest dimension {max(args.dims)}")
+    args.popsize = args.popsize or 4 + int(math.floor(3 * math.log(max(args.dims))))
+    if args.chunk <= 0:
+        args.engines = [e for e in args.engines if e != "scan"]
+    return args
+
+
+def _cases(args: argparse.Namespace, dims: list[int]) -> list[tuple[str, str, Callable]]:
+    p, k, seed = args.popsize, args.chunk, args.seed
+    buckets = sorted({next(b for b in BUCKETS if b >= n) for n in dims})
+    makers = {
+        "batched": (
+            f"batched-P{args.pad}",
+            str(args.pad),
+            lambda: batched_engine(dims, args.pad, p, args.cond, seed),
+        ),
+        "buckets": (
+            "batched-buckets",
+            "/".join(map(str, buckets)),
+            lambda: bucketed_engine(dims, p, args.cond, seed),
+        ),
+        "scan": (
+            f"batched-P{args.pad}-scan{k}",
+            str(args.pad),
+            lambda: batched_engine(dims, args.pad, p, args.cond, seed, chunk=k),
+        ),
+        "evosax": ("evosax-loop", "none", lambda: evosax_loop_engine(dims, p, args.cond, seed)),
+        "pycma": ("pycma", "none", lambda: pycma_engine(dims, p, args.cond, seed)),
+    }
+    if max(dims) > BUCKETS[-1]:
+        makers.pop("buckets")
+    cases = [makers[e] for e in args.engines if e in makers]
+    return cases
+
+
+def _load() -> float | None:
+    try:
+        return os.getloadavg()[0]
+    except OSError:  # pragma: no cover - not available on every platform
+        return None
+
+
+def _payload(args: argparse.Namespace, env: dict, rows: list[dict], total_s: float) -> dict:
+    env = dict(env)
+    load_start = env.pop("loadavg_1m_start", None)
+    return {
+        "benchmark": "cmaes",
+        "unit": "iterations per second (one CMA-ES generation of every one of the S structures)",
+        **env,
+        "config": {
+            "quick": args.quick,
+            "structures": args.structures,
+            "dims_grid": args.dims,
+            "pad": args.pad,
+            "buckets": list(BUCKETS),
+            "popsize": args.popsize,
+            "problem": f"rotated ellipsoid, condition {args.cond:g}, one rotation per structure",
+            "chunk": args.chunk,
+            "engines": args.engines,
+            "dtype": "float32 (pycma: float64)",
+            "warmup": args.warmup,
+            "repeats": args.repeats,
+            "seed": args.seed,
+        },
+        # CPU timings are only as good as the machine is idle: record how busy it was.
+        "host": {
+            "cpu_count": os.cpu_count(),
+            "loadavg_1m_start": load_start,
+            "loadavg_1m_end": _load(),
+        },
+        "total_s": total_s,
+        "rows": rows,
+    }
+
+
+def _add_speedups(rows: list[dict]) -> None:
+    for r in rows:
+        for name, ref in (("evosax_loop", "evosax-loop"), ("pycma", "pycma")):
+            base = next((b for b in rows if b["engine"] == ref and b["S"] == r["S"]), None)
+            r[f"speedup_vs_{name}"] = (
+                r["iters_per_s"] / base["iters_per_s"] if base is not None else None
+            )
+
+
+def run(
+    args: argparse.Namespace, on_row: Callable[[dict[str, Any]], None] | None = None
+) -> dict[str, Any]:
+    """Run the sweep described by parsed arguments; return the JSON payload.
+
+    Args:
+      args: from :func:`parse_args`.
+      on_row: called with the payload so far after each case (to save partial results).
+    """
+    env = environment() | {"loadavg_1m_start": _load()}
+    rows: list[dict] = []
+    t_start = time.perf_counter()
+    for s_count in args.structures:
+        dims = dimensions(s_count, args.dims)
+        for engine, padding, make in _cases(args, dims):
+            iteration = make()
+            timing = time_call(iteration, warmup=args.warmup, repeats=args.repeats)
+            k = args.chunk if "-scan" in engine else 1
+            per_iter = timing.median_s / k
+            row = {
+                "engine": engine,
+                "S": s_count,
+                "dims": dims,
+                "dim_min": min(dims),
+                "dim_max": max(dims),
+                "dim_mean": float(np.mean(dims)),
+                "padding": padding,
+                "popsize": args.popsize,
+                "iterations_per_call": k,
+                "first_call_s": timing.first_call_s,
+                "compile_s": 0.0 if engine == "pycma" else timing.compile_s,
+                "median_s": per_iter,
+                "min_s": timing.min_s / k,
+                "times_s": list(timing.times_s),
+                "iters_per_s": 1.0 / per_iter,
+                "structure_iters_per_s": s_count / per_iter,
+                "evals_per_s": s_count * args.popsize / per_iter,
+            }
+            rows.append(row)
+            _add_speedups(rows)
+            print(
+                f"[cmaes] {engine} S={s_count} dims {min(dims)}-{max(dims)}: "
+                f"compile {row['compile_s']:.2f}s, {per_iter * 1e3:.3g} ms/iteration",
+                file=sys.stderr,
+                flush=True,
+            )
+            if on_row is not None:
+                on_row(_payload(args, env, rows, time.perf_counter() - t_start))
+    _add_speedups(rows)
+    return _payload(args, env, rows, time.perf_counter() - t_start)
+
+
+def render(payload: dict[str, Any]) -> str:
+    """The markdown report: a header naming the device and the problem, then the table."""
+    cfg = payload["config"]
+    head = (
+        f"CMA-ES throughput on **{payload['device_kind']}** ({payload['platform']}), "
+        f"jax {payload['jax_version']}, {payload['date_utc']}. {cfg['problem']}; "
+        f"popsize {cfg['popsize']}; median of {cfg['repeats']} iterations. Host: "
+        f"{payload['host']['cpu_count']} CPUs, 1-min load average "
+        f"{payload['host']['loadavg_1m_start']} at start, {payload['host']['loadavg_1m_end']} "
+        "at end.\n\n"
+    )
+    return head + markdown_table(payload["rows"], COLUMNS)
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """Command-line entry point; returns the payload it wrote."""
+    args = parse_args(argv)
+    out = args.out or default_out("cmaes")
+    # Partial results are saved after every case, so a run cut off by a time limit keeps them.
+    payload = run(args, on_row=lambda p: write_results(out, p, render(p)))
+    md = render(payload)
+    json_path, md_path = write_results(out, payload, md)
+    print(md)
+    print(f"wrote {json_path} and {md_path}", file=sys.stderr)
+    return payload
+
+
+if __name__ == "__main__":
+    main()

@@ -212,6 +212,7 @@ def _reproduce(args: argparse.Namespace) -> int:
     from eant2_jax.loop import EANT2Config
 
     options = {"mode": args.mode} if args.task == "servo" else {}
+    options.update(_task_options(args.task_option))
     task = eant2_jax.tasks.make(args.task, **options)
     pruners = [p.strip() for p in args.pruners.split(",") if p.strip()]
     exploit = {} if args.max_iters is None else {"max_iters": args.max_iters}
@@ -240,6 +241,7 @@ def _reproduce(args: argparse.Namespace) -> int:
         seed=args.seed,
         workers_per_device=args.workers,
         condition=not args.no_condition,
+        condition_iters=args.condition_iters,
         callback=progress,
     )
     print(f"report: {path}")
@@ -363,6 +365,19 @@ def _parser() -> argparse.ArgumentParser:
     rep.add_argument("--task", default="servo", help="task (default: servo, the paper's)")
     rep.add_argument("--seed", type=int, default=0, help="first seed")
     rep.add_argument("--workers", type=_positive, default=1, help="concurrent runs per device")
+    rep.add_argument(
+        "--condition-iters",
+        type=_positive,
+        default=2000,
+        help="CMA-ES budget of each run of the condition experiment (default 2000)",
+    )
+    rep.add_argument(
+        "--task-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="option of the task (repeatable), e.g. n_starts=64",
+    )
     rep.add_argument(
         "--no-condition", action="store_true", help="skip the condition experiment (paper V.A)"
     )

@@ -87,7 +87,7 @@ def evaluate(
     if x.ndim != 3:
         raise ValueError(f"inputs must have shape [T, M, n_in], got shape {x.shape}")
     if not np.issubdtype(x.dtype, np.number) or np.iscomplexobj(x):
-        raise TypeError(f"inputs must be real numbers, got dtype {x.dtype}")
+        raise TypeError(f"inputs must be real numeric values, got dtype {x.dtype}")
     batch = compile_genomes(genomes, n_inputs=x.shape[2])
     ys = rollout_batch(
         batch.layout, batch.weights, jnp.asarray(x, jnp.float32), hidden=hidden, output=output

@@ -124,6 +124,7 @@ def reproduce(
     devices: int | str = "all",
     workers_per_device: int = 1,
     condition: bool = True,
+    condition_iters: int = 2000,
     callback: Callable[[dict], None] | None = None,
 ) -> Path:
     """Run the paper's experiments and write the report.
@@ -142,6 +143,7 @@ def reproduce(
       workers_per_device: concurrent runs per device (overlaps one run's host work with
         another's device work).
       condition: also run the V.A condition experiment.
+      condition_iters: CMA-ES budget of each run of that experiment.
       callback: progress events (with ``run`` and ``arm``).
 
     Returns:
@@ -200,7 +202,13 @@ def reproduce(
     if condition:
         unpruned = [r for (arm, _), r in zip(jobs, results, strict=True) if arm == "none"]
         best = min(unpruned, key=lambda r: r.records["generations"][-1]["best_cost"])
-        cond = condition_experiment(best.best, task, key=jax.random.key(seed + 10_000))
+        cond = condition_experiment(
+            best.best,
+            task,
+            key=jax.random.key(seed + 10_000),
+            iters=condition_iters,
+            prune_iters=condition_iters,
+        )
         (out / "condition.json").write_text(json.dumps(cond) + "\n", encoding="utf-8")
     extra["notes"] = _claims(dirs, cond)
     return report([str(d) for d in dirs], out / "report", extra=extra, condition=cond)

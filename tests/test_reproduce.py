@@ -1,0 +1,36 @@
+"""`eant2 reproduce` in a short setting on CPU: every figure and the table are produced."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+
+def test_reproduce_short_servo(tmp_path):
+    out = tmp_path / "rep"
+    cmd = [
+        sys.executable, "-m", "eant2_jax.cli", "reproduce", "--runs", "2", "--generations", "2",
+        "--population", "3", "--max-iters", "30", "--condition-iters", "60",
+        "--task-option", "n_starts=16", "--out", str(out),
+    ]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = out / "report"
+    for name in ("fitness_size.png", "condition.png", "best_network.png", "pruned_network.png"):
+        assert (report / name).stat().st_size > 1000, name  # a real PNG, not an empty file
+        assert (report / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    text = (report / "report.md").read_text()
+    assert "| covariance | 2 |" in text and "| none | 2 |" in text
+    assert "The paper's claims" in text and "Baselines" in text
+    summary = json.loads((report / "summary.json").read_text())
+    assert set(summary) == {"covariance", "none"}
+    for arm in ("covariance", "none"):
+        for seed in (0, 1):
+            gens = (out / f"{arm}-s{seed}" / "generations.jsonl").read_text().splitlines()
+            assert len(gens) == 3  # generations 0, 1, 2
+    # The output directory is never overwritten.
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 2 and "not overwriting" in again.stderr

@@ -53,7 +53,20 @@ class CompileCounter:
 
 
 def bench_generations(args, counter: CompileCounter) -> list[dict]:
-    task = tasks.make("servo", mode=args.mode, n_starts=args.moves)
+    if args.task == "servo":
+        task = tasks.make("servo", mode=args.mode, n_starts=args.moves)
+    else:
+        task = tasks.make(args.task)
+    # Record the padding bucket of every exploitation batch (wrapping the loop's compiler).
+    buckets: list[tuple] = []
+    compile_batch = loop.compile_genomes
+
+    def recording(*a, **k):
+        batch = compile_batch(*a, **k)
+        buckets.append((batch.bucket.genes, batch.bucket.neurons, batch.bucket.sweeps))
+        return batch
+
+    loop.compile_genomes = recording
     config = loop.EANT2Config(
         population=args.population,
         exploit=ex.ExploitConfig(max_iters=args.max_iters, pruner=args.pruner),
@@ -74,6 +87,8 @@ def bench_generations(args, counter: CompileCounter) -> list[dict]:
                 "compiles": counter.count - marks["compiles"],
                 "best_cost": event["best_cost"],
                 "best_size": event["best_size"],
+                "bucket": buckets[-1] if buckets else None,
+                "buckets_so_far": len(set(buckets)),
             }
         )
         marks["t"], marks["compiles"] = now, counter.count
@@ -183,6 +198,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--max-iters", type=int, default=300)
     p.add_argument("--moves", type=int, default=1023)
     p.add_argument("--mode", default="kinematic")
+    p.add_argument("--task", default="servo", help="servo (default) or another registered task")
     p.add_argument("--pruner", default="covariance")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--repeats", type=int, default=9)
@@ -204,7 +220,7 @@ def render(payload: dict[str, Any]) -> str:
     env = payload["environment"]
     out = [f"Device: {env['device_kind']} ({env['platform']}), jax {env['jax_version']}.\n"]
     if payload.get("generation"):
-        out.append("\n### EANT2 generations on servo\n\n")
+        out.append(f"\n### EANT2 generations on {payload['config']['task']}\n\n")
         out.append(
             markdown_table(
                 payload["generation"],
@@ -215,6 +231,8 @@ def render(payload: dict[str, Any]) -> str:
                     Column("new_evaluations", "evaluations"),
                     Column("moves_per_s", "moves/s", "{:.3g}"),
                     Column("compiles", "XLA compiles"),
+                    Column("bucket", "bucket (P, H, sweeps)"),
+                    Column("buckets_so_far", "buckets so far"),
                     Column("best_cost", "best cost", "{:.4g}"),
                     Column("best_size", "size"),
                 ],

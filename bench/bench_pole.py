@@ -141,27 +141,37 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         ),
     )
     rows, runs = [], {}
+
+    def save() -> dict:
+        payload = {
+            **environment(),
+            "suite": "pole",
+            "config": {
+                **{k: v for k, v in vars(args).items() if k != "out"},
+                "eant2": config.to_dict(),
+            },
+            "published_source": "Gomez, Schmidhuber & Miikkulainen 2008 (JMLR 9), tables 3-4",
+            "rows": rows,
+            "runs": runs,
+        }
+        head = (
+            f"EANT2 (covariance pruning) to solve double pole balancing; seeds per task: "
+            f"{', '.join(f'{k} {len(v)}' for k, v in runs.items())}; budget {args.budget} "
+            f"evaluations (failures charged the budget in the fail = budget column); device "
+            f"{payload['device_kind']} ({payload['platform']}). Published columns: mean "
+            "evaluations, Gomez et al. 2008.\n\n"
+        )
+        write_results(
+            args.out or default_out("pole"), payload, head + markdown_table(rows, COLUMNS)
+        )
+        return payload
+
+    # Results are saved after every seed, so a run cut off by a time limit keeps them.
     for name in args.tasks:
         task = pole.dpv() if name == "dpv" else pole.dpnv()
-        runs[name] = [solve_once(task, s, config, args.budget) for s in range(args.seeds)]
-        rows.append(_row(name, runs[name], args.budget))
-    payload = {
-        **environment(),
-        "suite": "pole",
-        "config": {
-            **{k: v for k, v in vars(args).items() if k != "out"},
-            "eant2": config.to_dict(),
-        },
-        "published_source": "Gomez, Schmidhuber & Miikkulainen 2008 (JMLR 9), tables 3-4",
-        "rows": rows,
-        "runs": runs,
-    }
-    head = (
-        f"EANT2 (covariance pruning) to solve double pole balancing; {args.seeds} seeds, "
-        f"budget {args.budget} evaluations (failures charged the budget in the fail = "
-        f"budget column); device {payload['device_kind']} ({payload['platform']}). "
-        "Published columns: mean evaluations, Gomez et al. 2008.\n\n"
-    )
-    md = head + markdown_table(rows, COLUMNS)
-    write_results(args.out or default_out("pole"), payload, md)
+        runs[name] = []
+        for s in range(args.seeds):
+            runs[name].append(solve_once(task, s, config, args.budget))
+            rows[:] = [_row(n, r, args.budget) for n, r in runs.items()]
+            payload = save()
     return payload

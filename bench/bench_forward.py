@@ -45,12 +45,11 @@ import numpy as np
 
 from bench.common import (
     Column,
-    default_out,
     environment,
     markdown_table,
     random_population,
+    run_and_write,
     time_call,
-    write_results,
 )
 from eant2_jax.compiler import Bucket, bucket_for, bucket_size, compile_genomes
 from eant2_jax.evaluate import rollout_batch
@@ -343,15 +342,7 @@ def render(payload: dict[str, Any]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Command-line entry point; returns the payload it wrote."""
-    args = parse_args(argv)
-    out = args.out or default_out("forward")
-    # Partial results are saved after every case, so a run cut off by a time limit keeps them.
-    payload = run(args, on_row=lambda p: write_results(out, p, render(p)))
-    md = render(payload)
-    json_path, md_path = write_results(out, payload, md)
-    print(md)
-    print(f"wrote {json_path} and {md_path}", file=sys.stderr)
-    return payload
+    return run_and_write("forward", parse_args(argv), run, render)
 
 
 if __name__ == "__main__":

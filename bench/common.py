@@ -33,6 +33,7 @@ __all__ = [
     "random_genome",
     "random_population",
     "time_call",
+    "run_and_write",
     "write_results",
 ]
 
@@ -238,3 +239,18 @@ def write_results(out: str | Path, payload: dict, markdown: str) -> tuple[Path, 
     md = out.with_suffix(".md")
     md.write_text(markdown)
     return out, md
+
+
+def run_and_write(name: str, args, run: Callable, render: Callable[[dict], str]) -> dict:
+    """Run a benchmark whose ``run(args, on_row=...)`` reports partial payloads, writing the
+    JSON and markdown after every case (a run cut off by a time limit keeps them) and once
+    at the end; prints the table. Returns the final payload."""
+    import sys
+
+    out = args.out or default_out(name)
+    payload = run(args, on_row=lambda p: write_results(out, p, render(p)))
+    md = render(payload)
+    json_path, md_path = write_results(out, payload, md)
+    print(md)
+    print(f"wrote {json_path} and {md_path}", file=sys.stderr)
+    return payload

@@ -19,6 +19,7 @@ SUITES = {
     "servo": "bench.bench_servo",
     "generation": "bench.bench_generation",
     "scaling": "bench.bench_scaling",
+    "pycma": "bench.bench_pycma",
     "peers": "bench.bench_peers",
     "pole": "bench.bench_pole",
 }

@@ -428,6 +428,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--eant2-max-iters", type=int, default=100)
     p.add_argument("--eant2-patience", type=int, default=30)
     p.add_argument("--eant2-prune-window", type=int, default=30)
+    p.add_argument(
+        "--compilation-cache",
+        default=None,
+        metavar="DIR",
+        help="JAX's persistent compilation cache (as the eant2 CLI uses); a second run with "
+        "the same DIR measures wall times without compilation",
+    )
     p.add_argument("--out", default=None)
     return p
 
@@ -438,6 +445,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         args.budget, args.n_starts, args.hidden = 300, 31, [0, 2]
         args.neat_pop, args.eant2_population, args.eant2_max_iters = 30, 3, 5
         args.eant2_patience, args.eant2_prune_window = 5, 3
+    if args.compilation_cache:
+        jax.config.update("jax_compilation_cache_dir", args.compilation_cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     every = args.every or max(args.budget // 50, 1)
     task = tasks.make("servo", n_starts=args.n_starts, mode="kinematic")
     eant2_config = loop.EANT2Config(

@@ -54,8 +54,8 @@ def initialize(
             "multi-process runs need the coordinator address, the number of processes and "
             "this process's id (EANT2_COORDINATOR, EANT2_NUM_PROCESSES, EANT2_PROCESS_ID)"
         )
-    if jax.config.jax_platforms in (None, "", "cpu") or "cpu" in str(jax.config.jax_platforms):
-        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    # Only CPU collectives read this setting; GPUs use NCCL whatever it says.
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(coordinator_address, num_processes, process_id)
     return True
 

@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -156,9 +157,7 @@ def reproduce(
     arms = [p for p in pruners if p != "none"] + ["none"]
     jobs = [(arm, seed + i) for arm in arms for i in range(runs)]
     configs = [
-        EANT2Config.from_dict(
-            {**base.to_dict(), "exploit": {**base.to_dict()["exploit"], "pruner": arm}}
-        )
+        dataclasses.replace(base, exploit=dataclasses.replace(base.exploit, pruner=arm))
         for arm, _ in jobs
     ]
     dirs = [out / f"{arm}-s{s}" for arm, s in jobs]

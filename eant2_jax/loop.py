@@ -215,8 +215,9 @@ def _key_data(key: jax.Array) -> tuple[int, ...]:
     return tuple(int(k) for k in np.asarray(key, dtype=np.uint32).ravel())
 
 
-def _run_key(state: RunState) -> jax.Array:
-    return jax.random.wrap_key_data(jnp.asarray(np.array(state.key, dtype=np.uint32)))
+def _key_from_data(data: Sequence[int]) -> jax.Array:
+    """A typed PRNG key from its raw data (as stored in checkpoints and config.json)."""
+    return jax.random.wrap_key_data(jnp.asarray(np.array(data, dtype=np.uint32)))
 
 
 def exploit(
@@ -464,7 +465,7 @@ def run(
                 "config": config.to_dict(),
             },
         )
-    return _loop(task, None, _run_key_from(key), config, generations, rundir, callback)
+    return _loop(task, None, _key_from_data(_key_data(key)), config, generations, rundir, callback)
 
 
 def run_many(
@@ -569,10 +570,6 @@ def run_many(
     return results
 
 
-def _run_key_from(key: jax.Array) -> jax.Array:
-    return jax.random.wrap_key_data(jnp.asarray(np.array(_key_data(key), dtype=np.uint32)))
-
-
 def resume(
     out: str,
     task: Task,
@@ -604,14 +601,14 @@ def resume(
     if state is None:
         key = _key_from_meta(meta, rundir)
     else:
-        key = _run_key(state)
+        key = _key_from_data(state.key)
     return _loop(task, state, key, config, total, rundir, callback)
 
 
 def _key_from_meta(meta: dict, rundir: RunDir) -> jax.Array:
     if "key" not in meta:
         raise RunDirError(f"{rundir.path}: config.json has no key; the run cannot be resumed")
-    return jax.random.wrap_key_data(jnp.asarray(np.array(meta["key"], dtype=np.uint32)))
+    return _key_from_data(meta["key"])
 
 
 def _loop(task, state, key, config, generations, rundir, callback) -> RunResult:

@@ -3,9 +3,9 @@
 Suites: forward (the evaluator kernel), cmaes (batched CMA-ES), servo (the MJX task),
 generation (whole EANT2 generations, pruning overhead, scaling), peers (CMA-ES, pycma,
 NEAT and EANT2 on the servo task at one evaluation budget), pole (evaluations to solve
-double pole balancing). Each writes JSON (device,
-versions, config, compile time apart from steady state) and a markdown table; ``--help``
-after the suite name lists its options.
+double pole balancing), profile (where a run's time goes: compilation, a profiler
+trace). Each writes JSON (device, versions, config, compile time apart from steady state)
+and a markdown table; ``--help`` after the suite name lists its options.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ SUITES = {
     "pycma": "bench.bench_pycma",
     "peers": "bench.bench_peers",
     "pole": "bench.bench_pole",
+    "profile": "bench.bench_profile",
 }
 
 
@@ -30,7 +31,13 @@ def main(argv: list[str]) -> int:
         print(__doc__)
         print("usage: python -m bench {" + ",".join(SUITES) + "} [options]")
         return 0 if argv and argv[0] in ("-h", "--help") else 2
-    importlib.import_module(SUITES[argv[0]]).main(argv[1:])
+    from bench.common import BenchInputError
+
+    try:
+        importlib.import_module(SUITES[argv[0]]).main(argv[1:])
+    except BenchInputError as e:
+        print(f"python -m bench {argv[0]}: error: {e}", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -15,21 +15,35 @@ Reported per task: success rate, mean and median evaluations over solved runs, t
 failures charged the budget, and wall time per solved run (compilation included: the first
 seed pays most of it), next to Gomez, Schmidhuber & Miikkulainen (2008), tables 3-4.
 
-Run: ``python -m bench pole [--quick] [--seeds N] [--tasks dpv dpnv] [--out PATH]``.
+Seeds can be split over processes or machines (``--first-seed``) and the result files
+merged afterwards (``--merge``); a merge refuses files whose settings or devices differ, or
+that share a seed.
+
+Run: ``python -m bench pole [--quick] [--seeds N] [--first-seed K] [--tasks dpv dpnv]
+[--out PATH]``, then ``python -m bench pole --merge A.json B.json ... --out PATH``.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import statistics
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import jax
 
-from bench.common import Column, default_out, environment, markdown_table, write_results
+from bench.common import (
+    BenchInputError,
+    Column,
+    default_out,
+    environment,
+    markdown_table,
+    write_results,
+)
 from eant2_jax import exploitation as ex
 from eant2_jax import loop
 from eant2_jax.tasks import pole
@@ -115,20 +129,85 @@ def _parser() -> argparse.ArgumentParser:
         description="Evaluations for EANT2 to solve double pole balancing (dpv, dpnv).",
     )
     p.add_argument("--quick", action="store_true", help="smoke run: 1 seed, tiny budget")
-    p.add_argument("--seeds", type=int, default=20)
+    p.add_argument("--seeds", type=int, default=20, help="number of seeds")
+    p.add_argument("--first-seed", type=int, default=0, help="seeds K, K+1, ...")
     p.add_argument("--tasks", nargs="+", default=["dpv", "dpnv"], choices=["dpv", "dpnv"])
     p.add_argument("--budget", type=int, default=40_000, help="evaluations before failure")
     p.add_argument("--population", type=int, default=10)
-    p.add_argument("--max-iters", type=int, default=200)
-    p.add_argument("--patience", type=int, default=20)
+    p.add_argument("--max-iters", type=int, default=50)
+    p.add_argument("--patience", type=int, default=10)
     p.add_argument("--prune-window", type=int, default=30)
     p.add_argument("--out", default=None)
+    p.add_argument(
+        "--merge",
+        nargs="+",
+        metavar="JSON",
+        help="merge result files of this suite (same settings and device) instead of running",
+    )
     return p
+
+
+# Settings that may differ between the files of one merge.
+_PER_PART = ("seeds", "first_seed", "tasks", "out", "merge")
+
+
+def merge(paths: Sequence[str]) -> tuple[dict, dict[str, list[dict]]]:
+    """The runs of several result files of this suite, per task, checked to be one experiment.
+
+    Returns:
+      ``(first payload, runs per task)``.
+
+    Raises:
+      BenchInputError: naming the file whose settings or device differ from the first file's, or
+        a seed that two files both ran.
+    """
+    payloads = []
+    for path in paths:
+        try:
+            with open(path) as f:
+                payloads.append(json.load(f))
+        except (OSError, json.JSONDecodeError) as e:
+            raise BenchInputError(f"cannot read {path}: {e}") from e
+    first = payloads[0]
+
+    def settings(p: dict) -> dict:
+        return {k: v for k, v in p["config"].items() if k not in _PER_PART}
+
+    runs: dict[str, list[dict]] = {}
+    for path, p in zip(paths, payloads, strict=True):
+        if p.get("suite") != "pole":
+            raise BenchInputError(f"{path} is not a result file of the pole suite")
+        if settings(p) != settings(first):
+            diff = sorted(k for k in settings(p) if settings(p)[k] != settings(first).get(k))
+            raise BenchInputError(f"{path} differs from {paths[0]} in its settings: {diff}")
+        if p["device_kind"] != first["device_kind"]:
+            raise BenchInputError(
+                f"{path} ran on {p['device_kind']!r}, {paths[0]} on {first['device_kind']!r}"
+            )
+        for name, task_runs in p["runs"].items():
+            seen = {r["seed"] for r in runs.get(name, [])}
+            again = sorted(seen & {r["seed"] for r in task_runs})
+            if again:
+                raise BenchInputError(f"{path} repeats {name} seed(s) {again}")
+            runs.setdefault(name, []).extend(task_runs)
+    for task_runs in runs.values():
+        task_runs.sort(key=lambda r: r["seed"])
+    return first, runs
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = _parser().parse_args(argv)
-    if args.quick:
+    if args.merge:
+        if args.out is None:
+            raise BenchInputError("--merge needs --out (the merged file)")
+        if any(Path(args.out).resolve() == Path(m).resolve() for m in args.merge):
+            raise BenchInputError(f"--out {args.out} is one of the merged files")
+        first, merged = merge(args.merge)
+        args = argparse.Namespace(**{**first["config"], "out": args.out, "merge": args.merge})
+        args.seeds, args.tasks = sum(len(r) for r in merged.values()), list(merged)
+    else:
+        merged = None
+    if args.quick and merged is None:
         args.seeds, args.budget, args.tasks = 1, 50, ["dpv"]
         args.population, args.max_iters, args.patience, args.prune_window = 2, 3, 2, 2
     config = loop.EANT2Config(
@@ -143,12 +222,15 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     )
     rows, runs = [], {}
 
+    # A merge keeps the environment (device, versions, date) of the runs it merges.
+    env = environment() if merged is None else {k: first[k] for k in environment()}
+
     def save() -> dict:
         payload = {
-            **environment(),
+            **env,
             "suite": "pole",
             "config": {
-                **{k: v for k, v in vars(args).items() if k != "out"},
+                **{k: v for k, v in vars(args).items() if k not in ("out", "merge")},
                 "eant2": config.to_dict(),
             },
             "published_source": "Gomez, Schmidhuber & Miikkulainen 2008 (JMLR 9), tables 3-4",
@@ -167,6 +249,10 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         )
         return payload
 
+    if merged is not None:
+        runs.update(merged)
+        rows[:] = [_row(n, r, args.budget) for n, r in runs.items()]
+        return save()
     # Results are saved after every seed, so a run cut off by a time limit keeps them.
     for name in args.tasks:
         task = pole.dpv() if name == "dpv" else pole.dpnv()
@@ -179,7 +265,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             exploit = dataclasses.replace(config.exploit, target_cost=-float(task.max_steps))
             task_config = dataclasses.replace(config, exploit=exploit)
         runs[name] = []
-        for s in range(args.seeds):
+        for s in range(args.first_seed, args.first_seed + args.seeds):
             runs[name].append(solve_once(task, s, task_config, args.budget))
             rows[:] = [_row(n, r, args.budget) for n, r in runs.items()]
             payload = save()

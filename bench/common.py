@@ -24,6 +24,7 @@ from eant2_jax.genome import Gene, GeneKind, Genome
 
 __all__ = [
     "RESULTS_DIR",
+    "BenchInputError",
     "Column",
     "Timing",
     "default_out",
@@ -38,6 +39,10 @@ __all__ = [
 ]
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+
+class BenchInputError(ValueError):
+    """Bad input to a suite (a file, an option); ``python -m bench`` prints it as one line."""
 
 
 # ------------------------------------------------------------------------------ environment

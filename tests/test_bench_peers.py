@@ -65,3 +65,30 @@ def test_pole_quick(tmp_path):
     assert row["task"] == "dpv" and row["seeds"] == 1
     assert row["published_CMA-ES"] == 895
     assert json.loads(out.read_text())["runs"]["dpv"][0]["evaluations"] > 0
+
+
+def test_pole_seeds_split_then_merged(tmp_path):
+    from bench import bench_pole
+    from bench.common import BenchInputError
+
+    a, b, merged = tmp_path / "a.json", tmp_path / "b.json", tmp_path / "merged.json"
+    bench_pole.main(["--quick", "--out", str(a)])
+    bench_pole.main(["--quick", "--first-seed", "1", "--out", str(b)])
+    payload = bench_pole.main(["--merge", str(b), str(a), "--out", str(merged)])
+    runs = payload["runs"]["dpv"]
+    assert [r["seed"] for r in runs] == [0, 1]
+    assert payload["rows"][0]["seeds"] == 2
+    single = json.loads(a.read_text())
+    assert runs[0] == single["runs"]["dpv"][0]
+    assert payload["device_kind"] == single["device_kind"]
+    # One experiment only: a seed twice, other settings, or writing over an input refused.
+    with pytest.raises(BenchInputError, match="repeats dpv seed"):
+        bench_pole.main(["--merge", str(a), str(a), "--out", str(tmp_path / "x.json")])
+    other = json.loads(b.read_text())
+    other["config"]["budget"] = 7
+    (tmp_path / "c.json").write_text(json.dumps(other))
+    with pytest.raises(BenchInputError, match="budget"):
+        bench_pole.main(["--merge", str(a), str(tmp_path / "c.json"), "--out", str(merged)])
+    with pytest.raises(BenchInputError, match="is one of the merged files"):
+        bench_pole.main(["--merge", str(a), str(b), "--out", str(a)])
+    assert json.loads(a.read_text()) == single

@@ -1,0 +1,450 @@
+"""Where the time of an EANT2 run on the servo task goes: a profile, not a guess.
+
+Three parts (``--parts``), each optional:
+
+* ``cold``: an EANT2 run in a fresh process (nothing compiled yet) for ``--generations``
+  generations. Per generation: wall time, the number of XLA compilations and the seconds
+  spent tracing, lowering and compiling them (``jax.monitoring`` events), and what is left.
+* ``trace``: the same run again, same key, in the same process (so every program is already
+  compiled), under ``jax.profiler.trace`` with a Perfetto trace. The trace is analysed here:
+  per generation the wall time, the device's busy time (union of its kernel intervals), the
+  host-device copies (count, seconds), and over the whole run the device ops that take the
+  most time and the ``eant2_jax`` Python functions that take the most host time. The trace
+  file itself is kept (``--trace-dir``) for Perfetto / TensorBoard.
+* ``compile``: the exploitation program (``exploitation._run_chunk``) of one bucket of
+  minimal servo networks, lowered and compiled without a pruner and with the covariance
+  pruner, each with the compiler options the library ships (``exploitation.COMPILER_OPTIONS``)
+  and with ``--compiler-options`` alternatives, for minimal networks and for random ones of
+  ``--compile-genes`` genes: what each piece of the program costs to compile and to run.
+
+Run: ``python -m bench profile [--quick] [--parts cold,trace,compile] [--out PATH]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import gzip
+import json
+import re
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from bench.common import (
+    Column,
+    default_out,
+    environment,
+    markdown_table,
+    minimal_genome,
+    random_population,
+    write_results,
+)
+from eant2_jax import exploitation as ex
+from eant2_jax import loop, tasks
+from eant2_jax.compiler import compile_genomes
+from eant2_jax.genome import Genome
+from eant2_jax.pruning import tables_for
+
+__all__ = ["CompileClock", "analyse_trace", "main"]
+
+_COMPILE_EVENTS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace_s",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
+    "/jax/core/compile/backend_compile_duration": "compile_s",
+}
+_MARK = "eant2-bench-generation-end"
+
+
+class CompileClock:
+    """Sums the seconds JAX spends tracing, lowering and compiling (any caller) while alive."""
+
+    def __init__(self):
+        self.totals = dict.fromkeys(_COMPILE_EVENTS.values(), 0.0)
+        self.compiles = 0
+        jax.monitoring.register_event_duration_secs_listener(self._listen)
+
+    def _listen(self, name: str, duration: float, **kwargs) -> None:
+        field = _COMPILE_EVENTS.get(name)
+        if field is not None:
+            self.totals[field] += duration
+            self.compiles += field == "compile_s"
+
+    def snapshot(self) -> dict[str, float]:
+        return {"compiles": self.compiles, **self.totals}
+
+
+def _servo_run(args, on_generation) -> None:
+    task = tasks.make("servo", mode=args.mode, n_starts=args.moves)
+    config = loop.EANT2Config(
+        population=args.population,
+        exploit=ex.ExploitConfig(max_iters=args.max_iters, pruner=args.pruner),
+    )
+
+    def on_event(event):
+        if event["event"] == "generation":
+            on_generation(event)
+
+    loop.run(
+        task,
+        key=jax.random.key(args.seed),
+        config=config,
+        generations=args.generations,
+        callback=on_event,
+    )
+
+
+def bench_cold(args, clock: CompileClock) -> list[dict]:
+    rows: list[dict] = []
+    mark = {"t": time.perf_counter(), **clock.snapshot()}
+
+    def on_generation(event):
+        now, snap = time.perf_counter(), clock.snapshot()
+        row = {"generation": event["generation"], "wall_s": now - mark["t"]}
+        for k in snap:
+            row[k] = snap[k] - mark[k]
+        row["other_s"] = row["wall_s"] - row["trace_s"] - row["lower_s"] - row["compile_s"]
+        row["evaluations"] = event["evaluations"]
+        rows.append(row)
+        mark.update(t=time.perf_counter(), **clock.snapshot())
+
+    _servo_run(args, on_generation)
+    return rows
+
+
+# -------------------------------------------------------------------------- trace analysis
+def _union_seconds(intervals: list[tuple[float, float]]) -> float:
+    """Total length (s) of the union of ``(start_us, end_us)`` intervals."""
+    total, end = 0.0, -np.inf
+    for a, b in sorted(intervals):
+        if b <= end:
+            continue
+        total += b - max(a, end)
+        end = b
+    return total * 1e-6
+
+
+_PY_EVENT = re.compile(r"^\$(?P<file>[\w.]+\.py):\d+ (?P<func>[\w<>]+)$")
+
+
+def analyse_trace(path: str | Path, ours: Sequence[str], top: int = 12) -> dict[str, Any]:
+    """Summarise a Perfetto JSON trace written by ``jax.profiler.trace``.
+
+    Args:
+      path: ``perfetto_trace.json.gz``.
+      ours: Python file names whose functions are reported (e.g. ``loop.py``).
+      top: how many device ops and Python functions to list.
+
+    Returns:
+      ``windows`` (one per interval between ``_MARK`` instants: wall, device busy, copies),
+      ``device_ops`` (name, count, seconds; over the whole trace), ``python`` (our functions'
+      inclusive host seconds; nested calls of one function counted once), ``devices``.
+    """
+    with gzip.open(path, "rt") as f:
+        data = json.load(f)
+    events = data["traceEvents"] if isinstance(data, dict) else data
+    names = {
+        e["pid"]: e["args"]["name"]
+        for e in events
+        if e.get("ph") == "M" and e.get("name") == "process_name"
+    }
+    device_pids = {pid for pid, name in names.items() if name.startswith("/device:")}
+    spans = [e for e in events if e.get("ph") == "X" and "dur" in e]
+    marks = sorted(e["ts"] for e in events if e.get("name") == _MARK)
+    start = min((e["ts"] for e in spans), default=0.0)
+    bounds = [start, *marks]
+    device = [e for e in spans if e["pid"] in device_pids]
+    copies = [e for e in device if "memcpy" in e["name"].lower()]
+    windows = []
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        inside = [(e["ts"], e["ts"] + e["dur"]) for e in device if a <= e["ts"] < b]
+        cp = [e for e in copies if a <= e["ts"] < b]
+        windows.append(
+            {
+                "wall_s": (b - a) * 1e-6,
+                "device_busy_s": _union_seconds(inside),
+                "device_ops": len(inside),
+                "copies": len(cp),
+                "copy_s": sum(e["dur"] for e in cp) * 1e-6,
+                "h2d": sum("h2d" in e["name"].lower() for e in cp),
+                "d2h": sum("d2h" in e["name"].lower() for e in cp),
+            }
+        )
+    ops: dict[str, list[float]] = collections.defaultdict(lambda: [0, 0.0])
+    for e in device:
+        ops[e["name"]][0] += 1
+        ops[e["name"]][1] += e["dur"] * 1e-6
+    device_ops = [
+        {"op": k, "count": c, "seconds": s}
+        for k, (c, s) in sorted(ops.items(), key=lambda kv: -kv[1][1])[:top]
+    ]
+    # Inclusive host time of our Python functions (outermost call per thread only).
+    per_func: dict[str, list[tuple[float, float, Any]]] = collections.defaultdict(list)
+    for e in spans:
+        m = _PY_EVENT.match(e["name"])
+        if m and m["file"] in ours:
+            per_func[f"{m['file']}:{m['func']}"].append((e["ts"], e["ts"] + e["dur"], e["tid"]))
+    python = []
+    for func, iv in per_func.items():
+        by_thread = collections.defaultdict(list)
+        for a, b, tid in iv:
+            by_thread[tid].append((a, b))
+        secs = sum(_union_seconds(v) for v in by_thread.values())
+        python.append({"function": func, "calls": len(iv), "seconds": secs})
+    python.sort(key=lambda r: -r["seconds"])
+    return {
+        "windows": windows,
+        "device_ops": device_ops,
+        "python": python[:top],
+        "devices": sorted(names[p] for p in device_pids),
+    }
+
+
+_OURS = (
+    "loop.py", "exploitation.py", "exploration.py", "compiler.py", "pruning.py",
+    "rundir.py", "evaluate.py", "genome.py", "servo.py", "cmaes.py", "network.py",
+)  # fmt: skip
+
+
+def bench_trace(args) -> dict[str, Any]:
+    trace_dir = Path(args.trace_dir)
+    trace_dir.mkdir(parents=True, exist_ok=True)
+    before = set(glob.glob(str(trace_dir / "**" / "perfetto_trace.json.gz"), recursive=True))
+    walls: list[float] = []
+    mark = {"t": time.perf_counter()}
+
+    def on_generation(event):
+        walls.append(time.perf_counter() - mark["t"])
+        with jax.profiler.TraceAnnotation(_MARK):
+            pass
+        mark["t"] = time.perf_counter()
+
+    with jax.profiler.trace(str(trace_dir), create_perfetto_trace=True):
+        _servo_run(args, on_generation)
+    new = sorted(
+        set(glob.glob(str(trace_dir / "**" / "perfetto_trace.json.gz"), recursive=True)) - before
+    )
+    if not new:
+        raise RuntimeError(f"jax.profiler wrote no perfetto trace under {trace_dir}")
+    summary = analyse_trace(new[-1], _OURS)
+    for g, (w, wall) in enumerate(zip(summary["windows"], walls, strict=False)):
+        w["generation"] = g
+        w["wall_untraced_clock_s"] = wall
+        w["device_busy_fraction"] = w["device_busy_s"] / w["wall_s"] if w["wall_s"] else None
+    summary["trace_file"] = new[-1]
+    return summary
+
+
+# ------------------------------------------------------------------------------ compile
+def bench_compile(args) -> list[dict]:
+    task = tasks.make("servo", mode=args.mode, n_starts=args.moves)
+    rng = np.random.default_rng(args.seed)
+    sets = {
+        "minimal": [
+            Genome(minimal_genome(rng, task.n_inputs, task.n_outputs))
+            for _ in range(args.population)
+        ]
+    }
+    for n_genes in args.compile_genes:
+        sets[f"random {n_genes} genes"] = random_population(
+            args.seed, args.population, n_genes, n_inputs=task.n_inputs, n_outputs=task.n_outputs
+        )
+    # "shipped": the options the library compiles with (exploitation.COMPILER_OPTIONS); each
+    # alternative overrides them. Alternatives go first: XLA keeps autotuning results for the
+    # process, so a later compile of the same matmul shapes would be charged less.
+    variants = [
+        (opt, {opt.split("=")[0]: _parse_value(opt.split("=")[1])}) for opt in args.compiler_options
+    ] + [("shipped", {})]
+    rows = []
+    for label, genomes in sets.items():
+        batch = compile_genomes(genomes, task.n_inputs, pad_count=False)
+        for pruner in ("none", "covariance"):
+            config = ex.ExploitConfig(pruner=pruner, max_iters=10, chunk=10)
+            st = ex.init(
+                jax.random.split(jax.random.key(0), len(genomes)),
+                batch.weights,
+                batch.layout.gene_mask,
+                config,
+                popsize=ex.default_popsize(batch.bucket.genes),
+            )
+            tables = tables_for(genomes, batch.bucket.genes)
+            static, limits = ex._program_config(config)
+            call = (st, batch.layout, tables, task, jax.random.key(1), limits)
+            for option, options in variants:
+                jax.clear_caches()
+                t0 = time.perf_counter()
+                lowered = ex._run_chunk.lower(*call, static, 10)
+                t1 = time.perf_counter()
+                compiled = lowered.compile(compiler_options=options or None)
+                t2 = time.perf_counter()
+                jax.block_until_ready(compiled(*call))
+                t3 = time.perf_counter()
+                for _ in range(3):
+                    jax.block_until_ready(compiled(*call))
+                t4 = time.perf_counter()
+                rows.append(
+                    {
+                        "networks": label,
+                        "pruner": pruner,
+                        "options": option,
+                        "structures": len(genomes),
+                        "P": batch.bucket.genes,
+                        "lower_s": t1 - t0,
+                        "compile_s": t2 - t1,
+                        "first_run_s": t3 - t2,
+                        "chunk_ms": (t4 - t3) / 3 * 1e3,
+                        "hlo_lines": lowered.as_text().count("\n"),
+                    }
+                )
+    return rows
+
+
+def _parse_value(text: str) -> Any:
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return {"true": True, "false": False}.get(text.lower(), text)
+
+
+# --------------------------------------------------------------------------------- main
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m bench profile", description=__doc__)
+    p.add_argument("--parts", default="cold,trace,compile")
+    p.add_argument("--population", type=int, default=20)
+    p.add_argument("--generations", type=int, default=4)
+    p.add_argument("--max-iters", type=int, default=300)
+    p.add_argument("--moves", type=int, default=1023)
+    p.add_argument("--mode", default="kinematic")
+    p.add_argument("--pruner", default="covariance")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--compiler-options",
+        nargs="*",
+        default=["xla_gpu_autotune_level=4"],
+        help="NAME=VALUE XLA options compared with the shipped ones in the compile part "
+        "(exploitation.COMPILER_OPTIONS; XLA's own default autotune level is 4)",
+    )
+    p.add_argument(
+        "--compile-genes",
+        type=int,
+        nargs="*",
+        default=[160],
+        help="sizes of random networks compiled in the compile part (besides minimal ones)",
+    )
+    p.add_argument("--trace-dir", default="/tmp/eant2-profile")
+    p.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
+    p.add_argument("--out", default=None)
+    args = p.parse_args(argv)
+    if args.quick:
+        args.population, args.generations, args.max_iters, args.moves = 3, 2, 10, 16
+        args.compile_genes = [34]
+    return args
+
+
+def render(payload: dict[str, Any]) -> str:
+    env = payload["environment"]
+    out = [f"Device: {env['device_kind']} ({env['platform']}), jax {env['jax_version']}.\n"]
+    if payload.get("cold"):
+        out.append("\n### Cold run: wall time against compilation, per generation\n\n")
+        out.append(
+            markdown_table(
+                payload["cold"],
+                [
+                    Column("generation", "gen"),
+                    Column("wall_s", "wall s", "{:.2f}"),
+                    Column("compiles", "XLA compiles"),
+                    Column("trace_s", "tracing s", "{:.2f}"),
+                    Column("lower_s", "lowering s", "{:.2f}"),
+                    Column("compile_s", "compiling s", "{:.2f}"),
+                    Column("other_s", "rest s", "{:.2f}"),
+                ],
+            )
+        )
+    trace = payload.get("trace")
+    if trace:
+        out.append("\n### Warm run under the profiler, per generation\n\n")
+        out.append(
+            markdown_table(
+                trace["windows"],
+                [
+                    Column("generation", "gen"),
+                    Column("wall_s", "wall s (traced)", "{:.3f}"),
+                    Column("device_busy_s", "device busy s", "{:.3f}"),
+                    Column("device_busy_fraction", "busy", "{:.0%}"),
+                    Column("device_ops", "device ops"),
+                    Column("h2d", "H2D copies"),
+                    Column("d2h", "D2H copies"),
+                    Column("copy_s", "copy s", "{:.4f}"),
+                ],
+            )
+        )
+        out.append("\n#### Device ops by total time (whole warm run)\n\n")
+        out.append(
+            markdown_table(
+                [{**r, "op": r["op"][:60]} for r in trace["device_ops"]],
+                [Column("op", "op"), Column("count", "count"), Column("seconds", "s", "{:.4f}")],
+            )
+        )
+        out.append("\n#### eant2_jax Python functions by inclusive host time\n\n")
+        out.append(
+            markdown_table(
+                trace["python"],
+                [
+                    Column("function", "function"),
+                    Column("calls", "calls"),
+                    Column("seconds", "s", "{:.3f}"),
+                ],
+            )
+        )
+    if payload.get("compile"):
+        out.append("\n### Compiling the exploitation program (one bucket)\n\n")
+        out.append(
+            markdown_table(
+                payload["compile"],
+                [
+                    Column("networks", "networks"),
+                    Column("pruner", "pruner"),
+                    Column("options", "compiler options"),
+                    Column("P", "P"),
+                    Column("hlo_lines", "StableHLO lines"),
+                    Column("lower_s", "lowering s", "{:.2f}"),
+                    Column("compile_s", "compiling s", "{:.2f}"),
+                    Column("chunk_ms", "10 iterations ms", "{:.2f}"),
+                ],
+            )
+        )
+    return "".join(out)
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    args = parse_args(argv)
+    clock = CompileClock()
+    parts = set(args.parts.split(","))
+    payload: dict[str, Any] = {"environment": environment(), "config": vars(args)}
+    out = args.out or default_out("profile")
+    # Each part is written as soon as it is done (a run cut off keeps what it measured).
+    if "cold" in parts:
+        payload["cold"] = bench_cold(args, clock)
+        write_results(out, payload, render(payload))
+    if "trace" in parts:
+        if "cold" not in parts:  # compile everything first, so the trace shows steady state
+            _servo_run(args, lambda event: None)
+        payload["trace"] = bench_trace(args)
+        write_results(out, payload, render(payload))
+    if "compile" in parts:
+        payload["compile"] = bench_compile(args)
+    md = render(payload)
+    write_results(out, payload, md)
+    print(md)
+    return payload
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -11,11 +11,11 @@ Three parts (``--parts``), each optional:
   host-device copies (count, seconds), and over the whole run the device ops that take the
   most time and the ``eant2_jax`` Python functions that take the most host time. The trace
   file itself is kept (``--trace-dir``) for Perfetto / TensorBoard.
-* ``compile``: the exploitation program (``exploitation._run_chunk``) of one bucket of
-  minimal servo networks, lowered and compiled without a pruner and with the covariance
-  pruner, each with the compiler options the library ships (``exploitation.COMPILER_OPTIONS``)
-  and with ``--compiler-options`` alternatives, for minimal networks and for random ones of
-  ``--compile-genes`` genes: what each piece of the program costs to compile and to run.
+* ``compile``: the exploitation program (``exploitation._run_chunk``) of one bucket,
+  lowered and compiled without a pruner and with the covariance pruner, for minimal servo
+  networks and for random ones of ``--compile-genes`` genes, with the compiler options the
+  library ships (``exploitation.COMPILER_OPTIONS``) and with ``--compiler-options``
+  alternatives, each case in a fresh process: what each piece costs to compile and to run.
 
 Run: ``python -m bench profile [--quick] [--parts cold,trace,compile] [--out PATH]``.
 """
@@ -27,7 +27,10 @@ import collections
 import glob
 import gzip
 import json
+import os
 import re
+import subprocess
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -241,8 +244,7 @@ def bench_trace(args) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------ compile
-def bench_compile(args) -> list[dict]:
-    task = tasks.make("servo", mode=args.mode, n_starts=args.moves)
+def _genome_sets(args, task) -> dict[str, list[Genome]]:
     rng = np.random.default_rng(args.seed)
     sets = {
         "minimal": [
@@ -254,54 +256,82 @@ def bench_compile(args) -> list[dict]:
         sets[f"random {n_genes} genes"] = random_population(
             args.seed, args.population, n_genes, n_inputs=task.n_inputs, n_outputs=task.n_outputs
         )
-    # "shipped": the options the library compiles with (exploitation.COMPILER_OPTIONS); each
-    # alternative overrides them. Alternatives go first: XLA keeps autotuning results for the
-    # process, so a later compile of the same matmul shapes would be charged less.
-    variants = [
-        (opt, {opt.split("=")[0]: _parse_value(opt.split("=")[1])}) for opt in args.compiler_options
-    ] + [("shipped", {})]
+    return sets
+
+
+def _compile_case(args, networks: str, pruner: str, option: str) -> dict:
+    """Lower, compile and run the exploitation program once, in this (fresh) process."""
+    task = tasks.make("servo", mode=args.mode, n_starts=args.moves)
+    genomes = _genome_sets(args, task)[networks]
+    options = {} if option == "shipped" else dict([_parse_option(option)])
+    batch = compile_genomes(genomes, task.n_inputs, pad_count=False)
+    config = ex.ExploitConfig(pruner=pruner, max_iters=10, chunk=10)
+    st = ex.init(
+        jax.random.split(jax.random.key(0), len(genomes)),
+        batch.weights,
+        batch.layout.gene_mask,
+        config,
+        popsize=ex.default_popsize(batch.bucket.genes),
+    )
+    tables = tables_for(genomes, batch.bucket.genes)
+    static, limits = ex._program_config(config)
+    call = (st, batch.layout, tables, task, jax.random.key(1), limits)
+    jax.block_until_ready(call)
+    t0 = time.perf_counter()
+    lowered = ex._run_chunk.lower(*call, static, 10)
+    t1 = time.perf_counter()
+    compiled = lowered.compile(compiler_options=options or None)
+    t2 = time.perf_counter()
+    jax.block_until_ready(compiled(*call))
+    t3 = time.perf_counter()
+    for _ in range(3):
+        jax.block_until_ready(compiled(*call))
+    t4 = time.perf_counter()
+    return {
+        "networks": networks,
+        "pruner": pruner,
+        "options": option,
+        "structures": len(genomes),
+        "P": batch.bucket.genes,
+        "lower_s": t1 - t0,
+        "compile_s": t2 - t1,
+        "first_run_s": t3 - t2,
+        "chunk_ms": (t4 - t3) / 3 * 1e3,
+        "hlo_lines": lowered.as_text().count("\n"),
+    }
+
+
+def bench_compile(args) -> list[dict]:
+    """Each case in a fresh process: XLA keeps compiled kernels and autotuning results for
+    the life of a process, so a second compile of similar programs in one process is
+    charged less (seen here: whichever variant went second looked up to 2x cheaper)."""
+    task = tasks.make("servo", mode=args.mode, n_starts=args.moves)
+    names = list(_genome_sets(args, task))
     rows = []
-    for label, genomes in sets.items():
-        batch = compile_genomes(genomes, task.n_inputs, pad_count=False)
+    for networks in names:
         for pruner in ("none", "covariance"):
-            config = ex.ExploitConfig(pruner=pruner, max_iters=10, chunk=10)
-            st = ex.init(
-                jax.random.split(jax.random.key(0), len(genomes)),
-                batch.weights,
-                batch.layout.gene_mask,
-                config,
-                popsize=ex.default_popsize(batch.bucket.genes),
-            )
-            tables = tables_for(genomes, batch.bucket.genes)
-            static, limits = ex._program_config(config)
-            call = (st, batch.layout, tables, task, jax.random.key(1), limits)
-            for option, options in variants:
-                jax.clear_caches()
-                t0 = time.perf_counter()
-                lowered = ex._run_chunk.lower(*call, static, 10)
-                t1 = time.perf_counter()
-                compiled = lowered.compile(compiler_options=options or None)
-                t2 = time.perf_counter()
-                jax.block_until_ready(compiled(*call))
-                t3 = time.perf_counter()
-                for _ in range(3):
-                    jax.block_until_ready(compiled(*call))
-                t4 = time.perf_counter()
-                rows.append(
-                    {
-                        "networks": label,
-                        "pruner": pruner,
-                        "options": option,
-                        "structures": len(genomes),
-                        "P": batch.bucket.genes,
-                        "lower_s": t1 - t0,
-                        "compile_s": t2 - t1,
-                        "first_run_s": t3 - t2,
-                        "chunk_ms": (t4 - t3) / 3 * 1e3,
-                        "hlo_lines": lowered.as_text().count("\n"),
-                    }
-                )
+            for option in ["shipped", *args.compiler_options]:
+                case = json.dumps({"networks": networks, "pruner": pruner, "option": option})
+                argv = [sys.executable, "-m", "bench", "profile", "--compile-case", case]
+                argv += _shared_argv(args)
+                # This process already holds most of the GPU's memory (JAX preallocates).
+                env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+                done = subprocess.run(argv, capture_output=True, text=True, check=False, env=env)
+                if done.returncode:
+                    raise RuntimeError(f"compile case {case} failed:\n{done.stderr[-2000:]}")
+                rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
     return rows
+
+
+def _shared_argv(args) -> list[str]:
+    out = ["--population", str(args.population), "--moves", str(args.moves)]
+    out += ["--mode", args.mode, "--seed", str(args.seed), "--compile-genes"]
+    return out + [str(n) for n in args.compile_genes]
+
+
+def _parse_option(text: str) -> tuple[str, Any]:
+    name, _, value = text.partition("=")
+    return name, _parse_value(value)
 
 
 def _parse_value(text: str) -> Any:
@@ -338,6 +368,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         default=[160],
         help="sizes of random networks compiled in the compile part (besides minimal ones)",
     )
+    p.add_argument("--compile-case", default=None, help=argparse.SUPPRESS)
     p.add_argument("--trace-dir", default="/tmp/eant2-profile")
     p.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
     p.add_argument("--out", default=None)
@@ -425,6 +456,10 @@ def render(payload: dict[str, Any]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = parse_args(argv)
+    if args.compile_case:  # one case of the compile part, in its own process
+        row = _compile_case(args, **json.loads(args.compile_case))
+        print(json.dumps(row))
+        return row
     clock = CompileClock()
     parts = set(args.parts.split(","))
     payload: dict[str, Any] = {"environment": environment(), "config": vars(args)}

@@ -14,8 +14,8 @@ Three parts (``--parts``), each optional:
 * ``compile``: the exploitation program (``exploitation._run_chunk``) of one bucket,
   lowered and compiled without a pruner and with the covariance pruner, for minimal servo
   networks and for random ones of ``--compile-genes`` genes, with the compiler options the
-  library ships (``exploitation.COMPILER_OPTIONS``) and with ``--compiler-options``
-  alternatives, each case in a fresh process: what each piece costs to compile and to run.
+  library uses (XLA's defaults, "shipped") and with ``--compiler-options`` alternatives,
+  each case in a fresh process: what each piece costs to compile and to run.
 
 Run: ``python -m bench profile [--quick] [--parts cold,trace,compile] [--out PATH]``.
 """
@@ -357,9 +357,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument(
         "--compiler-options",
         nargs="*",
-        default=["xla_gpu_autotune_level=4"],
-        help="NAME=VALUE XLA options compared with the shipped ones in the compile part "
-        "(exploitation.COMPILER_OPTIONS; XLA's own default autotune level is 4)",
+        default=["xla_gpu_autotune_level=0"],
+        help="NAME=VALUE XLA options compared with the shipped ones (XLA's defaults) in the "
+        "compile part",
     )
     p.add_argument(
         "--compile-genes",

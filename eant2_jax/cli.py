@@ -421,9 +421,34 @@ def _compilation_cache() -> None:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
+DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
+
+
+def _deterministic_gpu(environ=None) -> bool:
+    """Ask XLA for deterministic GPU programs, unless EANT2_GPU_DETERMINISTIC=0 or XLA_FLAGS
+    already sets the option (the application's choice; the library never touches it).
+
+    Without it, two fresh processes on the same GPU with the same key gave different results:
+    XLA's autotuner picks kernels by timing while compiling, and kernels round differently
+    (docs/benchmarks.md, "Reproducibility on GPU"). CPUs ignore the option. It must be set
+    before JAX starts its backend; returns whether it is in XLA_FLAGS afterwards.
+    """
+    import os
+
+    environ = os.environ if environ is None else environ
+    flags = environ.get("XLA_FLAGS", "")
+    if "xla_gpu_deterministic_ops" in flags:
+        return DETERMINISTIC_FLAG in flags.split()
+    if environ.get("EANT2_GPU_DETERMINISTIC", "1").strip() == "0":
+        return False
+    environ["XLA_FLAGS"] = f"{flags} {DETERMINISTIC_FLAG}".strip()
+    return True
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
+    _deterministic_gpu()
     _compilation_cache()
     from eant2_jax.distributed import initialize
 

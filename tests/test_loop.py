@@ -570,3 +570,21 @@ def test_cli_errors_in_a_real_process(tmp_path):
         f"eant2: error: {tmp_path / 'nowhere'}: no such run directory"
     ]
     assert proc.stdout == ""
+
+
+def test_cli_asks_for_deterministic_gpu_programs_unless_told_otherwise():
+    from eant2_jax.cli import DETERMINISTIC_FLAG, _deterministic_gpu
+
+    env = {}
+    assert _deterministic_gpu(env) and env["XLA_FLAGS"] == DETERMINISTIC_FLAG
+    env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=8"}
+    assert _deterministic_gpu(env)
+    assert env["XLA_FLAGS"].split() == [
+        "--xla_force_host_platform_device_count=8",
+        DETERMINISTIC_FLAG,
+    ]
+    # The user's own setting wins, either way; EANT2_GPU_DETERMINISTIC=0 opts out.
+    env = {"XLA_FLAGS": "--xla_gpu_deterministic_ops=false"}
+    assert not _deterministic_gpu(env) and env["XLA_FLAGS"] == "--xla_gpu_deterministic_ops=false"
+    env = {"EANT2_GPU_DETERMINISTIC": "0"}
+    assert not _deterministic_gpu(env) and "XLA_FLAGS" not in env

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 
 from bench.common import (
     Column,
+    CompileClock,
     default_out,
     environment,
     markdown_table,
@@ -40,19 +41,7 @@ from eant2_jax.compiler import compile_genomes
 from eant2_jax.pruning import tables_for
 
 
-class CompileCounter:
-    """Counts XLA backend compilations (all programs, any caller) while alive."""
-
-    def __init__(self):
-        self.count = 0
-        jax.monitoring.register_event_duration_secs_listener(self._listen)
-
-    def _listen(self, name: str, duration: float, **kwargs) -> None:
-        if name == "/jax/core/compile/backend_compile_duration":
-            self.count += 1
-
-
-def bench_generations(args, counter: CompileCounter) -> list[dict]:
+def bench_generations(args, clock: CompileClock) -> list[dict]:
     if args.task == "servo":
         task = tasks.make("servo", mode=args.mode, n_starts=args.moves)
     else:
@@ -72,7 +61,7 @@ def bench_generations(args, counter: CompileCounter) -> list[dict]:
         exploit=ex.ExploitConfig(max_iters=args.max_iters, pruner=args.pruner),
     )
     rows: list[dict] = []
-    marks = {"compiles": counter.count, "t": time.perf_counter()}
+    marks = {"compiles": clock.compiles, "t": time.perf_counter()}
 
     def on_event(event):
         if event["event"] != "generation":
@@ -84,14 +73,14 @@ def bench_generations(args, counter: CompileCounter) -> list[dict]:
                 "seconds": now - marks["t"],
                 "exploited": event["exploited"],
                 "evaluations": event["evaluations"],
-                "compiles": counter.count - marks["compiles"],
+                "compiles": clock.compiles - marks["compiles"],
                 "best_cost": event["best_cost"],
                 "best_size": event["best_size"],
                 "bucket": buckets[-1] if buckets else None,
                 "buckets_so_far": len(set(buckets)),
             }
         )
-        marks["t"], marks["compiles"] = now, counter.count
+        marks["t"], marks["compiles"] = now, clock.compiles
 
     loop.run(
         task,
@@ -109,13 +98,18 @@ def bench_generations(args, counter: CompileCounter) -> list[dict]:
     return rows
 
 
-def _batch(seed: int, count: int, n_genes: int, n_inputs: int, config: ex.ExploitConfig):
-    genomes = random_population(seed, count, n_genes)
+def exploit_batch(genomes, n_inputs: int, config: ex.ExploitConfig, seed: int = 0):
+    """``(batch, state, tables)``: the genomes compiled unpadded and their engine state."""
     batch = compile_genomes(genomes, n_inputs, pad_count=False)
     popsize = config.popsize or ex.default_popsize(batch.bucket.genes)
-    keys = jax.random.split(jax.random.key(seed), count)
+    keys = jax.random.split(jax.random.key(seed), len(genomes))
     st = ex.init(keys, batch.weights, batch.layout.gene_mask, config, popsize=popsize)
-    return genomes, batch, st, tables_for(genomes, batch.bucket.genes)
+    return batch, st, tables_for(genomes, batch.bucket.genes)
+
+
+def _batch(seed: int, count: int, n_genes: int, n_inputs: int, config: ex.ExploitConfig):
+    genomes = random_population(seed, count, n_genes)
+    return (genomes, *exploit_batch(genomes, n_inputs, config, seed))
 
 
 def _pruning_case(args, task, n_genes: int) -> dict:
@@ -275,11 +269,11 @@ def render(payload: dict[str, Any]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = parse_args(argv)
-    counter = CompileCounter()
+    clock = CompileClock()
     parts = set(args.parts.split(","))
     payload: dict[str, Any] = {"environment": environment(), "config": vars(args)}
     if "generation" in parts:
-        payload["generation"] = bench_generations(args, counter)
+        payload["generation"] = bench_generations(args, clock)
     if "pruning" in parts:
         payload["pruning"] = bench_pruning(args)
     if "scaling" in parts:

@@ -39,8 +39,10 @@ from typing import Any
 import jax
 import numpy as np
 
+from bench.bench_generation import exploit_batch
 from bench.common import (
     Column,
+    CompileClock,
     default_out,
     environment,
     markdown_table,
@@ -50,36 +52,11 @@ from bench.common import (
 )
 from eant2_jax import exploitation as ex
 from eant2_jax import loop, tasks
-from eant2_jax.compiler import compile_genomes
 from eant2_jax.genome import Genome
-from eant2_jax.pruning import tables_for
 
-__all__ = ["CompileClock", "analyse_trace", "main"]
+__all__ = ["analyse_trace", "main"]
 
-_COMPILE_EVENTS = {
-    "/jax/core/compile/jaxpr_trace_duration": "trace_s",
-    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
-    "/jax/core/compile/backend_compile_duration": "compile_s",
-}
 _MARK = "eant2-bench-generation-end"
-
-
-class CompileClock:
-    """Sums the seconds JAX spends tracing, lowering and compiling (any caller) while alive."""
-
-    def __init__(self):
-        self.totals = dict.fromkeys(_COMPILE_EVENTS.values(), 0.0)
-        self.compiles = 0
-        jax.monitoring.register_event_duration_secs_listener(self._listen)
-
-    def _listen(self, name: str, duration: float, **kwargs) -> None:
-        field = _COMPILE_EVENTS.get(name)
-        if field is not None:
-            self.totals[field] += duration
-            self.compiles += field == "compile_s"
-
-    def snapshot(self) -> dict[str, float]:
-        return {"compiles": self.compiles, **self.totals}
 
 
 def _servo_run(args, on_generation) -> None:
@@ -219,14 +196,10 @@ def bench_trace(args) -> dict[str, Any]:
     trace_dir = Path(args.trace_dir)
     trace_dir.mkdir(parents=True, exist_ok=True)
     before = set(glob.glob(str(trace_dir / "**" / "perfetto_trace.json.gz"), recursive=True))
-    walls: list[float] = []
-    mark = {"t": time.perf_counter()}
 
     def on_generation(event):
-        walls.append(time.perf_counter() - mark["t"])
         with jax.profiler.TraceAnnotation(_MARK):
             pass
-        mark["t"] = time.perf_counter()
 
     with jax.profiler.trace(str(trace_dir), create_perfetto_trace=True):
         _servo_run(args, on_generation)
@@ -236,9 +209,8 @@ def bench_trace(args) -> dict[str, Any]:
     if not new:
         raise RuntimeError(f"jax.profiler wrote no perfetto trace under {trace_dir}")
     summary = analyse_trace(new[-1], _OURS)
-    for g, (w, wall) in enumerate(zip(summary["windows"], walls, strict=False)):
+    for g, w in enumerate(summary["windows"]):
         w["generation"] = g
-        w["wall_clock_s"] = wall
         w["device_busy_fraction"] = w["device_busy_s"] / w["wall_s"] if w["wall_s"] else None
     summary["trace_file"] = new[-1]
     return summary
@@ -265,16 +237,8 @@ def _compile_case(args, networks: str, pruner: str, option: str) -> dict:
     task = tasks.make("servo", mode=args.mode, n_starts=args.moves)
     genomes = _genome_sets(args, task)[networks]
     options = {} if option == "shipped" else dict([_parse_option(option)])
-    batch = compile_genomes(genomes, task.n_inputs, pad_count=False)
     config = ex.ExploitConfig(pruner=pruner, max_iters=10, chunk=10)
-    st = ex.init(
-        jax.random.split(jax.random.key(0), len(genomes)),
-        batch.weights,
-        batch.layout.gene_mask,
-        config,
-        popsize=ex.default_popsize(batch.bucket.genes),
-    )
-    tables = tables_for(genomes, batch.bucket.genes)
+    batch, st, tables = exploit_batch(genomes, task.n_inputs, config, args.seed)
     static, limits = ex._program_config(config)
     call = (st, batch.layout, tables, task, jax.random.key(1), limits)
     jax.block_until_ready(call)

@@ -25,6 +25,7 @@ from eant2_jax.genome import Gene, GeneKind, Genome
 __all__ = [
     "RESULTS_DIR",
     "BenchInputError",
+    "CompileClock",
     "Column",
     "Timing",
     "default_out",
@@ -71,6 +72,33 @@ def environment() -> dict[str, Any]:
 def default_out(name: str) -> Path:
     """``bench/results/<name>-<platform>.json`` for the default JAX platform."""
     return RESULTS_DIR / f"{name}-{jax.devices()[0].platform}.json"
+
+
+# ------------------------------------------------------------------------------ compiling
+_COMPILE_EVENTS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace_s",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
+    "/jax/core/compile/backend_compile_duration": "compile_s",
+}
+
+
+class CompileClock:
+    """Counts XLA compilations and sums the seconds JAX spends tracing, lowering and compiling
+    them (all programs, any caller) while alive."""
+
+    def __init__(self):
+        self.totals = dict.fromkeys(_COMPILE_EVENTS.values(), 0.0)
+        self.compiles = 0
+        jax.monitoring.register_event_duration_secs_listener(self._listen)
+
+    def _listen(self, name: str, duration: float, **kwargs) -> None:
+        field = _COMPILE_EVENTS.get(name)
+        if field is not None:
+            self.totals[field] += duration
+            self.compiles += field == "compile_s"
+
+    def snapshot(self) -> dict[str, float]:
+        return {"compiles": self.compiles, **self.totals}
 
 
 # ----------------------------------------------------------------------------------- timing

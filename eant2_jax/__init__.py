@@ -3,7 +3,13 @@
 The pipeline, one module per stage: :mod:`~eant2_jax.genome` (the linear genome),
 :mod:`~eant2_jax.compiler` (genomes -> padded dense layouts), :mod:`~eant2_jax.evaluate`
 (the batched forward pass), :mod:`~eant2_jax.reference` (the plain NumPy interpreter every
-fast path is tested against). Kernels other JAX code may import live in
+fast path is tested against), :mod:`~eant2_jax.exploitation` (the batched CMA-ES engine),
+:mod:`~eant2_jax.pruning` (the pruning stage), :mod:`~eant2_jax.tuning` (the host/device
+handover: "tune these genomes on this task"), :mod:`~eant2_jax.exploration` (mutation and
+selection), :mod:`~eant2_jax.loop` (the EANT2 loop), :mod:`~eant2_jax.multirun` (many runs
+over devices), :mod:`~eant2_jax.rundir` (crash-safe run directories). The applications
+built on the library (the ``eant2`` command line, the paper's experiments, reports) live
+apart, in :mod:`eant2_jax.app`. Kernels other JAX code may import live in
 :mod:`eant2_jax.kernels`.
 """
 
@@ -23,12 +29,15 @@ __version__ = "0.1.0"
 from . import distributed as distributed
 from . import tasks as tasks
 from .exploitation import ExploitConfig as ExploitConfig
-from .exploitation import OptimizeResult as OptimizeResult
-from .exploitation import cost as cost
-from .exploitation import optimize as optimize
 from .loop import EANT2Config as EANT2Config
+from .loop import GenerationRecord as GenerationRecord
 from .loop import Individual as Individual
 from .loop import RunResult as RunResult
 from .loop import resume as resume
 from .loop import run as run
-from .loop import run_many as run_many
+from .multirun import run_many as run_many
+from .pruning import PruneAttempt as PruneAttempt
+from .tuning import OptimizeResult as OptimizeResult
+from .tuning import cost as cost
+from .tuning import optimize as optimize
+from .tuning import tune as tune

@@ -38,14 +38,23 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
 from .genome import GeneKind, Genome
-from .kernels.network import Layout, buffer_size
+from .kernels.network import Layout, Network, buffer_size, network
 
-__all__ = ["Bucket", "CompiledBatch", "bucket_for", "bucket_size", "compile_genomes"]
+__all__ = [
+    "Bucket",
+    "CompiledBatch",
+    "bucket_for",
+    "bucket_size",
+    "compile_genomes",
+    "network_batch",
+    "networks",
+]
 
 NEURON_FLOOR = 4
 GENE_FLOOR = 8
@@ -215,3 +224,31 @@ def compile_genomes(
         sweeps=bucket.sweeps,
     )
     return CompiledBatch(layout=layout, weights=jnp.asarray(weights), count=count, bucket=bucket)
+
+
+def network_batch(layout: Layout, weights: jax.Array) -> Network:
+    """The networks ``[G]`` of a compiled batch: ``network`` of each row (traceable).
+
+    Args:
+      layout: batched layout ``[G]`` (:attr:`CompiledBatch.layout`).
+      weights: ``[G, P]`` weights in gene order (:attr:`CompiledBatch.weights`, or tuned ones).
+    """
+    return jax.vmap(network)(layout, weights)
+
+
+_network_batch = jax.jit(network_batch)
+
+
+def networks(genomes: Sequence[Genome], n_inputs: int) -> Network:
+    """The one route from genomes to networks: compile, then build each genome's network.
+
+    Args:
+      genomes: networks with the same number of outputs.
+      n_inputs: width of the input vector they will read.
+
+    Returns:
+      A :class:`~eant2_jax.kernels.network.Network` with leading dimension ``len(genomes)``
+      (no padding rows), ready for a task's ``cost`` or the kernels' ``rollout``.
+    """
+    batch = compile_genomes(genomes, n_inputs, pad_count=False)
+    return _network_batch(batch.layout, batch.weights)

@@ -31,22 +31,21 @@ import numpy as np
 
 from . import distributed
 from . import exploitation as ex
-from .compiler import compile_genomes
 from .exploration import OPERATORS, initial_genome, mutate, select
 from .genome import Genome
-from .pruning import attempt_records, prune_genome, tables_for
+from .pruning import PruneAttempt
 from .rundir import RunDir, RunDirError
 from .tasks.base import Task
+from .tuning import tune
 
 __all__ = [
     "EANT2Config",
+    "GenerationRecord",
     "Individual",
     "RunResult",
     "RunState",
-    "exploit",
     "resume",
     "run",
-    "run_many",
 ]
 
 
@@ -129,6 +128,7 @@ class EANT2Config:
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["operator_weights"] = list(self.operator_weights)
+        d["exploit"] = self.exploit.to_dict()
         return d
 
     @classmethod
@@ -200,13 +200,57 @@ class RunState:
         return self.population[0]
 
 
+@dataclasses.dataclass(frozen=True)
+class GenerationRecord:
+    """One completed generation, as the run directory's ``generations.jsonl`` holds it.
+
+    Attributes:
+      generation: its number (0: the initial population).
+      best_cost, best_size, best_neurons, best_genome: the best individual after selection
+        (size = number of genes = weights).
+      mean_size: mean size of the population.
+      evaluations: cost evaluations of the run so far.
+      wall_s: wall time of the run so far; generation_s: of this generation.
+      prune_attempts, prune_accepted: pruning attempts in this generation, and accepted ones.
+      population: individuals kept; exploited: structures tuned in this generation.
+    """
+
+    generation: int
+    best_cost: float
+    best_size: int
+    mean_size: float
+    best_neurons: int
+    evaluations: int
+    wall_s: float
+    prune_attempts: int
+    prune_accepted: int
+    population: int
+    exploited: int
+    generation_s: float
+    best_genome: str
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict) -> GenerationRecord:
+        return cls(**d)
+
+
 class RunResult(NamedTuple):
-    """What :func:`run` returns: the final population (best first), the best genome, and
-    the records (``generations``: one dict per generation; ``pruning``: one per attempt)."""
+    """What :func:`run` returns.
+
+    Attributes:
+      population: the final population, best first.
+      best: the best genome.
+      generations: one :class:`GenerationRecord` per generation.
+      pruning: one :class:`~eant2_jax.pruning.PruneAttempt` per pruning attempt.
+    """
 
     population: list[Individual]
     best: Genome
-    records: dict[str, list[dict]]
+    generations: list[GenerationRecord]
+    pruning: list[PruneAttempt]
 
 
 def _key_data(key: jax.Array) -> tuple[int, ...]:
@@ -218,72 +262,6 @@ def _key_data(key: jax.Array) -> tuple[int, ...]:
 def _key_from_data(data: Sequence[int]) -> jax.Array:
     """A typed PRNG key from its raw data (as stored in checkpoints and config.json)."""
     return jax.random.wrap_key_data(jnp.asarray(np.array(data, dtype=np.uint32)))
-
-
-def exploit(
-    genomes: Sequence[Genome],
-    task: Task,
-    *,
-    key: jax.Array,
-    config: ex.ExploitConfig,
-    on_chunk: Callable[[dict], None] | None = None,
-    min_rows: int = 1,
-    mesh: jax.sharding.Mesh | None = None,
-) -> tuple[list[Genome], list[float], int, list[dict]]:
-    """Tune (and prune) a batch of structures together: ONE batched CMA-ES run.
-
-    Args:
-      genomes: the structures, with their starting weights.
-      task: the task.
-      key: PRNG key; structure ``i`` uses ``fold_in(key, i)``.
-      config: the exploitation configuration.
-      on_chunk: progress callback (see :func:`eant2_jax.exploitation.run`).
-      min_rows: pad the batch to at least this many structures (one program per bucket).
-      mesh: split the structures over these devices (see :mod:`eant2_jax.distributed`).
-
-    Returns:
-      ``(tuned genomes, costs, evaluations spent, pruning records)``; records name the
-      structure by its index in ``genomes``.
-    """
-    batch = compile_genomes(
-        genomes, task.n_inputs, min_rows=min_rows, multiple_of=distributed.size(mesh)
-    )
-    rows = batch.layout.slot.shape[0]
-    # The popsize follows the gene bucket, not the batch's largest member, so batches of one
-    # bucket share one compiled program.
-    popsize = config.popsize or ex.default_popsize(batch.bucket.genes)
-    init_key, run_key = jax.random.split(key)
-    keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(init_key, jnp.arange(rows))
-    active = jnp.arange(rows) < batch.count
-    st = ex.init(
-        keys, batch.weights, batch.layout.gene_mask, config, popsize=popsize, active=active
-    )
-    tables = tables_for(genomes, batch.bucket.genes, rows)
-    st, hist = ex.run(
-        st,
-        batch.layout,
-        task,
-        key=run_key,
-        config=config,
-        tables=tables,
-        on_chunk=on_chunk,
-        mesh=mesh,
-    )
-    best_x, best_cost, mask, spent = distributed.gather(
-        (st.cma.best_x, st.cma.best_cost, st.cma.mask, st.evals)
-    )
-    best_x, best_cost = np.asarray(best_x, np.float64), np.asarray(best_cost, np.float64)
-    tuned, costs = [], []
-    for i, g in enumerate(genomes):
-        n = g.n_params
-        if np.isfinite(best_cost[i]):
-            tuned.append(prune_genome(g, mask[i, :n], best_x[i, :n]))
-            costs.append(float(best_cost[i]))
-        else:  # never saw a finite cost: keep the structure, rank it last
-            tuned.append(g)
-            costs.append(float("inf"))
-    evals = int(np.sum(spent[: batch.count]))
-    return tuned, costs, evals, attempt_records(hist, genomes, config.pruner)
 
 
 def _initialise(task: Task, key: jax.Array, config: EANT2Config) -> tuple[list[Genome], int]:
@@ -339,29 +317,31 @@ def _explore(
     return children, next_id
 
 
-def _generation_record(state: RunState, evaluated: int, prune: list[dict], t: float) -> dict:
+def _generation_record(
+    state: RunState, evaluated: int, prune: list[PruneAttempt], t: float
+) -> GenerationRecord:
     best = state.best()
     sizes = [ind.genome.n_params for ind in state.population]
-    return {
-        "generation": state.generation,
-        "best_cost": best.cost,
-        "best_size": best.genome.n_params,
-        "mean_size": float(np.mean(sizes)),
-        "best_neurons": best.genome.n_neurons,
-        "evaluations": state.evaluations,
-        "wall_s": state.wall_s,
-        "prune_attempts": len(prune),
-        "prune_accepted": sum(r["accepted"] for r in prune),
-        "population": len(state.population),
-        "exploited": evaluated,
-        "generation_s": t,
-        "best_genome": str(best.genome),
-    }
+    return GenerationRecord(
+        generation=state.generation,
+        best_cost=best.cost,
+        best_size=best.genome.n_params,
+        mean_size=float(np.mean(sizes)),
+        best_neurons=best.genome.n_neurons,
+        evaluations=state.evaluations,
+        wall_s=state.wall_s,
+        prune_attempts=len(prune),
+        prune_accepted=sum(r.accepted for r in prune),
+        population=len(state.population),
+        exploited=evaluated,
+        generation_s=t,
+        best_genome=str(best.genome),
+    )
 
 
 def _generation(
     task: Task, state: RunState | None, key: jax.Array, config: EANT2Config, callback, mesh=None
-) -> tuple[RunState, dict, list[dict]]:
+) -> tuple[RunState, GenerationRecord, list[PruneAttempt]]:
     """One generation (generation 0 initialises); returns the new state and its records."""
     t0 = time.perf_counter()
     gen = 0 if state is None else state.generation + 1
@@ -386,7 +366,7 @@ def _generation(
             new = parents + new
             parents = []
     if new:
-        tuned, costs, evals, prune = exploit(
+        res = tune(
             [ind.genome for ind in new],
             task,
             key=exp_key,
@@ -397,9 +377,12 @@ def _generation(
             min_rows=(config.offspring or config.population)
             + (config.population if config.reexploit else 0),
         )
-        new = [Individual(g, c, ind.origin) for g, c, ind in zip(tuned, costs, new, strict=True)]
-        for r in prune:
-            r["generation"] = gen
+        new = [
+            Individual(g, c, ind.origin)
+            for g, c, ind in zip(res.genomes, res.costs, new, strict=True)
+        ]
+        evals = sum(res.evaluations)
+        prune = [dataclasses.replace(r, generation=gen) for r in res.pruning]
     else:
         evals, prune = 0, []
     pool = parents + new
@@ -468,108 +451,6 @@ def run(
     return _loop(task, None, _key_from_data(_key_data(key)), config, generations, rundir, callback)
 
 
-def run_many(
-    task: Task,
-    keys: Sequence[jax.Array],
-    *,
-    config: EANT2Config | Sequence[EANT2Config] | None = None,
-    generations: int,
-    outs: Sequence[str | None] | None = None,
-    devices: int | str | Sequence[jax.Device] = "all",
-    workers_per_device: int = 1,
-    callback: Callable[[dict], None] | None = None,
-    meta: dict | None = None,
-) -> list[RunResult]:
-    """Independent runs (seeds, or arms with different configs) spread over devices.
-
-    One worker thread per device takes runs from a queue; a run is pinned to its device
-    with ``jax.default_device`` and is exactly the run :func:`run` would make there.
-
-    Args:
-      task: the task, shared by all runs.
-      keys: one PRNG key per run.
-      config: one config for all runs, or one per run (their ``devices`` must be None).
-      generations: as for :func:`run`.
-      outs: optional run directory per run (None entries write nothing).
-      devices: ``"all"`` (this process's devices), a count, or explicit devices.
-      workers_per_device: runs in flight per device (>1 overlaps one run's host-side work
-        with another's device work).
-      callback: progress events, with ``run`` (the run's index) added.
-      meta: extra ``config.json`` fields for every run directory.
-
-    Returns:
-      The results, in the order of ``keys``.
-    """
-    import queue
-    import threading
-
-    keys = list(keys)
-    configs = list(config) if isinstance(config, Sequence) else [config] * len(keys)
-    configs = [EANT2Config() if c is None else c for c in configs]
-    outs = [None] * len(keys) if outs is None else list(outs)
-    if not (len(configs) == len(outs) == len(keys)):
-        raise ValueError("run_many: keys, configs and outs must have the same length")
-    if any(c.devices is not None for c in configs):
-        raise ValueError("run_many places each run on one device: leave config.devices None")
-    local = jax.local_devices()
-    if devices == "all":
-        chosen = local
-    elif isinstance(devices, int):
-        if not 1 <= devices <= len(local):
-            raise ValueError(f"devices={devices}: this process has {len(local)} device(s)")
-        chosen = local[:devices]
-    else:
-        chosen = list(devices)
-    todo: queue.Queue = queue.Queue()
-    for i in range(len(keys)):
-        todo.put(i)
-    results: list[RunResult | None] = [None] * len(keys)
-    errors: list[BaseException] = []
-    lock = threading.Lock()
-
-    def worker(device):
-        while not errors:
-            try:
-                i = todo.get_nowait()
-            except queue.Empty:
-                return
-            cb = None
-            if callback is not None:
-
-                def cb(event, i=i):
-                    with lock:
-                        callback({**event, "run": i})
-
-            try:
-                with jax.default_device(device):
-                    results[i] = run(
-                        task,
-                        key=keys[i],
-                        config=configs[i],
-                        generations=generations,
-                        out=outs[i],
-                        callback=cb,
-                        meta=meta,
-                    )
-            except BaseException as e:  # re-raised in the caller's thread
-                errors.append(e)
-
-    if workers_per_device < 1:
-        raise ValueError(f"workers_per_device must be >= 1, got {workers_per_device}")
-    threads = [
-        threading.Thread(target=worker, args=(d,), daemon=True)
-        for d in chosen
-        for _ in range(workers_per_device)
-    ]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    if errors:
-        raise errors[0]
-    return results
-
-
 def resume(
     out: str,
     task: Task,
@@ -612,8 +493,8 @@ def _key_from_meta(meta: dict, rundir: RunDir) -> jax.Array:
 
 
 def _loop(task, state, key, config, generations, rundir, callback) -> RunResult:
-    gen_records = [] if rundir is None else rundir.generations()
-    prune_records = [] if rundir is None else rundir.pruning()
+    gen_records = [] if rundir is None else [GenerationRecord.from_json(r) for r in rundir.generations()]
+    prune_records = [] if rundir is None else [PruneAttempt.from_json(r) for r in rundir.pruning()]
     mesh = distributed.make_mesh(config.devices)
     while state is None or state.generation < generations:
         if state is not None and config.target_cost is not None:
@@ -623,11 +504,12 @@ def _loop(task, state, key, config, generations, rundir, callback) -> RunResult:
         gen_records.append(record)
         prune_records.extend(prune)
         if rundir is not None:
-            rundir.commit([record], prune, str(state.best().genome), state.to_json())
+            rundir.commit(
+                [record.to_json()],
+                [r.to_json() for r in prune],
+                str(state.best().genome),
+                state.to_json(),
+            )
         if callback is not None:
-            callback({"event": "generation", **record})
-    return RunResult(
-        list(state.population),
-        state.best().genome,
-        {"generations": gen_records, "pruning": prune_records},
-    )
+            callback({"event": "generation", **record.to_json()})
+    return RunResult(list(state.population), state.best().genome, gen_records, prune_records)

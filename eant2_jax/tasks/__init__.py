@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from .base import ReportingTask as ReportingTask
 from .base import Task as Task
 from .base import map_networks as map_networks
 from .regression import Regression as Regression

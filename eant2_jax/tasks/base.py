@@ -16,7 +16,7 @@ import jax
 
 from ..kernels.network import Network
 
-__all__ = ["Task", "map_networks"]
+__all__ = ["ReportingTask", "Task", "map_networks"]
 
 
 @runtime_checkable
@@ -41,6 +41,23 @@ class Task(Protocol):
         The same key is used for every network of the call (common random numbers), so
         candidates of one CMA-ES iteration are ranked on the same draw.
         """
+        ...
+
+
+@runtime_checkable
+class ReportingTask(Task, Protocol):
+    """A task that can also report on its own terms (optional; the servo task does).
+
+    ``eant2 reproduce`` and :func:`eant2_jax.app.experiments.reproduce` add both to their
+    report when the task has them.
+    """
+
+    def baselines(self) -> dict[str, float]:
+        """Costs of reference controllers by the task's own cost, by name (host side)."""
+        ...
+
+    def generalisation(self, nets: Network) -> jax.Array:
+        """Costs ``[*batch]`` of ``nets`` on held-out cases (not seen during evolution)."""
         ...
 
 

@@ -18,12 +18,14 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from . import exploitation as ex
-from .genome import Genome
-from .loop import EANT2Config, run_many
+from ..compiler import networks
+from ..genome import Genome
+from ..loop import EANT2Config
+from ..multirun import run_many
+from ..rundir import RunDirError
+from ..tasks.base import ReportingTask, Task
+from ..tuning import optimize
 from .report import report
-from .rundir import RunDirError
-from .tasks.base import Task
 
 __all__ = ["condition_experiment", "reproduce"]
 
@@ -66,7 +68,7 @@ def condition_experiment(
     # nothing (the paper pruned its 38-parameter network until 8 connections were gone).
     current, removed = genome, []
     for r in range(rounds):
-        res = ex.optimize(
+        res = optimize(
             current,
             task,
             key=jax.random.fold_in(k_prune, r),
@@ -77,7 +79,7 @@ def condition_experiment(
             sigma0=prune_sigma0,
             prune_candidates=prune_candidates,
         )
-        accepted = [dict(x, round=r) for x in res.pruning if x["accepted"]]
+        accepted = [dict(x.to_json(), round=r) for x in res.pruning if x.accepted]
         removed += accepted
         current = res.genome
         if not accepted:
@@ -88,7 +90,7 @@ def condition_experiment(
     start_b = current.with_weights(rng.normal(0, weight_scale, current.n_params))
     runs = []
     for start, k in ((start_a, k_a), (start_b, k_b)):
-        r = ex.optimize(
+        r = optimize(
             start,
             task,
             key=k,
@@ -100,8 +102,8 @@ def condition_experiment(
         )
         runs.append(r)
     return {
-        "before": runs[0].history["cond"].astype(float).tolist(),
-        "after": runs[1].history["cond"].astype(float).tolist(),
+        "before": runs[0].history.cond.astype(float).tolist(),
+        "after": runs[1].history.cond.astype(float).tolist(),
         "cost_before": runs[0].cost,
         "cost_after": runs[1].cost,
         "size_before": genome.n_params,
@@ -185,22 +187,17 @@ def reproduce(
         )
     wall = time.perf_counter() - t0
     extra: dict = {"wall_s": wall, "device": jax.devices()[0].device_kind}
-    if hasattr(task, "baselines"):
+    if isinstance(task, ReportingTask):
         extra["baselines"] = task.baselines()
-    if hasattr(task, "generalisation"):
-        from .compiler import compile_genomes
-        from .kernels import network as kn
-
         gen: dict[str, list[float]] = {}
         for (arm, _), r in zip(jobs, results, strict=True):
-            batch = compile_genomes([r.best], task.n_inputs, pad_count=False)
-            nets = jax.vmap(kn.network)(batch.layout, batch.weights)
+            nets = networks([r.best], task.n_inputs)
             gen.setdefault(arm, []).append(float(np.asarray(task.generalisation(nets))[0]))
         extra["generalisation"] = gen
     cond = None
     if condition:
         unpruned = [r for (arm, _), r in zip(jobs, results, strict=True) if arm == "none"]
-        best = min(unpruned, key=lambda r: r.records["generations"][-1]["best_cost"])
+        best = min(unpruned, key=lambda r: r.generations[-1].best_cost)
         cond = condition_experiment(
             best.best,
             task,

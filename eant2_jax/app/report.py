@@ -14,6 +14,7 @@ arms by their pruner, and writes ``report.md`` with
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Sequence
@@ -21,9 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .genome import GeneKind, Genome
+from ..genome import GeneKind, Genome
+from ..loop import GenerationRecord
+from ..pruning import PruneAttempt
 
-__all__ = ["draw_genome", "genome_stats", "load_runs", "report", "summarise"]
+__all__ = ["LoadedRun", "draw_genome", "genome_stats", "load_runs", "report", "summarise"]
 
 
 def _pyplot():
@@ -189,53 +192,72 @@ def _removed_genes(genome: Genome, pruned: Genome) -> set[int]:
     return removed
 
 
-def load_runs(dirs: Sequence[str | Path]) -> list[dict]:
+@dataclasses.dataclass(frozen=True)
+class LoadedRun:
+    """One run directory as the report reads it.
+
+    Attributes:
+      dir: its path; arm: its arm label (the pruner unless the run names one); task: the
+      task's name; seed: the seed (None if not recorded).
+      generations: its :class:`~eant2_jax.loop.GenerationRecord` s; pruning: its
+      :class:`~eant2_jax.pruning.PruneAttempt` s.
+    """
+
+    dir: str
+    arm: str
+    task: str
+    seed: int | None
+    generations: list[GenerationRecord]
+    pruning: list[PruneAttempt]
+
+
+def load_runs(dirs: Sequence[str | Path]) -> list[LoadedRun]:
     """Read run directories: config, generation records and arm label of each."""
-    from .rundir import RunDir
+    from ..rundir import RunDir
 
     runs = []
     for d in dirs:
         rd = RunDir.open(d)
         meta = rd.config()
-        gens = rd.generations()
+        gens = [GenerationRecord.from_json(g) for g in rd.generations()]
         if not gens:
             raise ValueError(f"{d}: no completed generation to report")
         pruner = meta.get("config", {}).get("exploit", {}).get("pruner", "none")
         runs.append(
-            {
-                "dir": str(d),
-                "arm": meta.get("arm", pruner),
-                "task": meta.get("task", "?"),
-                "seed": meta.get("seed"),
-                "generations": gens,
-                "pruning": rd.pruning(),
-            }
+            LoadedRun(
+                dir=str(d),
+                arm=meta.get("arm", pruner),
+                task=meta.get("task", "?"),
+                seed=meta.get("seed"),
+                generations=gens,
+                pruning=[PruneAttempt.from_json(p) for p in rd.pruning()],
+            )
         )
     return runs
 
 
-def _to_target(gens: list[dict], key: str = "best_cost") -> tuple[int, int]:
+def _to_target(gens: list[GenerationRecord]) -> tuple[int, int]:
     """Generation and evaluations at which the best cost first came within 1% of its final
     value (i.e. the fitness reached 99% of its final value)."""
-    final = gens[-1][key]
+    final = gens[-1].best_cost
     for g in gens:
-        if g[key] <= final + 0.01 * abs(final):
-            return g["generation"], g["evaluations"]
-    return gens[-1]["generation"], gens[-1]["evaluations"]
+        if g.best_cost <= final + 0.01 * abs(final):
+            return g.generation, g.evaluations
+    return gens[-1].generation, gens[-1].evaluations
 
 
-def summarise(runs: list[dict]) -> dict[str, dict]:
+def summarise(runs: list[LoadedRun]) -> dict[str, dict]:
     """Per arm: final fitness/size mean and sd, size reduction, time to 99%, p-values."""
     from scipy import stats
 
-    arms: dict[str, list[dict]] = {}
+    arms: dict[str, list[LoadedRun]] = {}
     for r in runs:
-        arms.setdefault(r["arm"], []).append(r)
+        arms.setdefault(r.arm, []).append(r)
     out: dict[str, dict] = {}
     for arm, rs in arms.items():
-        fit = np.array([-r["generations"][-1]["best_cost"] for r in rs])
-        size = np.array([r["generations"][-1]["best_size"] for r in rs], float)
-        reach = np.array([_to_target(r["generations"]) for r in rs], float)
+        fit = np.array([-r.generations[-1].best_cost for r in rs])
+        size = np.array([r.generations[-1].best_size for r in rs], float)
+        reach = np.array([_to_target(r.generations) for r in rs], float)
         out[arm] = {
             "runs": len(rs),
             "fitness": fit,
@@ -246,8 +268,8 @@ def summarise(runs: list[dict]) -> dict[str, dict]:
             "size_sd": float(size.std(ddof=1)) if len(rs) > 1 else 0.0,
             "generations_to_99": float(reach[:, 0].mean()),
             "evaluations_to_99": float(reach[:, 1].mean()),
-            "prune_accepted": int(sum(sum(x["accepted"] for x in r["pruning"]) for r in rs)),
-            "prune_attempts": int(sum(len(r["pruning"]) for r in rs)),
+            "prune_accepted": int(sum(sum(x.accepted for x in r.pruning) for r in rs)),
+            "prune_attempts": int(sum(len(r.pruning) for r in rs)),
         }
     reference = "none" if "none" in out else None
     for arm, s in out.items():
@@ -312,10 +334,10 @@ def report(
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for arm in summary:
-        rs = [r for r in runs if r["arm"] == arm]
-        n = min(len(r["generations"]) for r in rs)
-        fit = np.array([[-g["best_cost"] for g in r["generations"][:n]] for r in rs])
-        size = np.array([[g["best_size"] for g in r["generations"][:n]] for r in rs])
+        rs = [r for r in runs if r.arm == arm]
+        n = min(len(r.generations) for r in rs)
+        fit = np.array([[-g.best_cost for g in r.generations[:n]] for r in rs])
+        size = np.array([[g.best_size for g in r.generations[:n]] for r in rs])
         gens = np.arange(n)
         for f, s in zip(fit, size, strict=True):
             axes[0].plot(gens, f, color=colours[arm], lw=0.7, alpha=0.5)
@@ -344,8 +366,8 @@ def report(
         plt.close(fig)
         figures.append("condition.png")
 
-    best_run = min(runs, key=lambda r: r["generations"][-1]["best_cost"])
-    best = Genome.parse(best_run["generations"][-1]["best_genome"])
+    best_run = min(runs, key=lambda r: r.generations[-1].best_cost)
+    best = Genome.parse(best_run.generations[-1].best_genome)
     draw_genome(best, out / "best_network.png", title=f"best network ({best_run['arm']})")
     figures.append("best_network.png")
     if condition is not None and "genome_before" in condition and "genome_after" in condition:
@@ -358,7 +380,7 @@ def report(
         figures.append("pruned_network.png")
 
     lines = ["# EANT2 report", ""]
-    tasks = sorted({r["task"] for r in runs})
+    tasks = sorted({r.task for r in runs})
     lines.append(f"Task: {', '.join(tasks)}; {len(runs)} runs in {len(summary)} arms.")
     if "device" in extra:
         lines.append(f"Device: {extra['device']}.")

@@ -43,7 +43,7 @@ def _demo(args: argparse.Namespace) -> int:
     patterns = np.array([[[0, 0], [0, 1], [1, 0], [1, 1]]], dtype=float)
     out = np.asarray(eant2_jax.evaluate(res.genome, patterns)).ravel().astype(float)
     solved = bool(np.all((out > 0.5) == np.array([False, True, True, False])))
-    evals = int(res.history["evaluations"][-1])
+    evals = int(res.history.evaluations[-1])
     print(f"optimize   cost {res.cost:.3g} after {evals} evaluations ({res.stop_reason})")
     print(f"           outputs on the four patterns {np.round(out, 3).tolist()}; solved: {solved}")
     print(f"tuned      {res.genome}")
@@ -70,7 +70,7 @@ class _Progress:
             self.header = None
         if event["event"] == "exploit":
             if self.live:
-                best = "" if self.last is None else f" | best {self.last['best_cost']:.4g}"
+                best = "" if self.last is None else f" | best {self.last.best_cost:.4g}"
                 self._line(
                     f"gen {event['generation']}/{self.total} | exploit iter {event['iteration']}"
                     f" ({event['running']} running){best}"
@@ -118,8 +118,8 @@ def _free_dir(task: str, seed: int) -> Path:
 
 
 def _finish(result, out: Path) -> int:
-    last = result.records["generations"][-1]
-    print(f"best cost {last['best_cost']:.6g}, size {last['best_size']}: {result.best}")
+    last = result.generations[-1]
+    print(f"best cost {last.best_cost:.6g}, size {last.best_size}: {result.best}")
     print(f"run directory: {out}")
     return 0
 
@@ -176,7 +176,7 @@ def _resume(args: argparse.Namespace) -> int:
 
 
 def _report(args: argparse.Namespace) -> int:
-    from eant2_jax.report import report
+    from eant2_jax.app.report import report
 
     out = Path(args.out) if args.out else Path(args.dirs[0]).parent / "report"
     path = report(args.dirs, out)
@@ -186,7 +186,7 @@ def _report(args: argparse.Namespace) -> int:
 
 def _show(args: argparse.Namespace) -> int:
     import eant2_jax
-    from eant2_jax.report import draw_genome, genome_stats
+    from eant2_jax.app.report import draw_genome, genome_stats
 
     src = Path(args.genome_file)
     try:
@@ -207,7 +207,7 @@ def _show(args: argparse.Namespace) -> int:
 
 def _reproduce(args: argparse.Namespace) -> int:
     import eant2_jax
-    from eant2_jax.experiments import reproduce
+    from eant2_jax.app.experiments import reproduce
     from eant2_jax.exploitation import ExploitConfig
     from eant2_jax.loop import EANT2Config
 

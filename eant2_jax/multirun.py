@@ -1,0 +1,118 @@
+"""Many independent EANT2 runs (seeds, or arms with different configs) spread over devices.
+
+One worker thread per device (or several, to overlap one run's host-side work with another's
+device work) takes runs from a queue; each run is pinned to its device with
+``jax.default_device`` and is exactly the run :func:`eant2_jax.loop.run` would make there.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Callable, Sequence
+
+import jax
+
+from .loop import EANT2Config, RunResult, run
+from .tasks.base import Task
+
+__all__ = ["run_many"]
+
+
+def run_many(
+    task: Task,
+    keys: Sequence[jax.Array],
+    *,
+    config: EANT2Config | Sequence[EANT2Config] | None = None,
+    generations: int,
+    outs: Sequence[str | None] | None = None,
+    devices: int | str | Sequence[jax.Device] = "all",
+    workers_per_device: int = 1,
+    callback: Callable[[dict], None] | None = None,
+    meta: dict | None = None,
+) -> list[RunResult]:
+    """Independent runs (seeds, or arms with different configs) spread over devices.
+
+    One worker thread per device takes runs from a queue; a run is pinned to its device
+    with ``jax.default_device`` and is exactly the run :func:`run` would make there.
+
+    Args:
+      task: the task, shared by all runs.
+      keys: one PRNG key per run.
+      config: one config for all runs, or one per run (their ``devices`` must be None).
+      generations: as for :func:`run`.
+      outs: optional run directory per run (None entries write nothing).
+      devices: ``"all"`` (this process's devices), a count, or explicit devices.
+      workers_per_device: runs in flight per device (>1 overlaps one run's host-side work
+        with another's device work).
+      callback: progress events, with ``run`` (the run's index) added.
+      meta: extra ``config.json`` fields for every run directory.
+
+    Returns:
+      The results, in the order of ``keys``.
+    """
+    keys = list(keys)
+    configs = list(config) if isinstance(config, Sequence) else [config] * len(keys)
+    configs = [EANT2Config() if c is None else c for c in configs]
+    outs = [None] * len(keys) if outs is None else list(outs)
+    if not (len(configs) == len(outs) == len(keys)):
+        raise ValueError("run_many: keys, configs and outs must have the same length")
+    if any(c.devices is not None for c in configs):
+        raise ValueError("run_many places each run on one device: leave config.devices None")
+    local = jax.local_devices()
+    if devices == "all":
+        chosen = local
+    elif isinstance(devices, int):
+        if not 1 <= devices <= len(local):
+            raise ValueError(f"devices={devices}: this process has {len(local)} device(s)")
+        chosen = local[:devices]
+    else:
+        chosen = list(devices)
+    todo: queue.Queue = queue.Queue()
+    for i in range(len(keys)):
+        todo.put(i)
+    results: list[RunResult | None] = [None] * len(keys)
+    errors: list[BaseException] = []
+    lock = threading.Lock()
+
+    def worker(device):
+        while not errors:
+            try:
+                i = todo.get_nowait()
+            except queue.Empty:
+                return
+            cb = None
+            if callback is not None:
+
+                def cb(event, i=i):
+                    with lock:
+                        callback({**event, "run": i})
+
+            try:
+                with jax.default_device(device):
+                    results[i] = run(
+                        task,
+                        key=keys[i],
+                        config=configs[i],
+                        generations=generations,
+                        out=outs[i],
+                        callback=cb,
+                        meta=meta,
+                    )
+            except BaseException as e:  # re-raised in the caller's thread
+                errors.append(e)
+
+    if workers_per_device < 1:
+        raise ValueError(f"workers_per_device must be >= 1, got {workers_per_device}")
+    threads = [
+        threading.Thread(target=worker, args=(d,), daemon=True)
+        for d in chosen
+        for _ in range(workers_per_device)
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if errors:
+        raise errors[0]
+    return results

@@ -1,0 +1,279 @@
+"""The handover between host and device: "tune these genomes on this task", in one place.
+
+Every caller that tunes genomes — :func:`optimize`, the EANT2 loop, the benchmarks, the
+tests — goes through :func:`tune`, which does the whole round trip once:
+
+1. compile the genomes into one padded batch (:func:`eant2_jax.compiler.compile_genomes`);
+2. choose the population size with ONE rule (:func:`popsize_for`);
+3. start the engine (:func:`eant2_jax.exploitation.init`) with one key per structure;
+4. build the pruner's tables (:func:`eant2_jax.pruning.tables_for`);
+5. run the engine (:func:`eant2_jax.exploitation.run`), optionally over a device mesh;
+6. gather the result to the host and turn each structure back into a genome, with the
+   pruned genes dropped (:func:`eant2_jax.pruning.prune_genome`).
+
+:func:`cost` is the other host entry point: the task's cost of genomes as they stand.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import distributed
+from . import exploitation as ex
+from .compiler import CompiledBatch, compile_genomes, network_batch
+from .evaluate import as_genomes
+from .genome import Genome
+from .pruning import PruneAttempt, attempt_records, prune_genome, tables_for
+from .tasks.base import Task
+
+__all__ = [
+    "OptimizeResult",
+    "Tuned",
+    "check_task",
+    "cost",
+    "optimize",
+    "popsize_for",
+    "prepare",
+    "tune",
+]
+
+
+def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch) -> int:
+    """The population size of a batch: ``config.popsize``, else the CMA-ES default
+    (:func:`eant2_jax.exploitation.default_popsize`) of the batch's padded gene count.
+
+    The rule follows the gene bucket rather than each structure's own size so that every
+    batch of one bucket shares one compiled program; within a bucket the padded count
+    exceeds a structure's own by at most a half, which changes ``4 + floor(3 ln n)`` by at
+    most one candidate.
+    """
+    return config.popsize or ex.default_popsize(batch.bucket.genes)
+
+
+def check_task(task: Task, genomes: Sequence[Genome]) -> None:
+    """TypeError/ValueError naming the first genome that does not fit the task."""
+    if not isinstance(task, Task):
+        raise TypeError(f"expected a task (see eant2_jax.tasks), got {type(task).__name__}")
+    for i, g in enumerate(genomes):
+        if g.n_outputs != task.n_outputs:
+            raise ValueError(
+                f"genome {i} has {g.n_outputs} outputs but the task expects {task.n_outputs}"
+            )
+        if g.n_inputs > task.n_inputs:
+            raise ValueError(
+                f"genome {i} reads input {g.n_inputs - 1} but the task has {task.n_inputs} inputs"
+            )
+
+
+class Prepared(NamedTuple):
+    """Steps 1-4 of :func:`tune`: everything the engine needs, nothing run yet."""
+
+    batch: CompiledBatch
+    state: ex.ExploitState
+    tables: Any  # eant2_jax.kernels.pruning.Tables [rows, P]
+    popsize: int
+
+
+def prepare(
+    genomes: Sequence[Genome],
+    task: Task,
+    *,
+    key: jax.Array,
+    config: ex.ExploitConfig,
+    keys: jax.Array | None = None,
+    min_rows: int = 1,
+    pad_count: bool = True,
+    multiple_of: int = 1,
+) -> Prepared:
+    """Compile, choose the popsize, build the tables and start the engine (no iteration).
+
+    Args: as for :func:`tune`; ``multiple_of`` rounds the rows up for a device mesh.
+    """
+    batch = compile_genomes(
+        genomes, task.n_inputs, min_rows=min_rows, pad_count=pad_count, multiple_of=multiple_of
+    )
+    rows = batch.layout.slot.shape[0]
+    popsize = popsize_for(config, batch)
+    if keys is None:
+        keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, jnp.arange(rows))
+    elif keys.shape[0] != rows:
+        raise ValueError(f"keys: {keys.shape[0]} keys for a batch of {rows} rows")
+    active = jnp.arange(rows) < batch.count
+    st = ex.init(
+        keys, batch.weights, batch.layout.gene_mask, config, popsize=popsize, active=active
+    )
+    return Prepared(batch, st, tables_for(genomes, batch.bucket.genes, rows), popsize)
+
+
+@dataclasses.dataclass(frozen=True)
+class Tuned:
+    """What :func:`tune` returns.
+
+    Attributes:
+      genomes: the tuned genomes (best weights, pruned genes dropped), in input order; a
+        structure that never saw a finite cost is returned unchanged.
+      costs: each one's best cost (inf where none was finite).
+      evaluations: each one's cost evaluations (pruning trials included).
+      stop_reasons: why each one stopped (see ``exploitation.STOP_REASONS``).
+      history: the engine's :class:`~eant2_jax.exploitation.StepRecord` of
+        ``[iterations, rows]`` arrays (padding rows included).
+      pruning: one :class:`~eant2_jax.pruning.PruneAttempt` per attempt; ``structure``
+        is the index in ``genomes``.
+      state: the engine's final state (on device).
+    """
+
+    genomes: list[Genome]
+    costs: list[float]
+    evaluations: list[int]
+    stop_reasons: list[str]
+    history: ex.StepRecord
+    pruning: list[PruneAttempt]
+    state: ex.ExploitState
+
+
+def tune(
+    genomes: Sequence[Genome],
+    task: Task,
+    *,
+    key: jax.Array,
+    config: ex.ExploitConfig,
+    keys: jax.Array | None = None,
+    min_rows: int = 1,
+    pad_count: bool = True,
+    on_chunk: Callable[[dict], None] | None = None,
+    mesh: jax.sharding.Mesh | None = None,
+) -> Tuned:
+    """Tune (and prune) a batch of structures together: ONE batched CMA-ES run.
+
+    Args:
+      genomes: the structures, with their starting weights.
+      task: the task.
+      key: PRNG key; split into an engine-start key and the task's key. Structure ``i``
+        starts from ``fold_in(start_key, i)`` unless ``keys`` is given.
+      config: the exploitation configuration.
+      keys: optional ``[rows]`` start keys, one per batch row (padding rows included).
+      min_rows: pad the batch to at least this many structures (one program per bucket).
+      pad_count: round the rows up the bucket series (see ``compile_genomes``).
+      on_chunk: progress callback (see :func:`eant2_jax.exploitation.run`).
+      mesh: split the structures over these devices (see :mod:`eant2_jax.distributed`).
+
+    Returns:
+      :class:`Tuned`.
+    """
+    genomes = list(genomes)
+    check_task(task, genomes)
+    init_key, run_key = jax.random.split(key)
+    prep = prepare(
+        genomes,
+        task,
+        key=init_key,
+        config=config,
+        keys=keys,
+        min_rows=min_rows,
+        pad_count=pad_count,
+        multiple_of=distributed.size(mesh),
+    )
+    st, hist = ex.run(
+        prep.state,
+        prep.batch.layout,
+        task,
+        key=run_key,
+        config=config,
+        tables=prep.tables,
+        on_chunk=on_chunk,
+        mesh=mesh,
+    )
+    best_x, best_cost, mask, spent, stop = distributed.gather(
+        (st.cma.best_x, st.cma.best_cost, st.cma.mask, st.evals, st.stop)
+    )
+    best_x, best_cost = np.asarray(best_x, np.float64), np.asarray(best_cost, np.float64)
+    tuned, costs = [], []
+    for i, g in enumerate(genomes):
+        n = g.n_params
+        if np.isfinite(best_cost[i]):
+            tuned.append(prune_genome(g, mask[i, :n], best_x[i, :n]))
+            costs.append(float(best_cost[i]))
+        else:  # never saw a finite cost: keep the structure, rank it last
+            tuned.append(g)
+            costs.append(float("inf"))
+    count = len(genomes)
+    return Tuned(
+        genomes=tuned,
+        costs=costs,
+        evaluations=[int(e) for e in spent[:count]],
+        stop_reasons=[ex.STOP_REASONS[int(s)] for s in stop[:count]],
+        history=hist,
+        pruning=attempt_records(hist.prune, genomes, config.pruner),
+        state=st,
+    )
+
+
+class OptimizeResult(NamedTuple):
+    """What :func:`optimize` returns.
+
+    Attributes:
+      genome: the genome with its best weights.
+      cost: the best cost found (of ``genome``'s weights).
+      history: :class:`~eant2_jax.exploitation.StepRecord` of ``[iterations]`` arrays
+        (``sigma``, ``sigma_bar``, ``cond``, ``cond_bounded``, ``best_cost``,
+        ``evaluations``, ``nonfinite``, ``running``; ``prune`` with a pruner).
+      stop_reason: why the run stopped (see ``STOP_REASONS``).
+      pruning: one :class:`~eant2_jax.pruning.PruneAttempt` per pruning attempt; empty
+        without a pruner.
+    """
+
+    genome: Genome
+    cost: float
+    history: ex.StepRecord
+    stop_reason: str
+    pruning: list[PruneAttempt]
+
+
+def optimize(genome: Genome | str, task: Task, *, key: jax.Array, **options: Any) -> OptimizeResult:
+    """Tune one genome's weights on a task with CMA-ES, starting from its current weights.
+
+    Args:
+      genome: the structure (and its initial weights).
+      task: a task (see :mod:`eant2_jax.tasks`).
+      key: PRNG key.
+      **options: fields of :class:`~eant2_jax.exploitation.ExploitConfig` (popsize, sigma0,
+        max_iters, pruner, ...).
+
+    Returns:
+      :class:`OptimizeResult`.
+    """
+    (genome,) = as_genomes(genome)
+    config = ex.ExploitConfig.from_options(options)
+    init_key, _ = jax.random.split(key)
+    # One structure starts from the start key itself (not fold_in(start, 0)): the seeded
+    # results of optimize() predate the batch rule and are kept.
+    res = tune([genome], task, key=key, config=config, keys=init_key[None], pad_count=False)
+    n_iter = int(res.state.iteration[0])
+    return OptimizeResult(
+        res.genomes[0],
+        res.costs[0],
+        res.history.structure(0, n_iter),
+        res.stop_reasons[0],
+        res.pruning,
+    )
+
+
+@jax.jit
+def _cost_batch(layout, weights, task, key):
+    return task.cost(key, network_batch(layout, weights))
+
+
+def cost(
+    genomes: Genome | str | Sequence[Genome | str], task: Task, *, key: jax.Array
+) -> np.ndarray:
+    """The task's cost of each genome as it stands (its own weights), ``float[len(genomes)]``."""
+    genomes = as_genomes(genomes)
+    check_task(task, genomes)
+    batch = compile_genomes(genomes, task.n_inputs)
+    return np.asarray(_cost_batch(batch.layout, batch.weights, task, key))[: batch.count]

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import distributed
-from . import exploitation as ex
+from .config import EANT2Config
 from .exploration import OPERATORS, initial_genome, mutate, select
 from .genome import Genome
 from .pruning import PruneAttempt
@@ -47,109 +47,6 @@ __all__ = [
     "resume",
     "run",
 ]
-
-
-@dataclasses.dataclass(frozen=True)
-class EANT2Config:
-    """Configuration of an EANT2 run (JSON round-trips through ``to_dict``/``from_dict``).
-
-    Attributes:
-      population: number of individuals kept by selection.
-      offspring: new structures made per generation (None: ``population``).
-      init_connectivity: probability that an initial output neuron reads each input.
-      init_weight_scale: std of the initial weights.
-      input_fraction: probability that a new hidden neuron reads each input (paper: ~50%).
-      new_weight_scale: std of a new hidden neuron's inner weights.
-      operator_weights: relative frequency of each operator in ``exploration.OPERATORS``.
-      reexploit: also run CMA-ES again on surviving parents each generation, continuing from
-        their tuned weights (default False: a parent was already tuned to convergence when it
-        was new; its structure has not changed since).
-      similar_limit: at most this many similar structures survive (paper: 2).
-      prefer_smaller: of two costs within ``size_tolerance`` the smaller network ranks first.
-      size_tolerance, size_atol: relative and absolute cost tolerance of that rule.
-      exploit: the CMA-ES / pruning configuration (its ``pruner`` turns pruning on).
-      target_cost: stop the run once the best cost is at or below this (None: run all
-        generations). A stopped run's directory holds fewer generations than asked.
-      devices: where exploitation runs: None (the default device), ``"all"`` or a count N —
-        the structures are split over a 1-D mesh of those devices (every process's, in a
-        multi-process run). Placement only: the results are identical.
-    """
-
-    population: int = 20
-    offspring: int | None = None
-    init_connectivity: float = 1.0
-    init_weight_scale: float = 0.1
-    input_fraction: float = 0.5
-    new_weight_scale: float = 0.5
-    operator_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)
-    reexploit: bool = False
-    similar_limit: int = 2
-    prefer_smaller: bool = True
-    size_tolerance: float = 1e-3
-    size_atol: float = 1e-9
-    target_cost: float | None = None
-    devices: int | str | None = None
-    exploit: ex.ExploitConfig = dataclasses.field(
-        default_factory=lambda: ex.ExploitConfig(pruner="covariance")
-    )
-
-    def __post_init__(self):
-        w = tuple(float(x) for x in self.operator_weights)
-        object.__setattr__(self, "operator_weights", w)
-        checks = [
-            ("population", self.population >= 1, ">= 1"),
-            ("offspring", self.offspring is None or self.offspring >= 1, ">= 1 (or None)"),
-            ("init_connectivity", 0 < self.init_connectivity <= 1, "in (0, 1]"),
-            ("init_weight_scale", self.init_weight_scale >= 0, ">= 0"),
-            ("input_fraction", 0 < self.input_fraction <= 1, "in (0, 1]"),
-            ("new_weight_scale", self.new_weight_scale >= 0, ">= 0"),
-            (
-                "operator_weights",
-                len(w) == len(OPERATORS) and min(w) >= 0 and sum(w) > 0,
-                f"{len(OPERATORS)} non-negative numbers, not all 0 (order: {', '.join(OPERATORS)})",
-            ),
-            ("similar_limit", self.similar_limit >= 1, ">= 1"),
-            ("size_tolerance", self.size_tolerance >= 0, ">= 0"),
-            ("size_atol", self.size_atol >= 0, ">= 0"),
-            (
-                "devices",
-                self.devices is None
-                or self.devices == "all"
-                or (isinstance(self.devices, int) and self.devices >= 1),
-                "None, 'all' or a count >= 1",
-            ),
-        ]
-        for name, ok, want in checks:
-            if not ok:
-                raise ValueError(f"EANT2Config.{name} must be {want}, got {getattr(self, name)!r}")
-        if not isinstance(self.exploit, ex.ExploitConfig):
-            raise ValueError("EANT2Config.exploit must be an ExploitConfig")
-
-    def to_dict(self) -> dict:
-        d = dataclasses.asdict(self)
-        d["operator_weights"] = list(self.operator_weights)
-        d["exploit"] = self.exploit.to_dict()
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> EANT2Config:
-        """Inverse of :meth:`to_dict`; unknown keys are a ValueError naming them."""
-        d = dict(d)
-        exploit = d.pop("exploit", {})
-        _check_keys(cls, d, "EANT2Config")
-        _check_keys(ex.ExploitConfig, exploit, "ExploitConfig")
-        if "operator_weights" in d:
-            d["operator_weights"] = tuple(d["operator_weights"])
-        return cls(**d, exploit=ex.ExploitConfig(**exploit))
-
-
-def _check_keys(cls, d: dict, name: str) -> None:
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(d) - known)
-    if unknown:
-        raise ValueError(
-            f"unknown {name} option(s): {', '.join(unknown)}; known: {', '.join(sorted(known))}"
-        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -493,7 +390,9 @@ def _key_from_meta(meta: dict, rundir: RunDir) -> jax.Array:
 
 
 def _loop(task, state, key, config, generations, rundir, callback) -> RunResult:
-    gen_records = [] if rundir is None else [GenerationRecord.from_json(r) for r in rundir.generations()]
+    gen_records = (
+        [] if rundir is None else [GenerationRecord.from_json(r) for r in rundir.generations()]
+    )
     prune_records = [] if rundir is None else [PruneAttempt.from_json(r) for r in rundir.pruning()]
     mesh = distributed.make_mesh(config.devices)
     while state is None or state.generation < generations:

@@ -122,9 +122,7 @@ def attempt(
     go = functools.partial(
         _attempt, cost_fn, tables, removable, pruner=pruner, k=candidates, tolerance=tolerance
     )
-    return jax.lax.cond(
-        jnp.any(trigger), go, lambda c, p, t: (c, p, skipped), cma, params, trigger
-    )
+    return jax.lax.cond(jnp.any(trigger), go, lambda c, p, t: (c, p, skipped), cma, params, trigger)
 
 
 def _attempt(cost_fn, tables, removable, cma, params, trigger, *, pruner, k, tolerance):

@@ -143,6 +143,11 @@ class RunDir:
                 f.truncate(size)
                 f.flush()
                 os.fsync(f.fileno())
+        # A kill inside write_atomic leaves its temporary file behind (the target itself is
+        # whole, old or new): remove our own leftovers, named as write_atomic names them.
+        for name in (BEST, CHECKPOINT):
+            for tmp in self.path.glob(f".{name}.*.tmp"):
+                tmp.unlink(missing_ok=True)
 
     def commit(
         self, generation_records: list[dict], pruning_records: list[dict], best: str, state: dict

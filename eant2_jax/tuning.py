@@ -26,7 +26,7 @@ import numpy as np
 
 from . import distributed
 from . import exploitation as ex
-from .compiler import CompiledBatch, compile_genomes, network_batch
+from .compiler import Bucket, CompiledBatch, compile_genomes, network_batch
 from .evaluate import as_genomes
 from .genome import Genome
 from .pruning import PruneAttempt, attempt_records, prune_genome, tables_for
@@ -87,6 +87,7 @@ def prepare(
     key: jax.Array,
     config: ex.ExploitConfig,
     keys: jax.Array | None = None,
+    bucket: Bucket | None = None,
     min_rows: int = 1,
     pad_count: bool = True,
     multiple_of: int = 1,
@@ -96,7 +97,12 @@ def prepare(
     Args: as for :func:`tune`; ``multiple_of`` rounds the rows up for a device mesh.
     """
     batch = compile_genomes(
-        genomes, task.n_inputs, min_rows=min_rows, pad_count=pad_count, multiple_of=multiple_of
+        genomes,
+        task.n_inputs,
+        bucket=bucket,
+        min_rows=min_rows,
+        pad_count=pad_count,
+        multiple_of=multiple_of,
     )
     rows = batch.layout.slot.shape[0]
     popsize = popsize_for(config, batch)
@@ -144,6 +150,7 @@ def tune(
     key: jax.Array,
     config: ex.ExploitConfig,
     keys: jax.Array | None = None,
+    bucket: Bucket | None = None,
     min_rows: int = 1,
     pad_count: bool = True,
     on_chunk: Callable[[dict], None] | None = None,
@@ -158,6 +165,7 @@ def tune(
         starts from ``fold_in(start_key, i)`` unless ``keys`` is given.
       config: the exploitation configuration.
       keys: optional ``[rows]`` start keys, one per batch row (padding rows included).
+      bucket: pad to these sizes (default: the smallest that fits, ``compiler.bucket_for``).
       min_rows: pad the batch to at least this many structures (one program per bucket).
       pad_count: round the rows up the bucket series (see ``compile_genomes``).
       on_chunk: progress callback (see :func:`eant2_jax.exploitation.run`).
@@ -175,6 +183,7 @@ def tune(
         key=init_key,
         config=config,
         keys=keys,
+        bucket=bucket,
         min_rows=min_rows,
         pad_count=pad_count,
         multiple_of=distributed.size(mesh),

@@ -21,7 +21,7 @@ PRELUDE = """
 import json, sys
 import jax, jax.numpy as jnp, numpy as np
 import eant2_jax as E
-from eant2_jax import distributed, loop
+from eant2_jax import distributed, tuning
 rng = np.random.default_rng(0)
 x = rng.normal(size=(64, 3))
 y = np.tanh(x @ np.array([[0.5], [-1.0], [0.25]])) + 0.1 * rng.normal(size=(64, 1))
@@ -54,12 +54,13 @@ def test_sharded_exploitation_matches_single_device():
     out = _python(
         """
         assert len(jax.devices()) == 8
-        one = loop.exploit(genomes, task, key=jax.random.key(3), config=cfg)
+        one = tuning.tune(genomes, task, key=jax.random.key(3), config=cfg)
         mesh = distributed.make_mesh("all")
-        eight = loop.exploit(genomes, task, key=jax.random.key(3), config=cfg, mesh=mesh)
-        print(json.dumps({"one": one[1], "eight": eight[1], "evals": [one[2], eight[2]],
-                          "attempts": [len(one[3]), len(eight[3])],
-                          "sizes": [[g.n_params for g in one[0]], [g.n_params for g in eight[0]]]}))
+        eight = tuning.tune(genomes, task, key=jax.random.key(3), config=cfg, mesh=mesh)
+        print(json.dumps({"one": one.costs, "eight": eight.costs,
+                          "evals": [sum(one.evaluations), sum(eight.evaluations)],
+                          "attempts": [len(one.pruning), len(eight.pruning)],
+                          "sizes": [[g.n_params for g in r.genomes] for r in (one, eight)]}))
         """,
         devices=8,
     )
@@ -75,15 +76,12 @@ def test_one_sharded_iteration_equals_unsharded():
     out = _python(
         """
         from eant2_jax import exploitation as ex
-        from eant2_jax.compiler import compile_genomes
-        from eant2_jax.pruning import tables_for
-        b = compile_genomes(genomes, task.n_inputs, min_rows=8)
-        keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(jax.random.key(0), jnp.arange(8))
         c1 = ex.ExploitConfig(max_iters=5, chunk=5)
+        prep = tuning.prepare(genomes, task, key=jax.random.key(0), config=c1, min_rows=8)
+        assert prep.popsize == 10 and prep.batch.layout.slot.shape[0] == 8
         def go(mesh):
-            st = ex.init(keys, b.weights, b.layout.gene_mask, c1, popsize=10,
-                         active=jnp.arange(8) < 3)
-            st, h = ex.run(st, b.layout, task, key=jax.random.key(1), config=c1, mesh=mesh)
+            st, h = ex.run(prep.state, prep.batch.layout, task, key=jax.random.key(1), config=c1,
+                           mesh=mesh)
             return distributed.gather((st.cma.mean, st.cma.C, st.cma.sigma, st.evals))
         a, s = go(None), go(distributed.make_mesh(8))
         err = [float(np.linalg.norm(np.asarray(u, float) - np.asarray(v, float))
@@ -126,8 +124,9 @@ def test_two_processes_agree():
         """
         assert jax.process_count() == 2
         mesh = distributed.make_mesh("all")
-        r = loop.exploit(genomes, task, key=jax.random.key(3), config=cfg, mesh=mesh)
-        print(json.dumps({"costs": r[1], "evals": r[2], "best": [str(g) for g in r[0]]}))
+        r = tuning.tune(genomes, task, key=jax.random.key(3), config=cfg, mesh=mesh)
+        print(json.dumps({"costs": r.costs, "evals": sum(r.evaluations),
+                          "best": [str(g) for g in r.genomes]}))
         """
     )
     port = _free_port()
@@ -164,8 +163,8 @@ def test_two_processes_agree():
     assert outs[0] == outs[1]
     single = _python(
         """
-        r = loop.exploit(genomes, task, key=jax.random.key(3), config=cfg)
-        print(json.dumps({"costs": r[1], "evals": r[2]}))
+        r = tuning.tune(genomes, task, key=jax.random.key(3), config=cfg)
+        print(json.dumps({"costs": r.costs, "evals": sum(r.evaluations)}))
         """
     )
     assert single["evals"] == outs[0]["evals"]

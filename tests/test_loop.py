@@ -28,7 +28,7 @@ import pytest
 
 import eant2_jax
 from eant2_jax import EANT2Config, ExploitConfig, tasks
-from eant2_jax.cli import main
+from eant2_jax.app.cli import main
 from eant2_jax.rundir import CHECKPOINT, GENERATIONS, PRUNING, RunDirError
 
 RECORD_FIELDS = (
@@ -59,6 +59,11 @@ CLI_GENERATIONS = 2
 def solves_xor(genome) -> bool:
     out = np.asarray(eant2_jax.evaluate(genome, XOR_IN)).ravel()
     return bool(np.all((out > 0.5) == XOR_OUT))
+
+
+def _json(records) -> list[dict]:
+    """Typed records (GenerationRecord, PruneAttempt) as the JSON their files hold."""
+    return [r.to_json() for r in records]
 
 
 def _without_wall(records: list[dict]) -> list[str]:
@@ -117,7 +122,7 @@ def xor_run():
 @pytest.mark.slow
 def test_short_xor_run(xor_run):
     result, events, _ = xor_run
-    gens = result.records["generations"]
+    gens = _json(result.generations)
     assert [r["generation"] for r in gens] == list(range(GENERATIONS_API + 1))
     for r in gens:
         assert set(RECORD_FIELDS) <= set(r)
@@ -137,9 +142,9 @@ def test_short_xor_run(xor_run):
     assert [e for e in events if e["event"] == "generation"] == [
         {"event": "generation", **r} for r in gens
     ]
-    assert sum(r["prune_attempts"] for r in gens) == len(result.records["pruning"])
+    assert sum(r["prune_attempts"] for r in gens) == len(_json(result.pruning))
     assert sum(r["prune_accepted"] for r in gens) == sum(
-        p["accepted"] for p in result.records["pruning"]
+        p["accepted"] for p in _json(result.pruning)
     )
     # The population is best first and its best is the result.
     pop = result.population
@@ -159,10 +164,8 @@ def test_same_key_same_run(xor_run):
         tasks.make("xor"), key=jax.random.key(SEED), config=CONFIG, generations=GENERATIONS_API
     )
     assert str(again.best) == str(first.best)
-    assert _without_wall(again.records["generations"]) == _without_wall(
-        first.records["generations"]
-    )
-    assert json.dumps(again.records["pruning"]) == json.dumps(first.records["pruning"])
+    assert _without_wall(_json(again.generations)) == _without_wall(_json(first.generations))
+    assert json.dumps(_json(again.pruning)) == json.dumps(_json(first.pruning))
     assert [(str(i.genome), i.cost, i.origin) for i in again.population] == [
         (str(i.genome), i.cost, i.origin) for i in first.population
     ]
@@ -170,7 +173,7 @@ def test_same_key_same_run(xor_run):
         tasks.make("xor"), key=jax.random.key(SEED + 1), config=CONFIG, generations=0
     )
     # Generation 0 is the same minimal structure, tuned from other random weights.
-    assert str(other.best) != str(first.records["generations"][0]["best_genome"])
+    assert str(other.best) != str(_json(first.generations)[0]["best_genome"])
 
 
 # ------------------------------------------------------------------ crash safety (rundir)
@@ -190,7 +193,7 @@ def test_resume_after_crash_inside_a_commit(xor_run, tmp_path):
     # What the next commit had written when it died: its log lines (one of them torn) and a
     # temporary checkpoint and best genome that never got renamed.
     with open(run_dir / GENERATIONS, "a") as f:
-        f.write(json.dumps(reference.records["generations"][1]) + "\n")
+        f.write(json.dumps(_json(reference.generations)[1]) + "\n")
         f.write('{"generation": 2, "best_co')
     with open(run_dir / PRUNING, "a") as f:
         f.write('{"structure": 0, "iteration"')
@@ -200,17 +203,16 @@ def test_resume_after_crash_inside_a_commit(xor_run, tmp_path):
     resumed = eant2_jax.resume(str(run_dir), task, generations=GENERATIONS_API)
 
     assert str(resumed.best) == str(reference.best)
-    assert _without_wall(resumed.records["generations"]) == _without_wall(
-        reference.records["generations"]
-    )
-    assert json.dumps(resumed.records["pruning"]) == json.dumps(reference.records["pruning"])
+    assert _without_wall(_json(resumed.generations)) == _without_wall(_json(reference.generations))
+    assert json.dumps(_json(resumed.pruning)) == json.dumps(_json(reference.pruning))
     # On disk: the torn lines are gone, each generation appears once, and the files agree
     # with the returned records.
     on_disk = _jsonl(run_dir, GENERATIONS)
     assert [r["generation"] for r in on_disk] == list(range(GENERATIONS_API + 1))
-    assert _without_wall(on_disk) == _without_wall(reference.records["generations"])
-    assert _jsonl(run_dir, PRUNING) == json.loads(json.dumps(reference.records["pruning"]))
+    assert _without_wall(on_disk) == _without_wall(_json(reference.generations))
+    assert _jsonl(run_dir, PRUNING) == json.loads(json.dumps(_json(reference.pruning)))
     assert (run_dir / "best.genome").read_text() == str(reference.best) + "\n"
+    assert not list(run_dir.glob(".*.tmp")), "resume leaves the dead commit's temporary files"
     state = json.loads((run_dir / CHECKPOINT).read_text())["state"]
     assert state["generation"] == GENERATIONS_API
     assert [(p["genome"], p["cost"]) for p in state["population"]] == [
@@ -229,8 +231,8 @@ def test_resume_before_the_first_checkpoint(xor_run, tmp_path):
     (run_dir / "best.genome").unlink()
     (run_dir / ".checkpoint.json.tmp42.tmp").write_text("")
     resumed = eant2_jax.resume(str(run_dir), task, generations=0)
-    assert _without_wall(resumed.records["generations"]) == _without_wall(
-        reference.records["generations"][:1]
+    assert _without_wall(_json(resumed.generations)) == _without_wall(
+        _json(reference.generations)[:1]
     )
     assert len(_jsonl(run_dir, GENERATIONS)) == 1
 
@@ -250,7 +252,7 @@ def test_rewind_refuses_a_log_shorter_than_its_checkpoint(tmp_path):
 def _eant2(*args: str, cache: Path, **kw) -> subprocess.Popen:
     env = {**os.environ, "EANT2_CACHE_DIR": str(cache), "PYTHONUNBUFFERED": "1"}
     return subprocess.Popen(
-        [sys.executable, "-m", "eant2_jax.cli", *args],
+        [sys.executable, "-m", "eant2_jax.app.cli", *args],
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -561,7 +563,7 @@ def test_cli_run_refuses_an_existing_target(kind, tmp_path, capsys, monkeypatch)
 
 def test_cli_errors_in_a_real_process(tmp_path):
     """The installed entry point: exit code 2 and a one-line message, no traceback."""
-    cmd = [sys.executable, "-m", "eant2_jax.cli", "resume", str(tmp_path / "nowhere")]
+    cmd = [sys.executable, "-m", "eant2_jax.app.cli", "resume", str(tmp_path / "nowhere")]
     proc = subprocess.run(
         cmd, capture_output=True, text=True, env={**os.environ, "EANT2_CACHE_DIR": ""}
     )
@@ -573,7 +575,7 @@ def test_cli_errors_in_a_real_process(tmp_path):
 
 
 def test_cli_asks_for_deterministic_gpu_programs_unless_told_otherwise():
-    from eant2_jax.cli import DETERMINISTIC_FLAG, _deterministic_gpu
+    from eant2_jax.app.cli import DETERMINISTIC_FLAG, _deterministic_gpu
 
     env = {}
     assert _deterministic_gpu(env) and env["XLA_FLAGS"] == DETERMINISTIC_FLAG

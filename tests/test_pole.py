@@ -34,7 +34,7 @@ from scipy.integrate import solve_ivp
 from strategies import fewer_examples
 
 import eant2_jax
-from eant2_jax.compiler import compile_genomes
+from eant2_jax.compiler import compile_genomes, networks
 from eant2_jax.genome import Genome
 from eant2_jax.kernels import network as kn
 from eant2_jax.tasks import pole
@@ -344,11 +344,12 @@ def test_linear_controller_balances_through_the_public_cost():
 def test_solved_reports_both_parts():
     task = pole.dpv()
     check = dict(long_steps=2000, test_steps=200)
-    got = pole.solved(task, LQR_GENOME, **check)
+    lqr = jax.tree.map(lambda a: a[0], networks([Genome.parse(LQR_GENOME)], task.n_inputs))
+    got = pole.solved(task, lqr, **check)
     assert got["balanced_steps"] == 2000 and got["solved"] is True
     assert 200 <= got["generalisation"] <= 625
     # Requiring more successes than there are starts fails the same network (dpnv's rule).
-    strict = pole.solved(task, LQR_GENOME, generalisation=True, required=626, **check)
+    strict = pole.solved(task, lqr, generalisation=True, required=626, **check)
     assert strict["generalisation"] == got["generalisation"] and strict["solved"] is False
     # A Network batch (here [1], the genome's own shapes: no second compilation) gives arrays.
     many = pole.solved(task, batch_of(np.asarray([np.r_[1.0, LQR]], np.float32)), **check)

@@ -49,6 +49,7 @@ from eant2_jax.kernels import pruning as kp
 from eant2_jax.pruning import attempt_records, prune_genome, tables_for
 from eant2_jax.reference import interpret
 from eant2_jax.tasks import regression
+from eant2_jax.tuning import optimize, tune
 
 RTOL = 1e-5
 TOL = 1e-3  # the paper's 0.1%
@@ -76,7 +77,7 @@ def runs():
     """``{(genome text, seed): OptimizeResult}`` for the three genomes and SEEDS."""
     task = redundant_task()
     return {
-        (str(g), seed): ex.optimize(g, task, key=jax.random.key(seed), **PRUNE_OPTIONS)
+        (str(g), seed): optimize(g, task, key=jax.random.key(seed), **PRUNE_OPTIONS)
         for g in (NO_EFFECT, PARALLEL, BOTH)
         for seed in SEEDS
     }
@@ -88,10 +89,7 @@ def _reads(genome: Genome, j: int) -> int:
 
 def _accepted(runs, genome):
     return [
-        (seed, rec)
-        for seed in SEEDS
-        for rec in runs[(str(genome), seed)].pruning
-        if rec["accepted"]
+        (seed, rec) for seed in SEEDS for rec in runs[(str(genome), seed)].pruning if rec.accepted
     ]
 
 
@@ -100,8 +98,8 @@ def test_removes_a_connection_without_effect(runs):
     removed = 0
     for seed in SEEDS:
         res = runs[(str(NO_EFFECT), seed)]
-        accepted = [r for r in res.pruning if r["accepted"]]
-        assert [r["gene"] for r in accepted] in ([], [2])
+        accepted = [r for r in res.pruning if r.accepted]
+        assert [r.gene for r in accepted] in ([], [2])
         if accepted:
             removed += 1
             assert str(res.genome).startswith("N0/1*") and _reads(res.genome, 1) == 0
@@ -117,7 +115,7 @@ def test_removes_one_of_two_parallel_copies(runs):
     accepted = _accepted(runs, PARALLEL)
     assert len(accepted) >= 1
     for seed, rec in accepted:
-        assert rec["gene"] in (1, 2)
+        assert rec.gene in (1, 2)
         res = runs[(str(PARALLEL), seed)]
         assert res.genome.structure_key() == Genome.parse("N0/1*1 I0*1").structure_key()
         # The remaining copy carries the sum of the two.
@@ -130,10 +128,10 @@ def test_necessary_connection_is_never_removed(runs):
         assert _reads(res.genome, 0) >= 1, seed
         assert res.genome.n_params >= 2
     for _, rec in _accepted(runs, NO_EFFECT):
-        assert rec["gene"] != 1  # I0
+        assert rec.gene != 1  # I0
     for key, res in runs.items():
         for rec in res.pruning:
-            assert rec["gene"] != 0, key  # the root's own weight is never a candidate
+            assert rec.gene != 0, key  # the root's own weight is never a candidate
 
 
 def test_every_attempt_obeys_the_acceptance_rule(runs):
@@ -142,28 +140,28 @@ def test_every_attempt_obeys_the_acceptance_rule(runs):
         h = res.history
         for rec in res.pruning:
             n_attempts += 1
-            e, e_new = np.float32(rec["e"]), np.float32(rec["e_shifted"])
+            e, e_new = np.float32(rec.e), np.float32(rec.e_shifted)
             assert np.isfinite(e), key
             limit = e + np.float32(TOL) * abs(e)
             rule = bool(np.isfinite(e_new) and (e_new < limit if e > 0 else e_new <= limit))
-            assert rec["accepted"] == rule, (key, rec)
-            if rec["accepted"]:
+            assert rec.accepted == rule, (key, rec)
+            if rec.accepted:
                 # C is conditioned and decomposed again, so cond(C) changes; unless it sits
                 # at the configured bound before and after (clipped eigenvalues).
                 bound = np.float32(ex.ExploitConfig(**PRUNE_OPTIONS).max_condition)
-                at_bound = rec["cond_before"] >= bound and rec["cond_after"] >= bound
-                assert rec["cond_after"] != rec["cond_before"] or at_bound
+                at_bound = rec.cond_before >= bound and rec.cond_after >= bound
+                assert rec.cond_after != rec.cond_before or at_bound
             else:
-                assert rec["cond_after"] == rec["cond_before"]
-            assert rec["pruner"] == "covariance"
-            assert rec["kind"] == "input"
-            assert rec["axis"] >= 0 and rec["s"] is not None
-            row = rec["iteration"] - 1
-            assert h["prune_attempted"][row]
-            if rec["accepted"]:
+                assert rec.cond_after == rec.cond_before
+            assert rec.pruner == "covariance"
+            assert rec.kind == "input"
+            assert rec.axis >= 0 and rec.s is not None
+            row = rec.iteration - 1
+            assert h.prune.attempted[row]
+            if rec.accepted:
                 # The best is reset to the shifted mean m~ and its cost e~.
-                assert h["best_cost"][row] == np.float32(rec["e_shifted"])
-        assert int(h["prune_attempted"].sum()) == len(res.pruning)
+                assert h.best_cost[row] == np.float32(rec.e_shifted)
+        assert int(h.prune.attempted.sum()) == len(res.pruning)
     assert n_attempts >= 6
 
 
@@ -173,18 +171,23 @@ def _like_optimize(text: str, seed: int):
     history (the same compiled program, so the same run)."""
     genome, task = Genome.parse(text), redundant_task()
     config = ex.ExploitConfig(**PRUNE_OPTIONS)
-    batch = compile_genomes([genome], task.n_inputs, pad_count=False)
-    init_key, run_key = jax.random.split(jax.random.key(seed))
-    st = ex.init(init_key[None], batch.weights, batch.layout.gene_mask, config, popsize=8)
-    tables = tables_for([genome], batch.bucket.genes)
-    return ex.run(st, batch.layout, task, key=run_key, config=config, tables=tables)
+    init_key, _ = jax.random.split(jax.random.key(seed))
+    res = tune(
+        [genome],
+        task,
+        key=jax.random.key(seed),
+        config=config,
+        keys=init_key[None],
+        pad_count=False,
+    )
+    return res.state, res.history
 
 
 def test_dimension_drops_by_one_and_optimisation_continues(runs):
     seed = 0
     res = runs[(str(NO_EFFECT), seed)]
     (rec,) = res.pruning
-    assert rec["accepted"] and rec["gene"] == 2
+    assert rec.accepted and rec.gene == 2
     st, h = _like_optimize(str(NO_EFFECT), seed)
     assert float(st.cma.best_cost[0]) == np.float32(res.cost)  # the same run as optimize's
     cma = st.cma
@@ -198,13 +201,13 @@ def test_dimension_drops_by_one_and_optimisation_continues(runs):
     assert np.all(np.asarray(cma.C[0, 2, :]) == 0) and np.all(np.asarray(cma.C[0, :, 2]) == 0)
     assert int(np.sum(np.asarray(cma.valid_axes[0]))) == n - 1
     # Optimisation went on after the attempt, from the shifted mean's cost, never worse.
-    it = rec["iteration"]
+    it = rec.iteration
     n_iter = int(st.iteration[0])
     assert n_iter > it + 10
-    after = h["best_cost"][it - 1 : n_iter, 0]
-    assert after[0] == np.float32(rec["e_shifted"])
+    after = h.best_cost[it - 1 : n_iter, 0]
+    assert after[0] == np.float32(rec.e_shifted)
     assert np.all(np.diff(after) <= 0)
-    assert res.cost <= rec["e_shifted"] < (1 + TOL) * rec["e"]
+    assert res.cost <= rec.e_shifted < (1 + TOL) * rec.e
     # Each attempt costs 1 + k evaluations (the mean and k shifted candidates).
     assert int(st.evals[0]) == 8 * n_iter + 2 * int(st.prune_attempts[0])
     assert int(st.prune_accepted[0]) == 1
@@ -265,11 +268,12 @@ def _attempt_state(weights, mask, covariances):
     return st.replace(cma=cma, down_run=jnp.full(2, 7, jnp.int32))
 
 
-@functools.partial(jax.jit, static_argnames="config")
+@jax.jit
 def _attempt(st, layout, tables, task, config):
+    """The engine's pruning stage (pruning.attempt and its bookkeeping), every structure
+    triggered."""
     trigger = jnp.ones(st.stop.shape, bool)
-    static, limits = ex._program_config(config)
-    return ex._prune(st, trigger, layout, tables, task, jax.random.key(0), static, limits)
+    return ex._prune(st, trigger, layout, tables, task, jax.random.key(0), config)
 
 
 @functools.partial(jax.jit, static_argnames="pruner")
@@ -337,16 +341,16 @@ def test_pruning_attempt_matches_host_recomputation(pruner, k):
             trials.append((e_new, ok, int(i), removals[i], trial))
         passing = [t for t in trials if t[1]]
         e_new, ok, gene, removed, trial = min(passing, key=lambda t: t[0]) if passing else trials[0]
-        assert rec["prune_attempted"][r]
-        assert rec["prune_gene"][r] == gene
-        assert rec["prune_accepted"][r] == ok
-        np.testing.assert_allclose(rec["prune_e"][r], e, rtol=RTOL)
-        np.testing.assert_allclose(rec["prune_e_shifted"][r], e_new, rtol=RTOL)
+        assert rec.attempted[r]
+        assert rec.gene[r] == gene
+        assert rec.accepted[r] == ok
+        np.testing.assert_allclose(rec.e[r], e, rtol=RTOL)
+        np.testing.assert_allclose(rec.e_shifted[r], e_new, rtol=RTOL)
         if pruner == "covariance":
-            assert rec["prune_axis"][r] == axis[gene]
-            np.testing.assert_allclose(rec["prune_factor"][r], factor[gene], rtol=RTOL)
+            assert rec.axis[r] == axis[gene]
+            np.testing.assert_allclose(rec.factor[r], factor[gene], rtol=RTOL)
         else:
-            assert rec["prune_axis"][r] == -1 and np.isnan(rec["prune_factor"][r])
+            assert rec.axis[r] == -1 and np.isnan(rec.factor[r])
         assert new.evals[r] == st.evals[r] + 1 + k
         assert new.prune_attempts[r] == 1 and new.down_run[r] == 0
         if ok:
@@ -355,15 +359,15 @@ def test_pruning_attempt_matches_host_recomputation(pruner, k):
             assert got.n == keep.sum() and new.params.n[r] == keep.sum()
             np.testing.assert_allclose(got.mean, np.where(keep, trial, 0), rtol=1e-6, atol=1e-7)
             np.testing.assert_array_equal(got.best_x, got.mean)
-            assert got.best_cost == np.float32(rec["prune_e_shifted"][r])
+            assert got.best_cost == np.float32(rec.e_shifted[r])
             want_C = np.asarray(_condition_jit(old.C, keep, removed))
             np.testing.assert_allclose(got.C, want_C, rtol=0, atol=RTOL * np.abs(old.C).max())
-            assert rec["prune_cond_after"][r] == got.cond != rec["prune_cond_before"][r]
+            assert rec.cond_after[r] == got.cond != rec.cond_before[r]
             assert new.prune_accepted[r] == 1
         else:
             for name in ("mean", "C", "B", "D", "mask", "best_x", "best_cost", "sigma"):
                 np.testing.assert_array_equal(getattr(got, name), getattr(old, name), name)
-            assert rec["prune_cond_after"][r] == rec["prune_cond_before"][r]
+            assert rec.cond_after[r] == rec.cond_before[r]
             assert new.prune_accepted[r] == 0
         outcomes.append(ok)
     # The tiny copy goes under every pruner (moved along the flat axis by covariance and obs);
@@ -726,4 +730,4 @@ def test_accept_tolerance_and_batch():
 
 
 def test_attempt_records_without_pruner_are_empty():
-    assert attempt_records({"sigma": np.zeros((3, 1))}, [NO_EFFECT], "none") == []
+    assert attempt_records(None, [NO_EFFECT], "none") == []

@@ -12,7 +12,7 @@ pytestmark = pytest.mark.slow
 def test_reproduce_short_servo(tmp_path):
     out = tmp_path / "rep"
     cmd = [
-        sys.executable, "-m", "eant2_jax.cli", "reproduce", "--runs", "2", "--generations", "2",
+        sys.executable, "-m", "eant2_jax.app.cli", "reproduce", "--runs", "2", "--generations", "2",
         "--population", "3", "--max-iters", "30", "--condition-iters", "60",
         "--task-option", "n_starts=16", "--out", str(out),
     ]  # fmt: skip

@@ -47,15 +47,12 @@ The cost is deterministic: the PRNG key of :meth:`Servo.cost` is unused.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 from collections.abc import Callable
-from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 from flax import struct
 from mujoco import mjx
@@ -85,157 +82,41 @@ __all__ = [
     "stripped_model",
 ]
 
-ARM_XML = Path(__file__).with_name("arm.xml")
-
-# ----------------------------------------------------------------------------- constants
-FOCAL_PX = 500.0  # focal length, pixels (both axes)
-IMAGE_SIZE = (640, 480)  # width, height, pixels
-PRINCIPAL_POINT = (320.0, 240.0)  # pixels
-NORM_PX = 320.0  # pixels per normalised image unit: half the image width
-HALF_EXTENT = (IMAGE_SIZE[0] / 2 / NORM_PX, IMAGE_SIZE[1] / 2 / NORM_PX)  # (1.0, 0.75)
-N_MARKERS = 5
-START_HALF_WIDTH = (0.2, 0.3, 0.4)  # rad, half-widths of the uniform start box around q*
-MAX_STEP_FRACTION = 0.1  # largest joint increment of one move, as a fraction of the range
-OUTSIDE_PENALTY = 0.1  # added per marker outside the image after the move
-LIMIT_PENALTY = 0.1  # added per joint whose command reached or passed its range
-SUBSTEPS = 60  # mjx.step calls per move in dynamic mode (x 5 ms = 0.3 s)
-SEED = 2009  # start poses: np.random.default_rng([SEED, 0]) training, [SEED, 1] held out
-MODES = ("kinematic", "dynamic")
-# Gains tried by Servo.baselines() for image-based visual servoing (the best one is reported).
-IBVS_GAINS = tuple(round(0.4 + 0.05 * i, 2) for i in range(25))  # 0.40, 0.45, ..., 1.60
-
-_CAMERA_SITE = "camera"
-_CAMERA_BODY = "wrist"  # the body the camera is fixed to (for the arm Jacobian)
-_MARKER_SITES = tuple(f"marker{k}" for k in range(N_MARKERS))
-# Optical frame (x right, y down, z forward) from MuJoCo's camera frame (x right, y up,
-# looking along -z).
-_OPTICAL = np.diag([1.0, -1.0, -1.0])
-
-
-# ----------------------------------------------------------------------------- projection
-def project(cam_pos, cam_mat, points):
-    """Normalised image coordinates of world points seen by the pinhole camera.
-
-    Works on NumPy (float64, host) and JAX arrays alike; written for ONE camera.
-
-    Args:
-      cam_pos: ``[3]`` optical centre in the world frame.
-      cam_mat: ``[3, 3]`` camera frame in the world frame (columns: MuJoCo camera axes x
-        right, y up, -z viewing direction; ``site_xmat`` reshaped).
-      points: ``[K, 3]`` world points (in front of the camera).
-
-    Returns:
-      ``[K, 2]``: ``((u - 320) / 320, (v - 240) / 320)`` with ``u = 320 + 500 X / Z`` and
-      ``v = 240 + 500 Y / Z`` in the optical frame (X right, Y down, Z forward).
-    """
-    xp = np if isinstance(points, np.ndarray) else jnp
-    rel = points - cam_pos[None, :]
-    # Camera-frame coordinates: rel @ cam_mat, written as a sum of products so that no
-    # matrix unit (TF32 on GPUs) is involved.
-    pc = (rel[:, :, None] * cam_mat[None, :, :]).sum(axis=1)
-    x, y, z = pc[:, 0], -pc[:, 1], -pc[:, 2]
-    scale = FOCAL_PX / NORM_PX
-    return xp.stack([scale * x / z, scale * y / z], axis=-1)
+# The scene (camera, arm, start poses, models) lives in its own module; its public names are
+# part of this module's API too.
+from .servo_scene import (  # noqa: F401
+    _CAMERA_BODY,
+    _CAMERA_SITE,
+    _MARKER_SITES,
+    _OPTICAL,
+    ARM_XML,
+    FOCAL_PX,
+    HALF_EXTENT,
+    IBVS_GAINS,
+    IMAGE_SIZE,
+    LIMIT_PENALTY,
+    MAX_STEP_FRACTION,
+    MODES,
+    N_MARKERS,
+    NORM_PX,
+    OUTSIDE_PENALTY,
+    PRINCIPAL_POINT,
+    SEED,
+    START_HALF_WIDTH,
+    SUBSTEPS,
+    _Arm,
+    _arm,
+    _features_host,
+    _mjx_model,
+    _mjx_numerics,
+    _outside,
+    _start_poses,
+    project,
+    start_poses,
+    stripped_model,
+)
 
 
-def _outside(s):
-    """``bool[K]`` markers outside the image, from ``[K, 2]`` normalised coordinates."""
-    return (abs(s[:, 0]) >= HALF_EXTENT[0]) | (abs(s[:, 1]) >= HALF_EXTENT[1])
-
-
-@contextlib.contextmanager
-def _mjx_numerics():
-    """The numerics MJX code runs under here.
-
-    MJX relies on implicit rank promotion internally, which this project's tests turn into an
-    error for its own code (tests/conftest.py); and its small float32 products must not use
-    TF32 on GPUs (1e-3 relative error), so that GPU and CPU runs score alike.
-    """
-    with jax.numpy_rank_promotion("allow"), jax.default_matmul_precision("highest"):
-        yield
-
-
-# ------------------------------------------------------------------------ the arm (host)
-class _Arm(NamedTuple):
-    """Host-side facts read once from ``arm.xml`` (float64)."""
-
-    mj: mujoco.MjModel
-    camera_site: int
-    marker_sites: tuple[int, ...]
-    q_goal: np.ndarray  # [3]
-    q_lo: np.ndarray  # [3]
-    q_hi: np.ndarray  # [3]
-    markers: np.ndarray  # [5, 3] world positions
-    goal: np.ndarray  # [5, 2] normalised image coordinates at the goal pose
-
-
-@functools.cache
-def _arm() -> _Arm:
-    mj = mujoco.MjModel.from_xml_path(str(ARM_XML))
-    site = functools.partial(mujoco.mj_name2id, mj, mujoco.mjtObj.mjOBJ_SITE)
-    cam = site(_CAMERA_SITE)
-    markers = tuple(site(n) for n in _MARKER_SITES)
-    q_goal = np.array(mj.key("goal").qpos, dtype=np.float64)
-    d = mujoco.MjData(mj)
-    d.qpos[:] = q_goal
-    mujoco.mj_kinematics(mj, d)
-    points = np.array(d.site_xpos[list(markers)])
-    goal = project(d.site_xpos[cam].copy(), d.site_xmat[cam].reshape(3, 3).copy(), points)
-    return _Arm(
-        mj=mj,
-        camera_site=cam,
-        marker_sites=markers,
-        q_goal=q_goal,
-        q_lo=np.array(mj.jnt_range[:, 0]),
-        q_hi=np.array(mj.jnt_range[:, 1]),
-        markers=points,
-        goal=goal,
-    )
-
-
-def _features_host(arm: _Arm, d: mujoco.MjData, q: np.ndarray) -> np.ndarray:
-    """``[5, 2]`` normalised marker coordinates at joint angles ``q`` (MuJoCo C, float64)."""
-    d.qpos[:] = q
-    mujoco.mj_kinematics(arm.mj, d)
-    c = arm.camera_site
-    return project(d.site_xpos[c].copy(), d.site_xmat[c].reshape(3, 3).copy(), arm.markers)
-
-
-@functools.cache
-def _start_poses(n: int, held_out: bool) -> tuple[np.ndarray, np.ndarray]:
-    arm = _arm()
-    rng = np.random.default_rng([SEED, int(held_out)])
-    d = mujoco.MjData(arm.mj)
-    half = np.asarray(START_HALF_WIDTH)
-    qs, ss = [], []
-    while len(qs) < n:
-        q = arm.q_goal + rng.uniform(-half, half)
-        s = _features_host(arm, d, q)
-        if not np.any(_outside(s)):
-            qs.append(q)
-            ss.append(s)
-    q = np.stack(qs)
-    s = np.stack(ss)
-    q.flags.writeable = False
-    s.flags.writeable = False
-    return q, s
-
-
-def start_poses(n_starts: int = 1023, *, held_out: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """The task's start poses and their marker images (host side, float64, read-only).
-
-    Draws ``q = q* + U(-START_HALF_WIDTH, START_HALF_WIDTH)`` from
-    ``np.random.default_rng([SEED, 0])`` (``[SEED, 1]`` if ``held_out``) and keeps the first
-    ``n_starts`` poses at which every marker lies inside the image. A smaller ``n_starts``
-    gives a prefix of a larger one.
-
-    Returns:
-      ``(q [n_starts, 3] rad, s [n_starts, 5, 2] normalised image coordinates)``.
-    """
-    return _start_poses(int(n_starts), bool(held_out))
-
-
-# ------------------------------------------------------------------------------ the task
 @struct.dataclass
 class Servo:
     """The visual servoing task (see the module docstring for every constant).
@@ -522,43 +403,6 @@ def ibvs_start_costs(task: Servo, gains: jax.Array) -> jax.Array:
 
 
 # ------------------------------------------------------------------------------ factory
-def stripped_model() -> mujoco.MjModel:
-    """``arm.xml`` with only what the task simulates: the arm's bodies, joints, servos and
-    camera site.
-
-    Removed: every geom (all visual only and massless: the links' masses and inertias are
-    given explicitly), the fixed object with its marker sites (the markers' world positions are
-    task data), the MuJoCo camera and the light. Kinematics and dynamics are unchanged
-    (tests/test_servo.py compares both with the full model); MJX has fewer bodies and sites to
-    carry through every kinematics call.
-
-    The joint limit *constraints* are switched off (``mjDSBL_LIMIT``): the servo targets are
-    clamped to the joint ranges and the servos are critically damped, so the limits are never
-    passed by more than about 1 mrad (tested), and without constraints a step has no constraint
-    rows and no solver to run.
-    """
-    spec = mujoco.MjSpec.from_file(str(ARM_XML))
-    for geom in list(spec.geoms):
-        spec.delete(geom)
-    for site in list(spec.sites):
-        if site.name != _CAMERA_SITE:
-            spec.delete(site)
-    for element in [*spec.cameras, *spec.lights, spec.body("object")]:
-        spec.delete(element)
-    mj = spec.compile()
-    mj.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_LIMIT
-    return mj
-
-
-@functools.cache
-def _mjx_model() -> tuple[mjx.Model, int, int]:
-    """The task's MJX model, its camera site id and the id of the body carrying the camera."""
-    mj = stripped_model()
-    site = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SITE, _CAMERA_SITE)
-    body = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_BODY, _CAMERA_BODY)
-    return mjx.put_model(mj), site, body
-
-
 def servo(
     *,
     mode: str = "kinematic",

@@ -1,0 +1,266 @@
+"""The configuration types: what a run is asked to do, as frozen values.
+
+* :class:`ExploitConfig` — the exploitation engine's (CMA-ES and pruning). A
+  ``flax.struct`` pytree passed INTO the compiled program: fields that shape the program are
+  static (part of the pytree's structure), every number is a traced leaf, so changing a
+  number never compiles again and no hand-kept list says which is which.
+* :class:`EANT2Config` — the EANT2 loop's (host side only), holding an ``ExploitConfig``.
+
+Both validate on construction and name the field and the reason in one line.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+
+import numpy as np
+from flax import struct
+
+from .exploration import OPERATORS
+from .kernels.pruning import PRUNERS
+
+__all__ = ["EANT2Config", "ExploitConfig"]
+
+
+def _static(default):
+    """A field that shapes the compiled program: part of the pytree's structure (a new value
+    compiles a new program)."""
+    return struct.field(pytree_node=False, default=default)
+
+
+_INTS = ("max_iters", "patience", "prune_window")
+
+
+@struct.dataclass
+class ExploitConfig:
+    """Hyper-parameters of the exploitation engine: a frozen pytree passed into the program.
+
+    The type says what is static and what is traced. Fields marked *static* shape the
+    compiled program (array sizes, branches) and are part of the pytree's structure: a new
+    value compiles a new program. Every other field is a pytree leaf, a plain number traced
+    into the program: changing it never compiles again. (``smoothing``'s None selects the
+    per-structure rule, another branch of the start-up program; any number after that is
+    traced.)
+
+    Attributes:
+      popsize: *static*. Candidates per CMA-ES iteration, shared by the batch; None takes
+        :func:`default_popsize` of the batch's padded gene count (the handover's one rule,
+        :func:`eant2_jax.tuning.popsize_for`).
+      sigma0: initial step size.
+      max_iters: iteration budget per structure.
+      chunk: *static*. Iterations per compiled call (the host checks for early exit between
+        chunks).
+      sigma_tol: stop when ``sigma * max(D) < sigma_tol`` (the search has collapsed).
+      patience: stop after this many iterations without improving the best cost.
+      improve_rtol, improve_atol: an improvement must beat the best cost by
+        ``improve_rtol * |best| + improve_atol`` (the absolute part ends runs whose cost
+        approaches an exact 0).
+      max_condition: bound on cond(C); eigenvalues are clipped to keep it, and the history
+        reports each iteration where the bound bit.
+      smoothing: g of sigma_bar (eq. 5); None uses :func:`smoothing_for` of each structure.
+      target_cost: stop a structure once its best cost is at or below this (pycma's
+        ``ftarget``); None never stops for it (held as ``-inf``, which no cost is below).
+      pruner: *static*. ``covariance`` (the paper's), ``magnitude``, ``obd``, ``obs`` or
+        ``none``.
+      prune_window: W, a pruning attempt starts when sigma_bar has decreased for at least W
+        iterations and then increases (paper IV.B.1).
+      prune_tolerance: accept a removal iff the cost rises by less than this fraction
+        (0.001: the paper's ``e~ < 1.001 e``).
+      prune_candidates: *static*. k, the best k candidates are evaluated in one batch and the
+        lowest shifted cost that passes is accepted (1 = the paper).
+    """
+
+    popsize: int | None = _static(None)
+    sigma0: float = 0.5
+    max_iters: int = 1000
+    chunk: int = _static(50)
+    sigma_tol: float = 1e-8
+    patience: int = 300
+    improve_rtol: float = 1e-7
+    improve_atol: float = 1e-12
+    max_condition: float = 1e14
+    smoothing: float | None = None
+    target_cost: float | None = None
+    pruner: str = _static("none")
+    prune_window: int = 250
+    prune_tolerance: float = 1e-3
+    prune_candidates: int = _static(1)
+
+    def __post_init__(self):
+        # JAX rebuilds this pytree with tracers (or other placeholders) as leaves when it
+        # traces or maps over it; only a config built from plain numbers is normalised and
+        # validated.
+        leaves = [getattr(self, f.name) for f in dataclasses.fields(self)]
+        if not all(v is None or isinstance(v, (int, float, str, np.number)) for v in leaves):
+            return
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.metadata.get("pytree_node", True) and v is not None:
+                # One Python type per field, so that every config traces to the same program
+                # (a NumPy or int scalar would be a differently typed argument).
+                if isinstance(v, bool) or not isinstance(v, (int, float, np.number)):
+                    raise ValueError(f"ExploitConfig.{f.name} must be a number, got {v!r}")
+                if f.name in _INTS:
+                    if float(v) != int(v):
+                        raise ValueError(f"ExploitConfig.{f.name} must be an integer, got {v!r}")
+                    v = int(v)
+                else:
+                    v = float(v)
+                object.__setattr__(self, f.name, v)
+        if self.target_cost is None:
+            object.__setattr__(self, "target_cost", -math.inf)
+        checks = [
+            ("popsize", self.popsize is None or self.popsize >= 2, ">= 2 (or None)"),
+            ("sigma0", self.sigma0 > 0 and math.isfinite(self.sigma0), "> 0 and finite"),
+            ("max_iters", self.max_iters >= 1, ">= 1"),
+            ("chunk", self.chunk >= 1, ">= 1"),
+            ("sigma_tol", self.sigma_tol >= 0, ">= 0"),
+            ("patience", self.patience >= 1, ">= 1"),
+            ("improve_rtol", self.improve_rtol >= 0, ">= 0"),
+            ("improve_atol", self.improve_atol >= 0, ">= 0"),
+            ("max_condition", self.max_condition > 1, "> 1"),
+            ("smoothing", self.smoothing is None or 0 < self.smoothing <= 1, "in (0, 1]"),
+            (
+                "target_cost",
+                self.target_cost == -math.inf or math.isfinite(self.target_cost),
+                "finite (or None)",
+            ),
+            ("pruner", self.pruner in PRUNERS, f"one of {', '.join(PRUNERS)}"),
+            ("prune_window", self.prune_window >= 1, ">= 1"),
+            ("prune_tolerance", self.prune_tolerance >= 0, ">= 0"),
+            ("prune_candidates", self.prune_candidates >= 1, ">= 1"),
+        ]
+        for name, ok, want in checks:
+            if not ok:
+                raise ValueError(
+                    f"ExploitConfig.{name} must be {want}, got {getattr(self, name)!r}"
+                )
+
+    def to_dict(self) -> dict:
+        """JSON-ready fields (a target of ``-inf`` is written as None, its meaning)."""
+        d = dataclasses.asdict(self)
+        if d["target_cost"] == -math.inf:
+            d["target_cost"] = None
+        return d
+
+    @classmethod
+    def from_options(cls, options: dict) -> ExploitConfig:
+        """``ExploitConfig(**options)``, with a ValueError naming any unknown option."""
+        known = [f.name for f in dataclasses.fields(cls)]
+        unknown = [name for name in options if name not in known]
+        if unknown:
+            hints = []
+            for name in unknown:
+                close = difflib.get_close_matches(name, known, n=1)
+                hints.append(f"{name!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+            raise ValueError(
+                f"unknown option {', '.join(hints)}; the options are the fields of "
+                f"ExploitConfig: {', '.join(known)}"
+            )
+        return cls(**options)
+
+
+
+@dataclasses.dataclass(frozen=True)
+class EANT2Config:
+    """Configuration of an EANT2 run (JSON round-trips through ``to_dict``/``from_dict``).
+
+    Attributes:
+      population: number of individuals kept by selection.
+      offspring: new structures made per generation (None: ``population``).
+      init_connectivity: probability that an initial output neuron reads each input.
+      init_weight_scale: std of the initial weights.
+      input_fraction: probability that a new hidden neuron reads each input (paper: ~50%).
+      new_weight_scale: std of a new hidden neuron's inner weights.
+      operator_weights: relative frequency of each operator in ``exploration.OPERATORS``.
+      reexploit: also run CMA-ES again on surviving parents each generation, continuing from
+        their tuned weights (default False: a parent was already tuned to convergence when it
+        was new; its structure has not changed since).
+      similar_limit: at most this many similar structures survive (paper: 2).
+      prefer_smaller: of two costs within ``size_tolerance`` the smaller network ranks first.
+      size_tolerance, size_atol: relative and absolute cost tolerance of that rule.
+      exploit: the CMA-ES / pruning configuration (its ``pruner`` turns pruning on).
+      target_cost: stop the run once the best cost is at or below this (None: run all
+        generations). A stopped run's directory holds fewer generations than asked.
+      devices: where exploitation runs: None (the default device), ``"all"`` or a count N —
+        the structures are split over a 1-D mesh of those devices (every process's, in a
+        multi-process run). Placement only: the results are identical.
+    """
+
+    population: int = 20
+    offspring: int | None = None
+    init_connectivity: float = 1.0
+    init_weight_scale: float = 0.1
+    input_fraction: float = 0.5
+    new_weight_scale: float = 0.5
+    operator_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)
+    reexploit: bool = False
+    similar_limit: int = 2
+    prefer_smaller: bool = True
+    size_tolerance: float = 1e-3
+    size_atol: float = 1e-9
+    target_cost: float | None = None
+    devices: int | str | None = None
+    exploit: ExploitConfig = dataclasses.field(
+        default_factory=lambda: ExploitConfig(pruner="covariance")
+    )
+
+    def __post_init__(self):
+        w = tuple(float(x) for x in self.operator_weights)
+        object.__setattr__(self, "operator_weights", w)
+        checks = [
+            ("population", self.population >= 1, ">= 1"),
+            ("offspring", self.offspring is None or self.offspring >= 1, ">= 1 (or None)"),
+            ("init_connectivity", 0 < self.init_connectivity <= 1, "in (0, 1]"),
+            ("init_weight_scale", self.init_weight_scale >= 0, ">= 0"),
+            ("input_fraction", 0 < self.input_fraction <= 1, "in (0, 1]"),
+            ("new_weight_scale", self.new_weight_scale >= 0, ">= 0"),
+            (
+                "operator_weights",
+                len(w) == len(OPERATORS) and min(w) >= 0 and sum(w) > 0,
+                f"{len(OPERATORS)} non-negative numbers, not all 0 (order: {', '.join(OPERATORS)})",
+            ),
+            ("similar_limit", self.similar_limit >= 1, ">= 1"),
+            ("size_tolerance", self.size_tolerance >= 0, ">= 0"),
+            ("size_atol", self.size_atol >= 0, ">= 0"),
+            (
+                "devices",
+                self.devices is None
+                or self.devices == "all"
+                or (isinstance(self.devices, int) and self.devices >= 1),
+                "None, 'all' or a count >= 1",
+            ),
+        ]
+        for name, ok, want in checks:
+            if not ok:
+                raise ValueError(f"EANT2Config.{name} must be {want}, got {getattr(self, name)!r}")
+        if not isinstance(self.exploit, ExploitConfig):
+            raise ValueError("EANT2Config.exploit must be an ExploitConfig")
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["operator_weights"] = list(self.operator_weights)
+        d["exploit"] = self.exploit.to_dict()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> EANT2Config:
+        """Inverse of :meth:`to_dict`; unknown keys are a ValueError naming them."""
+        d = dict(d)
+        exploit = d.pop("exploit", {})
+        _check_keys(cls, d, "EANT2Config")
+        _check_keys(ExploitConfig, exploit, "ExploitConfig")
+        if "operator_weights" in d:
+            d["operator_weights"] = tuple(d["operator_weights"])
+        return cls(**d, exploit=ExploitConfig(**exploit))
+
+
+def _check_keys(cls, d: dict, name: str) -> None:
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(d) - known)
+    if unknown:
+        raise ValueError(
+            f"unknown {name} option(s): {', '.join(unknown)}; known: {', '.join(sorted(known))}"
+        )

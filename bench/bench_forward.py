@@ -323,11 +323,4 @@ SUITE = harness.Suite(
     warmup=2,
 )
 
-
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """Command-line entry point; returns the payload it wrote."""
-    return harness.main(SUITE, argv)
-
-
-if __name__ == "__main__":
-    main()
+main = SUITE.main

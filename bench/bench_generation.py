@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
-from collections.abc import Sequence
 from typing import Any
 
 import jax
@@ -250,11 +249,4 @@ SUITE = harness.Suite(
     repeats=9,
 )
 
-
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """Command-line entry point; returns the payload it wrote."""
-    return harness.main(SUITE, argv)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    main()
+main = SUITE.main

@@ -34,7 +34,7 @@ import argparse
 import configparser
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -525,11 +525,4 @@ SUITE = harness.Suite(
     prepare=_prepare,
 )
 
-
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """Command-line entry point; returns the payload it wrote."""
-    return harness.main(SUITE, argv)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    main()
+main = SUITE.main

@@ -269,11 +269,4 @@ SUITE = harness.Suite(
     prepare=_prepare,
 )
 
-
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """Command-line entry point; returns the payload it wrote."""
-    return harness.main(SUITE, argv)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    main()
+main = SUITE.main

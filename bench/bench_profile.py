@@ -417,7 +417,3 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         print(json.dumps(row))
         return row
     return harness.execute(SUITE, args)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    main()

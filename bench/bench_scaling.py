@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Sequence
 from typing import Any
 
 import jax
@@ -103,11 +102,4 @@ SUITE = harness.Suite(
     repeats=3,
 )
 
-
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """Command-line entry point; returns the payload it wrote."""
-    return harness.main(SUITE, argv)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    main()
+main = SUITE.main

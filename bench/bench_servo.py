@@ -44,7 +44,7 @@ import json
 import statistics
 import time
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -584,11 +584,4 @@ SUITE = harness.Suite(
     render=render,
 )
 
-
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """Command-line entry point; returns the payload it wrote."""
-    return harness.main(SUITE, argv)
-
-
-if __name__ == "__main__":
-    main()
+main = SUITE.main

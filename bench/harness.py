@@ -18,8 +18,7 @@ Usage, in a suite module::
     SUITE = harness.Suite(name="forward", title="Forward throughput", description=__doc__,
                           options=_options, run=run, render=render, repeats=7, min_repeats=5)
 
-    def main(argv=None):
-        return harness.main(SUITE, argv)
+    main = SUITE.main  # python -m bench forward [options]
 """
 
 from __future__ import annotations
@@ -84,6 +83,10 @@ class Suite:
     repeats: int | None = None
     min_repeats: int = 1
     warmup: int | None = None
+
+    def main(self, argv: Sequence[str] | None = None) -> Payload:
+        """The suite's command line, ``python -m bench NAME [options]``; the payload."""
+        return main(self, argv)
 
 
 def log(msg: str) -> None:

@@ -317,16 +317,7 @@ def run(args: argparse.Namespace, save_payload: harness.Save) -> dict[str, Any]:
     for n in kin_nets:
         moves = n * n_starts
         nets, info = networks("minimal", n)
-        row(
-            "task",
-            cost,
-            (kin, nets),
-            moves,
-            mode="kinematic",
-            net="minimal",
-            n_nets=n,
-            **info,
-        )
+        row("task", cost, (kin, nets), moves, mode="kinematic", net="minimal", n_nets=n, **info)
         row("task_flat", flat, (kin, nets), moves, mode="kinematic", net="minimal", n_nets=n)
         q = random_q(kin, moves)
         row("bare_mjx_kinematics", bare, (kin, q), moves)
@@ -341,15 +332,7 @@ def run(args: argparse.Namespace, save_payload: harness.Save) -> dict[str, Any]:
         steps = moves * sv.SUBSTEPS
         nets, info = networks("minimal", n)
         row(
-            "task",
-            cost,
-            (dyn, nets),
-            moves,
-            steps,
-            mode="dynamic",
-            net="minimal",
-            n_nets=n,
-            **info,
+            "task", cost, (dyn, nets), moves, steps, mode="dynamic", net="minimal", n_nets=n, **info
         )
         if n in (128, dyn_nets[-1]):
             row(
@@ -371,14 +354,7 @@ def run(args: argparse.Namespace, save_payload: harness.Save) -> dict[str, Any]:
     for n in paper_nets:
         nets, info = networks("paper", n)
         row(
-            "task",
-            cost,
-            (kin, nets),
-            n * n_starts,
-            mode="kinematic",
-            net="paper",
-            n_nets=n,
-            **info,
+            "task", cost, (kin, nets), n * n_starts, mode="kinematic", net="paper", n_nets=n, **info
         )
         del nets
 

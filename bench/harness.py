@@ -50,7 +50,7 @@ __all__ = [
 HARNESS_OPTIONS = ("out", "force", "render")
 
 Payload = dict[str, Any]
-Save = Callable[[Payload], None]
+Save = Callable[[Payload], object]
 
 
 @dataclasses.dataclass(frozen=True)

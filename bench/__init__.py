@@ -1,4 +1,6 @@
-"""Benchmarks of eant2_jax. Run each as a module from the repository root, e.g.
-``python -m bench.bench_forward --help``; results go to ``bench/results/`` as JSON plus a
-markdown table. Shared helpers (device tagging, timing, output) live in :mod:`bench.common`.
+"""Benchmarks of eant2_jax: ``python -m bench SUITE [options]`` from the repository root.
+
+Every suite runs under one harness (:mod:`bench.harness`: common options, the JSON and
+markdown result files in ``bench/results/``, the no-overwrite rule); shared measuring helpers
+(device tagging, timing, random genomes, tables) live in :mod:`bench.common`.
 """

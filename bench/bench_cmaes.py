@@ -24,12 +24,9 @@ untimed ones, each waiting for the device (``block_until_ready``).
 
 Run from the repository root::
 
-    python -m bench.bench_cmaes                       # S = 1, 8, 32, 128 (sized for a GPU)
-    python -m bench.bench_cmaes --structures 1 8 32   # a smaller sweep
-    python -m bench.bench_cmaes --quick --out /tmp/c.json
-
-Writes JSON to ``--out`` (default ``bench/results/cmaes-<platform>.json``) and the markdown
-table next to it (``.md``), and prints the table. Progress goes to stderr.
+    python -m bench cmaes                       # S = 1, 8, 32, 128 (sized for a GPU)
+    python -m bench cmaes --structures 1 8 32   # a smaller sweep
+    python -m bench cmaes --quick --out /tmp/c.json
 """
 
 from __future__ import annotations
@@ -37,7 +34,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import sys
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -46,7 +42,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bench.common import Column, environment, markdown_table, run_and_write, time_call
+from bench import harness
+from bench.common import BenchInputError, Column, environment, markdown_table, time_call
 from eant2_jax.kernels import cmaes
 
 BUCKETS = (32, 64, 128, 256)
@@ -224,16 +221,7 @@ COLUMNS = [
 ]
 
 
-def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(
-        prog="python -m bench.bench_cmaes",
-        description="CMA-ES iterations/s for S structures: batched masked engine vs evosax "
-        "and pycma loops.",
-    )
-    ap.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
-    ap.add_argument(
-        "--out", default=None, help="JSON path (default bench/results/cmaes-<platform>.json)"
-    )
+def _options(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--structures", type=int, nargs="+", default=None, help="values of S")
     ap.add_argument(
         "--dims", type=int, nargs="+", default=None, help="dimension grid the S structures use"
@@ -249,12 +237,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         choices=["batched", "buckets", "scan", "evosax", "pycma"],
         help="engines to run (default all)",
     )
-    ap.add_argument("--warmup", type=int, default=2)
-    ap.add_argument("--repeats", type=int, default=7, help="timed iterations per case (>= 3)")
     ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args(argv)
-    if args.repeats < 3:
-        ap.error("--repeats must be at least 3")
+
+
+def _prepare(args: argparse.Namespace) -> None:
     if args.quick:
         # Each batched engine is one XLA compilation (~2 s on a CPU), each distinct dimension
         # one evosax compilation: the smoke run keeps one of each.
@@ -271,11 +257,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         args.pad = args.pad or 256
         args.engines = args.engines or ["batched", "buckets", "scan", "evosax", "pycma"]
     if max(args.dims) > args.pad:
-        ap.error(f"--pad {args.pad} is smaller than the largest dimension {max(args.dims)}")
+        raise BenchInputError(
+            f"--pad {args.pad} is smaller than the largest dimension {max(args.dims)}"
+        )
     args.popsize = args.popsize or 4 + int(math.floor(3 * math.log(max(args.dims))))
     if args.chunk <= 0:
         args.engines = [e for e in args.engines if e != "scan"]
-    return args
 
 
 def _cases(args: argparse.Namespace, dims: list[int]) -> list[tuple[str, str, Callable]]:
@@ -355,15 +342,8 @@ def _add_speedups(rows: list[dict]) -> None:
             )
 
 
-def run(
-    args: argparse.Namespace, on_row: Callable[[dict[str, Any]], None] | None = None
-) -> dict[str, Any]:
-    """Run the sweep described by parsed arguments; return the JSON payload.
-
-    Args:
-      args: from :func:`parse_args`.
-      on_row: called with the payload so far after each case (to save partial results).
-    """
+def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
+    """Run the sweep described by parsed arguments; return the JSON payload."""
     env = environment() | {"loadavg_1m_start": _load()}
     rows: list[dict] = []
     t_start = time.perf_counter()
@@ -395,36 +375,37 @@ def run(
             }
             rows.append(row)
             _add_speedups(rows)
-            print(
+            harness.log(
                 f"[cmaes] {engine} S={s_count} dims {min(dims)}-{max(dims)}: "
-                f"compile {row['compile_s']:.2f}s, {per_iter * 1e3:.3g} ms/iteration",
-                file=sys.stderr,
-                flush=True,
+                f"compile {row['compile_s']:.2f}s, {per_iter * 1e3:.3g} ms/iteration"
             )
-            if on_row is not None:
-                on_row(_payload(args, env, rows, time.perf_counter() - t_start))
+            save(_payload(args, env, rows, time.perf_counter() - t_start))
     _add_speedups(rows)
     return _payload(args, env, rows, time.perf_counter() - t_start)
 
 
 def render(payload: dict[str, Any]) -> str:
-    """The markdown report: a header naming the device and the problem, then the table."""
-    cfg = payload["config"]
+    """The problem and the host's load, then the table."""
+    cfg, host = payload["config"], payload["host"]
     head = (
-        f"CMA-ES throughput on **{payload['device_kind']}** ({payload['platform']}), "
-        f"jax {payload['jax_version']}, {payload['date_utc']}. {cfg['problem']}; "
-        f"popsize {cfg['popsize']}; median of {cfg['repeats']} iterations. Host: "
-        f"{payload['host']['cpu_count']} CPUs, 1-min load average "
-        f"{payload['host']['loadavg_1m_start']} at start, {payload['host']['loadavg_1m_end']} "
-        "at end.\n\n"
+        f"{cfg['problem']}; popsize {cfg['popsize']}; median of {cfg['repeats']} iterations. "
+        f"Host: {host['cpu_count']} CPUs, 1-min load average {host['loadavg_1m_start']} at "
+        f"start, {host['loadavg_1m_end']} at end.\n\n"
     )
     return head + markdown_table(payload["rows"], COLUMNS)
 
 
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """Command-line entry point; returns the payload it wrote."""
-    return run_and_write("cmaes", parse_args(argv), run, render)
+SUITE = harness.Suite(
+    name="cmaes",
+    title="CMA-ES throughput",
+    description=__doc__,
+    options=_options,
+    run=run,
+    render=render,
+    prepare=_prepare,
+    repeats=7,
+    min_repeats=3,
+    warmup=2,
+)
 
-
-if __name__ == "__main__":
-    main()
+main = SUITE.main

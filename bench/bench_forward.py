@@ -22,33 +22,30 @@ gene buckets (same sweeps) to show what over-padding costs.
 
 Run from the repository root::
 
-    python -m bench.bench_forward                      # full sweep (sized for a GPU)
-    python -m bench.bench_forward --pops 32 256        # a CPU-sized sweep
-    python -m bench.bench_forward --quick --out /tmp/f.json
-
-Writes JSON to ``--out`` (default ``bench/results/forward-<platform>.json``) and the markdown
-table next to it (``.md``), and prints the table. Progress goes to stderr.
+    python -m bench forward                      # full sweep (sized for a GPU)
+    python -m bench forward --pops 32 256        # a CPU-sized sweep
+    python -m bench forward --quick --out /tmp/f.json
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
-import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from bench import harness
 from bench.common import (
+    BenchInputError,
     Column,
     environment,
     markdown_table,
     random_population,
-    run_and_write,
     time_call,
 )
 from eant2_jax.compiler import Bucket, bucket_for, bucket_size, compile_genomes
@@ -208,16 +205,7 @@ COLUMNS = [
 ]
 
 
-def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(
-        prog="python -m bench.bench_forward",
-        description="Forward throughput (network-steps/s) of compiled EANT2 networks vs a "
-        "dense MLP baseline.",
-    )
-    ap.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
-    ap.add_argument(
-        "--out", default=None, help="JSON path (default bench/results/forward-<platform>.json)"
-    )
+def _options(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--pops", type=int, nargs="+", default=None, help="population sizes G")
     ap.add_argument("--genes", type=int, nargs="+", default=None, help="genome sizes (genes)")
     ap.add_argument(
@@ -230,12 +218,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         default=None,
         help="genome sizes also run with 2x padding (default: the middle size)",
     )
-    ap.add_argument("--warmup", type=int, default=2)
-    ap.add_argument("--repeats", type=int, default=7, help="timed calls per case (>= 5)")
     ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args(argv)
-    if args.repeats < 5:
-        ap.error("--repeats must be at least 5")
+
+
+def _prepare(args: argparse.Namespace) -> None:
     if args.quick:
         args.pops = args.pops or [4]
         args.genes = args.genes or [30, 60]
@@ -248,7 +234,6 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         args.shapes = {k: v for k, v in args.shapes.items() if k in args.configs}
     if args.pad_genes is None:
         args.pad_genes = [sorted(args.genes)[len(args.genes) // 2]]
-    return args
 
 
 def _payload(args: argparse.Namespace, env: dict, rows: list[dict], total_s: float) -> dict:
@@ -281,15 +266,8 @@ def _payload(args: argparse.Namespace, env: dict, rows: list[dict], total_s: flo
     }
 
 
-def run(
-    args: argparse.Namespace, on_row: Callable[[dict[str, Any]], None] | None = None
-) -> dict[str, Any]:
-    """Run the sweep described by parsed arguments; return the JSON payload.
-
-    Args:
-      args: from :func:`parse_args`.
-      on_row: called with the payload so far after each case (to save partial results).
-    """
+def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
+    """Run the sweep described by parsed arguments; return the JSON payload."""
     env = environment()
     rows: list[dict] = []
     t_start = time.perf_counter()
@@ -302,7 +280,7 @@ def run(
             for g in args.pops:
                 # Keep G on the bucket series so that no padding rows inflate the count.
                 if bucket_size(g) != g:
-                    raise ValueError(f"population size {g} is not on the bucket series")
+                    raise BenchInputError(f"population size {g} is not on the bucket series")
                 pads = ["fit", "2x"] if genes in args.pad_genes else ["fit"]
                 for pad in pads:
                     row = bench_case(
@@ -317,33 +295,32 @@ def run(
                         repeats=args.repeats,
                     )
                     rows.append(row)
-                    print(
+                    harness.log(
                         f"[forward] {config} G={g} genes~{genes} pad={pad} "
                         f"H/P/S={row['bucket_neurons']}/{row['bucket_genes']}/{row['sweeps']}: "
                         f"first {row['first_call_s']:.2f}s, {row['median_s'] * 1e3:.3g} ms, "
                         f"{row['steps_per_s'] / 1e6:.3g} M steps/s "
-                        f"(MLP {row['mlp_steps_per_s'] / 1e6:.3g})",
-                        file=sys.stderr,
-                        flush=True,
+                        f"(MLP {row['mlp_steps_per_s'] / 1e6:.3g})"
                     )
-                    if on_row is not None:
-                        on_row(_payload(args, env, rows, time.perf_counter() - t_start))
+                    save(_payload(args, env, rows, time.perf_counter() - t_start))
     return _payload(args, env, rows, time.perf_counter() - t_start)
 
 
 def render(payload: dict[str, Any]) -> str:
-    """The markdown report: a header naming the device, then the table."""
-    head = (
-        f"Forward throughput on **{payload['device_kind']}** ({payload['platform']}), "
-        f"jax {payload['jax_version']}, {payload['date_utc']}.\n\n"
-    )
-    return head + markdown_table(payload["rows"], COLUMNS)
+    return markdown_table(payload["rows"], COLUMNS)
 
 
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """Command-line entry point; returns the payload it wrote."""
-    return run_and_write("forward", parse_args(argv), run, render)
+SUITE = harness.Suite(
+    name="forward",
+    title="Forward throughput",
+    description=__doc__,
+    options=_options,
+    run=run,
+    render=render,
+    prepare=_prepare,
+    repeats=7,
+    min_repeats=5,
+    warmup=2,
+)
 
-
-if __name__ == "__main__":
-    main()
+main = SUITE.main

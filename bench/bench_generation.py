@@ -11,7 +11,7 @@ Three parts, each optional:
 * ``scaling``: one exploitation batch of random genomes for a fixed number of iterations,
   against the number of structures, the number of moves and the network size.
 
-Run: ``python -m bench generation [--quick] [--out PATH]`` (see ``--help``).
+Run: ``python -m bench generation [--parts generation,pruning,scaling] [--quick]``.
 """
 
 from __future__ import annotations
@@ -19,22 +19,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
-from collections.abc import Sequence
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
-from bench.common import (
-    Column,
-    CompileClock,
-    default_out,
-    environment,
-    markdown_table,
-    random_population,
-    time_call,
-    write_results,
-)
+from bench import harness
+from bench.common import Column, CompileClock, environment, random_population, time_call
 from eant2_jax import exploitation as ex
 from eant2_jax import loop, tasks
 from eant2_jax.compiler import compile_genomes
@@ -184,8 +175,7 @@ def bench_scaling(args) -> list[dict]:
     return rows
 
 
-def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m bench generation", description=__doc__)
+def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--parts", default="generation,pruning,scaling")
     p.add_argument("--population", type=int, default=20)
     p.add_argument("--generations", type=int, default=4)
@@ -195,94 +185,68 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--task", default="servo", help="servo (default) or another registered task")
     p.add_argument("--pruner", default="covariance")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--repeats", type=int, default=9)
     p.add_argument("--scaling-structures", type=int, nargs="+", default=[8, 20, 40, 80])
     p.add_argument("--scaling-moves", type=int, nargs="+", default=[256, 1023, 4092])
     p.add_argument("--scaling-genes", type=int, nargs="+", default=[40, 80, 160])
     p.add_argument("--scaling-iters", type=int, default=50)
-    p.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
-    p.add_argument("--out", default=None)
-    args = p.parse_args(argv)
+
+
+def _prepare(args: argparse.Namespace) -> None:
     if args.quick:
         args.population, args.generations, args.max_iters, args.moves = 3, 1, 20, 16
         args.scaling_structures, args.scaling_moves, args.scaling_genes = [2], [16], [34]
         args.scaling_iters, args.repeats = 5, 2
-    return args
 
 
-def render(payload: dict[str, Any]) -> str:
-    env = payload["environment"]
-    out = [f"Device: {env['device_kind']} ({env['platform']}), jax {env['jax_version']}.\n"]
-    if payload.get("generation"):
-        out.append(f"\n### EANT2 generations on {payload['config']['task']}\n\n")
-        out.append(
-            markdown_table(
-                payload["generation"],
-                [
-                    Column("generation", "gen"),
-                    Column("seconds", "wall s", "{:.2f}"),
-                    Column("exploited", "structures"),
-                    Column("new_evaluations", "evaluations"),
-                    Column("moves_per_s", "moves/s", "{:.3g}"),
-                    Column("compiles", "XLA compiles"),
-                    Column("bucket", "bucket (P, H, sweeps)"),
-                    Column("buckets_so_far", "buckets so far"),
-                    Column("best_cost", "best cost", "{:.4g}"),
-                    Column("best_size", "size"),
-                ],
-            )
-        )
-    if payload.get("pruning"):
-        out.append("\n### Pruning attempt vs one CMA-ES iteration\n\n")
-        out.append(
-            markdown_table(
-                payload["pruning"],
-                [
-                    Column("structures", "S"),
-                    Column("genes", "genes"),
-                    Column("P", "P"),
-                    Column("iteration_ms", "iteration ms", "{:.3g}"),
-                    Column("attempt_ms", "attempt ms", "{:.3g}"),
-                    Column("ratio", "ratio", "{:.2f}"),
-                ],
-            )
-        )
-    if payload.get("scaling"):
-        out.append("\n### Scaling of one exploitation batch\n\n")
-        out.append(
-            markdown_table(
-                payload["scaling"],
-                [
-                    Column("structures", "S"),
-                    Column("moves", "moves"),
-                    Column("genes", "genes"),
-                    Column("P", "P"),
-                    Column("popsize", "popsize"),
-                    Column("first_s", "first call s", "{:.2f}"),
-                    Column("iteration_ms", "ms / iteration", "{:.3g}"),
-                    Column("moves_per_s", "moves/s", "{:.3g}"),
-                ],
-            )
-        )
-    return "".join(out)
-
-
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    args = parse_args(argv)
+def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     clock = CompileClock()
     parts = set(args.parts.split(","))
-    payload: dict[str, Any] = {"environment": environment(), "config": vars(args)}
-    if "generation" in parts:
-        payload["generation"] = bench_generations(args, clock)
-    if "pruning" in parts:
-        payload["pruning"] = bench_pruning(args)
-    if "scaling" in parts:
-        payload["scaling"] = bench_scaling(args)
-    md = render(payload)
-    write_results(args.out or default_out("generation"), payload, md)
-    print(md)
+    payload: dict[str, Any] = {"environment": environment(), "config": harness.settings(args)}
+    for part, bench in (
+        ("generation", lambda: bench_generations(args, clock)),
+        ("pruning", lambda: bench_pruning(args)),
+        ("scaling", lambda: bench_scaling(args)),
+    ):
+        if part in parts:
+            payload[part] = bench()
+            save(payload)
     return payload
 
 
-if __name__ == "__main__":  # pragma: no cover
-    main()
+def render(payload: dict[str, Any]) -> str:
+    return harness.sections(payload, [
+        ("generation", f"EANT2 generations on {payload['config'].get('task', 'servo')}", [
+            Column("generation", "gen"), Column("seconds", "wall s", "{:.2f}"),
+            Column("exploited", "structures"), Column("new_evaluations", "evaluations"),
+            Column("moves_per_s", "moves/s", "{:.3g}"), Column("compiles", "XLA compiles"),
+            Column(lambda r: r.get("bucket") and tuple(r["bucket"]), "bucket (P, H, sweeps)"),
+            Column("buckets_so_far", "buckets so far"),
+            Column("best_cost", "best cost", "{:.4g}"), Column("best_size", "size"),
+        ]),
+        ("pruning", "Pruning attempt vs one CMA-ES iteration", [
+            Column("structures", "S"), Column("genes", "genes"), Column("P", "P"),
+            Column("iteration_ms", "iteration ms", "{:.3g}"),
+            Column("attempt_ms", "attempt ms", "{:.3g}"), Column("ratio", "ratio", "{:.2f}"),
+        ]),
+        ("scaling", "Scaling of one exploitation batch", [
+            Column("structures", "S"), Column("moves", "moves"), Column("genes", "genes"),
+            Column("P", "P"), Column("popsize", "popsize"),
+            Column("first_s", "first call s", "{:.2f}"),
+            Column("iteration_ms", "ms / iteration", "{:.3g}"),
+            Column("moves_per_s", "moves/s", "{:.3g}"),
+        ]),
+    ])  # fmt: skip
+
+
+SUITE = harness.Suite(
+    name="generation",
+    title="EANT2 generations, pruning and scaling",
+    description=__doc__,
+    options=_options,
+    run=run,
+    render=render,
+    prepare=_prepare,
+    repeats=9,
+)
+
+main = SUITE.main

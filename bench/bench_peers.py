@@ -25,7 +25,7 @@ For each method: best cost against evaluations and against wall time (a point ev
 the final best cost within the budget, and the evaluations and wall time at which it first
 reached the final best cost of the fixed-network evosax CMA-ES (the largest ``H`` run).
 
-Run: ``python -m bench peers [--quick] [--budget N] [--methods ...] [--out PATH]``.
+Run: ``python -m bench peers [--quick] [--budget N] [--methods ...]``.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ import argparse
 import configparser
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +42,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bench.common import Column, default_out, environment, markdown_table, write_results
+from bench import harness
+from bench.common import Column, environment, markdown_table
 from eant2_jax import exploitation as ex
 from eant2_jax import loop, tasks
 from eant2_jax.compiler import compile_genomes
@@ -404,12 +405,7 @@ COLUMNS = [
 ]
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="python -m bench peers",
-        description="Peers on the servo task at an equal evaluation budget.",
-    )
-    p.add_argument("--quick", action="store_true", help="tiny smoke run (seconds)")
+def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--budget", type=int, default=20_000, help="evaluations per method")
     p.add_argument("--every", type=int, default=None, help="curve spacing (default budget/50)")
     p.add_argument("--hidden", type=int, nargs="+", default=[0, 5, 10])
@@ -435,16 +431,17 @@ def _parser() -> argparse.ArgumentParser:
         help="JAX's persistent compilation cache (as the eant2 CLI uses); a second run with "
         "the same DIR measures wall times without compilation",
     )
-    p.add_argument("--out", default=None)
-    return p
 
 
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    args = _parser().parse_args(argv)
+def _prepare(args: argparse.Namespace) -> None:
     if args.quick:
         args.budget, args.n_starts, args.hidden = 300, 31, [0, 2]
         args.neat_pop, args.eant2_population, args.eant2_max_iters = 30, 3, 5
         args.eant2_patience, args.eant2_prune_window = 5, 3
+
+
+def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
+    """Every method to the budget, one after another; the payload."""
     if args.compilation_cache:
         jax.config.update("jax_compilation_cache_dir", args.compilation_cache)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
@@ -497,7 +494,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         **environment(),
         "suite": "peers",
         "config": {
-            **{k: v for k, v in vars(args).items() if k != "out"},
+            **harness.settings(args),
             "every": every,
             "eant2": eant2_config.to_dict(),
         },
@@ -506,12 +503,26 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         "target_cost": target,
         "rows": rows,
     }
-    head = (
-        f"Servo (kinematic, {args.n_starts} starts), budget {args.budget} evaluations per "
-        f"method; target = final best of {ref} ({target}); device "
-        f"{payload['device_kind']} ({payload['platform']}).\n\n"
-    )
-    md = head + markdown_table(rows, COLUMNS)
-    out = args.out or default_out("peers")
-    write_results(out, payload, md)
     return payload
+
+
+def render(payload: dict[str, Any]) -> str:
+    cfg = payload["config"]
+    return (
+        f"Servo (kinematic, {cfg['n_starts']} starts), budget {cfg['budget']} evaluations per "
+        f"method; target = final best of {payload['target_method']} ({payload['target_cost']})."
+        "\n\n" + markdown_table(payload["rows"], COLUMNS)
+    )
+
+
+SUITE = harness.Suite(
+    name="peers",
+    title="Peers on the servo task at an equal evaluation budget",
+    description=__doc__,
+    options=_options,
+    run=run,
+    render=render,
+    prepare=_prepare,
+)
+
+main = SUITE.main

@@ -36,14 +36,8 @@ from typing import Any
 
 import jax
 
-from bench.common import (
-    BenchInputError,
-    Column,
-    default_out,
-    environment,
-    markdown_table,
-    write_results,
-)
+from bench import harness
+from bench.common import BenchInputError, Column, environment, markdown_table
 from eant2_jax import exploitation as ex
 from eant2_jax import loop
 from eant2_jax.compiler import networks
@@ -127,12 +121,7 @@ COLUMNS = [
 ]
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="python -m bench pole",
-        description="Evaluations for EANT2 to solve double pole balancing (dpv, dpnv).",
-    )
-    p.add_argument("--quick", action="store_true", help="smoke run: 1 seed, tiny budget")
+def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seeds", type=int, default=20, help="number of seeds")
     p.add_argument("--first-seed", type=int, default=0, help="seeds K, K+1, ...")
     p.add_argument("--tasks", nargs="+", default=["dpv", "dpnv"], choices=["dpv", "dpnv"])
@@ -141,14 +130,23 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--max-iters", type=int, default=50)
     p.add_argument("--patience", type=int, default=10)
     p.add_argument("--prune-window", type=int, default=30)
-    p.add_argument("--out", default=None)
     p.add_argument(
         "--merge",
         nargs="+",
         metavar="JSON",
         help="merge result files of this suite (same settings and device) instead of running",
     )
-    return p
+
+
+def _prepare(args: argparse.Namespace) -> None:
+    if args.merge:
+        if args.out is None:
+            raise BenchInputError("--merge needs --out (the merged file)")
+        if any(Path(args.out).resolve() == Path(m).resolve() for m in args.merge):
+            raise BenchInputError(f"--out {args.out} is one of the merged files")
+    elif args.quick:
+        args.seeds, args.budget, args.tasks = 1, 50, ["dpv"]
+        args.population, args.max_iters, args.patience, args.prune_window = 2, 3, 2, 2
 
 
 # Settings that may differ between the files of one merge.
@@ -199,21 +197,14 @@ def merge(paths: Sequence[str]) -> tuple[dict, dict[str, list[dict]]]:
     return first, runs
 
 
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    args = _parser().parse_args(argv)
+def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
+    """Run the seeds (saving after each), or merge the files of ``--merge``; the payload."""
     if args.merge:
-        if args.out is None:
-            raise BenchInputError("--merge needs --out (the merged file)")
-        if any(Path(args.out).resolve() == Path(m).resolve() for m in args.merge):
-            raise BenchInputError(f"--out {args.out} is one of the merged files")
         first, merged = merge(args.merge)
-        args = argparse.Namespace(**{**first["config"], "out": args.out, "merge": args.merge})
+        args = argparse.Namespace(**{**first["config"], "merge": args.merge})
         args.seeds, args.tasks = sum(len(r) for r in merged.values()), list(merged)
     else:
         merged = None
-    if args.quick and merged is None:
-        args.seeds, args.budget, args.tasks = 1, 50, ["dpv"]
-        args.population, args.max_iters, args.patience, args.prune_window = 2, 3, 2, 2
     config = loop.EANT2Config(
         population=args.population,
         exploit=ex.ExploitConfig(
@@ -229,34 +220,20 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     # A merge keeps the environment (device, versions, date) of the runs it merges.
     env = environment() if merged is None else {k: first[k] for k in environment()}
 
-    def save() -> dict:
-        payload = {
+    def payload() -> dict:
+        return {
             **env,
             "suite": "pole",
-            "config": {
-                **{k: v for k, v in vars(args).items() if k not in ("out", "merge")},
-                "eant2": config.to_dict(),
-            },
+            "config": {**harness.settings(args, "merge"), "eant2": config.to_dict()},
             "published_source": "Gomez, Schmidhuber & Miikkulainen 2008 (JMLR 9), tables 3-4",
             "rows": rows,
             "runs": runs,
         }
-        head = (
-            f"EANT2 (covariance pruning) to solve double pole balancing; seeds per task: "
-            f"{', '.join(f'{k} {len(v)}' for k, v in runs.items())}; budget {args.budget} "
-            f"evaluations (failures charged the budget in the fail = budget column); device "
-            f"{payload['device_kind']} ({payload['platform']}). Published columns: mean "
-            "evaluations, Gomez et al. 2008.\n\n"
-        )
-        write_results(
-            args.out or default_out("pole"), payload, head + markdown_table(rows, COLUMNS)
-        )
-        return payload
 
     if merged is not None:
         runs.update(merged)
         rows[:] = [_row(n, r, args.budget) for n, r in runs.items()]
-        return save()
+        return payload()
     # Results are saved after every seed, so a run cut off by a time limit keeps them.
     for name in args.tasks:
         task = pole.dpv() if name == "dpv" else pole.dpnv()
@@ -272,5 +249,28 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         for s in range(args.first_seed, args.first_seed + args.seeds):
             runs[name].append(solve_once(task, s, task_config, args.budget))
             rows[:] = [_row(n, r, args.budget) for n, r in runs.items()]
-            payload = save()
-    return payload
+            save(payload())
+    return payload()
+
+
+def render(payload: dict[str, Any]) -> str:
+    seeds = ", ".join(f"{k} {len(v)}" for k, v in payload["runs"].items())
+    return (
+        f"EANT2 (covariance pruning) to solve double pole balancing; seeds per task: {seeds}; "
+        f"budget {payload['config']['budget']} evaluations (failures charged the budget in the "
+        "fail = budget column). Published columns: mean evaluations, Gomez et al. 2008.\n\n"
+        + markdown_table(payload["rows"], COLUMNS)
+    )
+
+
+SUITE = harness.Suite(
+    name="pole",
+    title="Double pole balancing",
+    description=__doc__,
+    options=_options,
+    run=run,
+    render=render,
+    prepare=_prepare,
+)
+
+main = SUITE.main

@@ -17,7 +17,7 @@ Three parts (``--parts``), each optional:
   library uses (XLA's defaults, "shipped") and with ``--compiler-options`` alternatives,
   each case in a fresh process: what each piece costs to compile and to run.
 
-Run: ``python -m bench profile [--quick] [--parts cold,trace,compile] [--out PATH]``.
+Run: ``python -m bench profile [--quick] [--parts cold,trace,compile] [--trace-dir DIR]``.
 """
 
 from __future__ import annotations
@@ -39,16 +39,14 @@ from typing import Any
 import jax
 import numpy as np
 
+from bench import harness
 from bench.bench_generation import exploit_batch
 from bench.common import (
     Column,
     CompileClock,
-    default_out,
     environment,
-    markdown_table,
     minimal_genome,
     random_population,
-    write_results,
 )
 from eant2_jax import exploitation as ex
 from eant2_jax import loop, tasks
@@ -309,8 +307,7 @@ def _parse_value(text: str) -> Any:
 
 
 # --------------------------------------------------------------------------------- main
-def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m bench profile", description=__doc__)
+def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--parts", default="cold,trace,compile")
     p.add_argument("--population", type=int, default=20)
     p.add_argument("--generations", type=int, default=4)
@@ -335,116 +332,88 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     )
     p.add_argument("--compile-case", default=None, help=argparse.SUPPRESS)
     p.add_argument("--trace-dir", default="/tmp/eant2-profile")
-    p.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
-    p.add_argument("--out", default=None)
-    args = p.parse_args(argv)
+
+
+def _prepare(args: argparse.Namespace) -> None:
     if args.quick:
         args.population, args.generations, args.max_iters, args.moves = 3, 2, 10, 16
         args.compile_genes = [34]
-    return args
 
 
-def render(payload: dict[str, Any]) -> str:
-    env = payload["environment"]
-    out = [f"Device: {env['device_kind']} ({env['platform']}), jax {env['jax_version']}.\n"]
-    if payload.get("cold"):
-        out.append("\n### Cold run: wall time against compilation, per generation\n\n")
-        out.append(
-            markdown_table(
-                payload["cold"],
-                [
-                    Column("generation", "gen"),
-                    Column("wall_s", "wall s", "{:.2f}"),
-                    Column("compiles", "XLA compiles"),
-                    Column("trace_s", "tracing s", "{:.2f}"),
-                    Column("lower_s", "lowering s", "{:.2f}"),
-                    Column("compile_s", "compiling s", "{:.2f}"),
-                    Column("other_s", "rest s", "{:.2f}"),
-                ],
-            )
-        )
-    trace = payload.get("trace")
-    if trace:
-        out.append("\n### Warm run under the profiler, per generation\n\n")
-        out.append(
-            markdown_table(
-                trace["windows"],
-                [
-                    Column("generation", "gen"),
-                    Column("wall_s", "wall s (traced)", "{:.3f}"),
-                    Column("device_busy_s", "device busy s", "{:.3f}"),
-                    Column("device_busy_fraction", "busy", "{:.0%}"),
-                    Column("device_ops", "device ops"),
-                    Column("h2d", "H2D copies"),
-                    Column("d2h", "D2H copies"),
-                    Column("copy_s", "copy s", "{:.4f}"),
-                ],
-            )
-        )
-        out.append("\n#### Device ops by total time (whole warm run)\n\n")
-        out.append(
-            markdown_table(
-                [{**r, "op": r["op"][:60]} for r in trace["device_ops"]],
-                [Column("op", "op"), Column("count", "count"), Column("seconds", "s", "{:.4f}")],
-            )
-        )
-        out.append("\n#### eant2_jax Python functions by inclusive host time\n\n")
-        out.append(
-            markdown_table(
-                trace["python"],
-                [
-                    Column("function", "function"),
-                    Column("calls", "calls"),
-                    Column("seconds", "s", "{:.3f}"),
-                ],
-            )
-        )
-    if payload.get("compile"):
-        out.append("\n### Compiling the exploitation program (one bucket)\n\n")
-        out.append(
-            markdown_table(
-                payload["compile"],
-                [
-                    Column("networks", "networks"),
-                    Column("pruner", "pruner"),
-                    Column("options", "compiler options"),
-                    Column("P", "P"),
-                    Column("hlo_lines", "StableHLO lines"),
-                    Column("lower_s", "lowering s", "{:.2f}"),
-                    Column("compile_s", "compiling s", "{:.2f}"),
-                    Column("chunk_ms", "10 iterations ms", "{:.2f}"),
-                ],
-            )
-        )
-    return "".join(out)
-
-
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    args = parse_args(argv)
-    if args.compile_case:  # one case of the compile part, in its own process
-        row = _compile_case(args, **json.loads(args.compile_case))
-        print(json.dumps(row))
-        return row
+def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
+    """The parts of ``--parts``, each saved as soon as it is done."""
     clock = CompileClock()
     parts = set(args.parts.split(","))
-    payload: dict[str, Any] = {"environment": environment(), "config": vars(args)}
-    out = args.out or default_out("profile")
-    # Each part is written as soon as it is done (a run cut off keeps what it measured).
+    payload: dict[str, Any] = {"environment": environment(), "config": harness.settings(args)}
     if "cold" in parts:
         payload["cold"] = bench_cold(args, clock)
-        write_results(out, payload, render(payload))
+        save(payload)
     if "trace" in parts:
         if "cold" not in parts:  # compile everything first, so the trace shows steady state
             _servo_run(args, lambda event: None)
         payload["trace"] = bench_trace(args)
-        write_results(out, payload, render(payload))
+        save(payload)
     if "compile" in parts:
         payload["compile"] = bench_compile(args)
-    md = render(payload)
-    write_results(out, payload, md)
-    print(md)
     return payload
 
 
-if __name__ == "__main__":  # pragma: no cover
-    main()
+_G3 = "{:.3f}"
+COLD = [
+    Column("generation", "gen"), Column("wall_s", "wall s", "{:.2f}"),
+    Column("compiles", "XLA compiles"), Column("trace_s", "tracing s", "{:.2f}"),
+    Column("lower_s", "lowering s", "{:.2f}"), Column("compile_s", "compiling s", "{:.2f}"),
+    Column("other_s", "rest s", "{:.2f}"),
+]  # fmt: skip
+WINDOWS = [
+    Column("generation", "gen"), Column("wall_s", "wall s (traced)", _G3),
+    Column("device_busy_s", "device busy s", _G3),
+    Column("device_busy_fraction", "busy", "{:.0%}"), Column("device_ops", "device ops"),
+    Column("h2d", "H2D copies"), Column("d2h", "D2H copies"), Column("copy_s", "copy s", "{:.4f}"),
+]  # fmt: skip
+COMPILE = [
+    Column("networks", "networks"), Column("pruner", "pruner"),
+    Column("options", "compiler options"), Column("P", "P"),
+    Column("hlo_lines", "StableHLO lines"), Column("lower_s", "lowering s", "{:.2f}"),
+    Column("compile_s", "compiling s", "{:.2f}"), Column("chunk_ms", "10 iterations ms", "{:.2f}"),
+]  # fmt: skip
+
+
+def render(payload: dict[str, Any]) -> str:
+    trace = payload.get("trace") or {}
+    parts = [("cold", "Cold run: wall time against compilation, per generation", COLD)]
+    if trace:
+        parts += [
+            ("windows", "Warm run under the profiler, per generation", WINDOWS),
+            ("device_ops", "Device ops by total time (whole warm run)", [
+                Column(lambda r: r["op"][:60], "op"), Column("count", "count"),
+                Column("seconds", "s", "{:.4f}"),
+            ]),
+            ("python", "eant2_jax Python functions by inclusive host time", [
+                Column("function", "function"), Column("calls", "calls"),
+                Column("seconds", "s", _G3),
+            ]),
+        ]  # fmt: skip
+    parts.append(("compile", "Compiling the exploitation program (one bucket)", COMPILE))
+    return harness.sections({**payload, **trace}, parts)
+
+
+SUITE = harness.Suite(
+    name="profile",
+    title="Profile of an EANT2 servo run",
+    description=__doc__,
+    options=_options,
+    run=run,
+    render=render,
+    prepare=_prepare,
+)
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """Command-line entry point; returns the payload it wrote."""
+    args = harness.parse_args(SUITE, argv)
+    if args.compile_case:  # one case of the compile part, in its own process; no files
+        row = _compile_case(args, **json.loads(args.compile_case))
+        print(json.dumps(row))
+        return row
+    return harness.execute(SUITE, args)

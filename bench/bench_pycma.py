@@ -7,27 +7,20 @@ poses (dense tensors scattered from the same compiled layout) -> NumPy kinematic
 arm, projection and move cost -> ``tell``. The NumPy cost is checked against the JAX task's
 cost before timing (``max_rel_err`` in the output). Both sides use the same population size.
 
-Run: ``python -m bench pycma [--structures 20] [--iters 30] [--quick] [--out PATH]``.
+Run: ``python -m bench pycma [--structures 20] [--iters 30] [--quick]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Sequence
 from typing import Any
 
 import jax
 import numpy as np
 
-from bench.common import (
-    Column,
-    default_out,
-    environment,
-    markdown_table,
-    random_population,
-    write_results,
-)
+from bench import harness
+from bench.common import Column, environment, markdown_table, random_population
 from eant2_jax import exploitation as ex
 from eant2_jax import tasks
 from eant2_jax.compiler import compile_genomes
@@ -88,17 +81,19 @@ def numpy_servo_cost(task: sv.Servo, y: np.ndarray) -> np.ndarray:
     return move.mean(axis=-1)
 
 
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    p = argparse.ArgumentParser(prog="python -m bench pycma", description=__doc__)
+def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--structures", type=int, default=20)
     p.add_argument("--genes", type=int, default=50)
     p.add_argument("--iters", type=int, default=30, help="timed iterations of each side")
     p.add_argument("--moves", type=int, default=1023)
-    p.add_argument("--quick", action="store_true")
-    p.add_argument("--out", default=None)
-    args = p.parse_args(argv)
+
+
+def _prepare(args: argparse.Namespace) -> None:
     if args.quick:
         args.structures, args.iters, args.moves = 2, 3, 32
+
+
+def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     import cma
 
     task = tasks.make("servo", n_starts=args.moves)
@@ -170,19 +165,34 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
            "popsize": popsize, "moves": args.moves, "pycma_numpy_ms": 1e3 * t_pycma,
            "engine_ms": 1e3 * t_engine, "speedup": t_pycma / t_engine,
            "max_rel_err": max_rel_err}  # fmt: skip
-    payload = {"environment": environment(), "config": vars(args), "rows": [row]}
-    md = (f"Engine on {payload['environment']['device_kind']}; pycma + NumPy on the host CPU; "
-          f"NumPy cost vs JAX cost max relative error {max_rel_err:.1e}.\n\n")  # fmt: skip
-    md += markdown_table([row], [
-        Column("structures", "S"), Column("genes", "genes"), Column("P", "P"),
-        Column("popsize", "popsize"), Column("moves", "moves"),
-        Column("pycma_numpy_ms", "pycma + NumPy ms / iteration", "{:.1f}"),
-        Column("engine_ms", "batched engine ms / iteration", "{:.3f}"),
-        Column("speedup", "speed-up", "{:.0f}x")])  # fmt: skip
-    write_results(args.out or default_out("pycma"), payload, md)
-    print(md)
-    return payload
+    return {"environment": environment(), "config": harness.settings(args), "rows": [row]}
 
 
-if __name__ == "__main__":  # pragma: no cover
-    main()
+COLUMNS = [
+    Column("structures", "S"), Column("genes", "genes"), Column("P", "P"),
+    Column("popsize", "popsize"), Column("moves", "moves"),
+    Column("pycma_numpy_ms", "pycma + NumPy ms / iteration", "{:.1f}"),
+    Column("engine_ms", "batched engine ms / iteration", "{:.3f}"),
+    Column("speedup", "speed-up", "{:.0f}x"),
+]  # fmt: skip
+
+
+def render(payload: dict[str, Any]) -> str:
+    (row,) = payload["rows"]
+    return (
+        "Engine on the device named; pycma + NumPy on the host CPU; NumPy cost vs JAX cost "
+        f"max relative error {row['max_rel_err']:.1e}.\n\n" + markdown_table([row], COLUMNS)
+    )
+
+
+SUITE = harness.Suite(
+    name="pycma",
+    title="Batched CMA-ES engine vs pycma + NumPy on the servo task",
+    description=__doc__,
+    options=_options,
+    run=run,
+    render=render,
+    prepare=_prepare,
+)
+
+main = SUITE.main

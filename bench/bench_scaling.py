@@ -5,26 +5,19 @@ moves each, pruning on — is timed on 1, 2, 4, ... devices of a 1-D mesh along 
 axis. Weak scaling: S grows with the device count (``--per-device`` structures each); strong
 scaling: S is fixed (``--strong``). Each case is timed after a warm-up call that compiles.
 
-Run: ``python -m bench scaling [--devices 1 2 4] [--quick] [--out PATH]``.
+Run: ``python -m bench scaling [--devices 1 2 4] [--quick]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Sequence
 from typing import Any
 
 import jax
 
-from bench.common import (
-    Column,
-    default_out,
-    environment,
-    markdown_table,
-    random_population,
-    write_results,
-)
+from bench import harness
+from bench.common import Column, environment, markdown_table, random_population
 from eant2_jax import distributed, loop, tasks
 from eant2_jax import exploitation as ex
 
@@ -43,20 +36,21 @@ def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float,
     return first, sorted(times)[len(times) // 2]
 
 
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    p = argparse.ArgumentParser(prog="python -m bench scaling", description=__doc__)
+def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--devices", type=int, nargs="+", default=None)
     p.add_argument("--per-device", type=int, default=32)
     p.add_argument("--strong", type=int, default=128)
     p.add_argument("--genes", type=int, default=50)
     p.add_argument("--iters", type=int, default=200)
     p.add_argument("--moves", type=int, default=1023)
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--quick", action="store_true")
-    p.add_argument("--out", default=None)
-    args = p.parse_args(argv)
+
+
+def _prepare(args: argparse.Namespace) -> None:
     if args.quick:
         args.per_device, args.strong, args.iters, args.moves, args.repeats = 2, 4, 4, 8, 1
+
+
+def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     counts = args.devices or [d for d in (1, 2, 4, 8) if d <= jax.device_count()]
     task = tasks.make("servo", n_starts=args.moves)
     config = ex.ExploitConfig(
@@ -84,24 +78,28 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                     "speedup": speedup,
                 }
             )
-    payload = {"environment": environment(), "config": vars(args), "rows": rows}
-    md = f"Device: {payload['environment']['device_kind']} x {jax.device_count()}.\n\n"
-    md += markdown_table(
-        rows,
-        [
-            Column("scaling", "scaling"),
-            Column("devices", "devices"),
-            Column("structures", "structures"),
-            Column("first_s", "first call s", "{:.1f}"),
-            Column("seconds", "s / generation", "{:.3f}"),
-            Column("structures_per_s", "structures/s", "{:.1f}"),
-            Column("speedup", "speed-up", "{:.2f}x"),
-        ],
-    )
-    write_results(args.out or default_out("scaling"), payload, md)
-    print(md)
-    return payload
+    return {"environment": environment(), "config": harness.settings(args), "rows": rows}
 
 
-if __name__ == "__main__":  # pragma: no cover
-    main()
+COLUMNS = [
+    Column("scaling", "scaling"),
+    Column("devices", "devices"),
+    Column("structures", "structures"),
+    Column("first_s", "first call s", "{:.1f}"),
+    Column("seconds", "s / generation", "{:.3f}"),
+    Column("structures_per_s", "structures/s", "{:.1f}"),
+    Column("speedup", "speed-up", "{:.2f}x"),
+]
+
+SUITE = harness.Suite(
+    name="scaling",
+    title="Multi-device scaling",
+    description=__doc__,
+    options=_options,
+    run=run,
+    render=lambda payload: markdown_table(payload["rows"], COLUMNS),
+    prepare=_prepare,
+    repeats=3,
+)
+
+main = SUITE.main

@@ -32,12 +32,8 @@ is spent; the JSON is rewritten after every row, so an interrupted run keeps wha
 
 Run from the repository root::
 
-    python -m bench.bench_servo                     # full sweep (sized for a GPU)
-    python -m bench.bench_servo --quick             # a CPU-sized smoke run
-    python -m bench.bench_servo --render bench/results/servo-gpu.json   # tables only
-
-Writes JSON to ``--out`` (default ``bench/results/servo-<platform>.json``) and the markdown
-tables next to it (``.md``). Progress goes to stderr.
+    python -m bench servo                     # full sweep (sized for a GPU)
+    python -m bench servo --quick             # a CPU-sized smoke run
 """
 
 from __future__ import annotations
@@ -46,18 +42,17 @@ import argparse
 import functools
 import json
 import statistics
-import sys
 import time
 import traceback
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bench.common import default_out, environment, random_population, write_results
+from bench import harness
+from bench.common import Column, environment, markdown_table, random_population
 from eant2_jax.compiler import compile_genomes
 from eant2_jax.kernels import network as kn
 
@@ -72,10 +67,6 @@ QUICK_PAPER_NETS = (4,)
 
 
 # ----------------------------------------------------------------------------- helpers
-def log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
-
 def measure(fn: Callable[[], Any], *, max_repeats: int = 7) -> dict[str, Any]:
     """First call (compile + run), then steady-state calls: fewer when each takes seconds."""
     t0 = time.perf_counter()
@@ -231,14 +222,14 @@ def random_q(task, count: int) -> jax.Array:
 
 
 # ------------------------------------------------------------------------------ sweep
-def run(args) -> dict[str, Any]:
+def run(args: argparse.Namespace, save_payload: harness.Save) -> dict[str, Any]:
+    """Measure the rows in priority order until ``--budget-s`` is spent; the payload."""
     from mujoco import mjx
 
     from eant2_jax import tasks
     from eant2_jax.tasks import servo as sv
 
     t_start = time.perf_counter()
-    out = Path(args.out)
     kin_nets = QUICK_KIN_NETS if args.quick else KIN_NETS
     dyn_nets = QUICK_DYN_NETS if args.quick else DYN_NETS
     paper_nets = QUICK_PAPER_NETS if args.quick else PAPER_NETS
@@ -273,18 +264,18 @@ def run(args) -> dict[str, Any]:
 
     def save():
         payload["elapsed_s"] = time.perf_counter() - t_start
-        write_results(out, payload, render(payload))
+        save_payload(payload)
 
     def row(name: str, fn: Callable, fn_args: tuple, moves: int, steps: int = 0, **extra):
         if time.perf_counter() - t_start > args.budget_s:
             payload["skipped"].append({"kind": name, "moves": moves, **extra})
-            log(f"skip {name} {extra} (budget)")
+            harness.log(f"skip {name} {extra} (budget)")
             return None
         try:
             m = measure(lambda: fn(*fn_args))
         except Exception as e:  # noqa: BLE001 - keep measuring the rest; record the failure
             payload["rows"].append({"kind": name, "moves": moves, "error": repr(e), **extra})
-            log(traceback.format_exc())
+            harness.log(traceback.format_exc())
             save()
             return None
         r = {"kind": name, "moves": moves, **extra, **m}
@@ -293,7 +284,7 @@ def run(args) -> dict[str, Any]:
             r["steps"] = steps
             r["steps_per_s"] = steps / m["median_s"]
         payload["rows"].append(r)
-        log(
+        harness.log(
             f"{name:22s} {json.dumps(extra):60s} moves {moves:9d} "
             f"median {m['median_s'] * 1e3:9.3f} ms  {r['moves_per_s']:.3g} moves/s  "
             f"first {m['first_call_s']:.2f} s"
@@ -326,16 +317,7 @@ def run(args) -> dict[str, Any]:
     for n in kin_nets:
         moves = n * n_starts
         nets, info = networks("minimal", n)
-        row(
-            "task",
-            cost,
-            (kin, nets),
-            moves,
-            mode="kinematic",
-            net="minimal",
-            n_nets=n,
-            **info,
-        )
+        row("task", cost, (kin, nets), moves, mode="kinematic", net="minimal", n_nets=n, **info)
         row("task_flat", flat, (kin, nets), moves, mode="kinematic", net="minimal", n_nets=n)
         q = random_q(kin, moves)
         row("bare_mjx_kinematics", bare, (kin, q), moves)
@@ -350,15 +332,7 @@ def run(args) -> dict[str, Any]:
         steps = moves * sv.SUBSTEPS
         nets, info = networks("minimal", n)
         row(
-            "task",
-            cost,
-            (dyn, nets),
-            moves,
-            steps,
-            mode="dynamic",
-            net="minimal",
-            n_nets=n,
-            **info,
+            "task", cost, (dyn, nets), moves, steps, mode="dynamic", net="minimal", n_nets=n, **info
         )
         if n in (128, dyn_nets[-1]):
             row(
@@ -380,14 +354,7 @@ def run(args) -> dict[str, Any]:
     for n in paper_nets:
         nets, info = networks("paper", n)
         row(
-            "task",
-            cost,
-            (kin, nets),
-            n * n_starts,
-            mode="kinematic",
-            net="paper",
-            n_nets=n,
-            **info,
+            "task", cost, (kin, nets), n * n_starts, mode="kinematic", net="paper", n_nets=n, **info
         )
         del nets
 
@@ -446,156 +413,151 @@ def run(args) -> dict[str, Any]:
         except Exception as e:  # noqa: BLE001
             payload["rows"].append({"kind": "mjx_benchmark", "error": repr(e)})
         save()
-    log(f"done in {time.perf_counter() - t_start:.1f} s")
+    harness.log(f"done in {time.perf_counter() - t_start:.1f} s")
     return payload
 
 
 # ----------------------------------------------------------------------------- tables
-def _fmt(x, spec="{:.3g}"):
-    return "—" if x is None else spec.format(x)
+def _find(rows: list[dict], kind: str, moves: int, **kw) -> dict | None:
+    for r in rows:
+        if r["kind"] == kind and r["moves"] == moves and all(r.get(k) == v for k, v in kw.items()):
+            return r
+    return None
+
+
+def _get(r: dict | None, key: str) -> Any:
+    return None if r is None else r.get(key)
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return a / b if a and b else None
+
+
+def _kinematic(rows: list[dict]) -> list[dict]:
+    """One line per batch: the task's and the references' moves/s at that many moves."""
+    out = []
+    batches = {r["moves"] for r in rows if r.get("mode") == "kinematic"}
+    batches -= {r["moves"] for r in rows if "moves_per_start" in r}
+    for mv in sorted(batches):
+        t = _find(rows, "task", mv, mode="kinematic", net="minimal")
+        tf = _find(rows, "task_flat", mv, mode="kinematic", net="minimal")
+        p = _find(rows, "task", mv, mode="kinematic", net="paper")
+        b = _find(rows, "bare_mjx_kinematics", mv)
+        bn = _find(rows, "bare_mjx_kinematics_nested", mv)
+        best_task = max([r["moves_per_s"] for r in (t, tf) if r] or [0]) or None
+        best_bare = max([r["moves_per_s"] for r in (b, bn) if r] or [0]) or None
+        out.append({
+            "moves": mv, "n_nets": (t or p or {}).get("n_nets"),
+            "task": _get(t, "moves_per_s"), "task_compile": _get(t, "compile_s"),
+            "flat": _get(tf, "moves_per_s"),
+            "paper": _get(p, "moves_per_s"), "paper_compile": _get(p, "compile_s"),
+            "bare": _get(b, "moves_per_s"), "bare_compile": _get(b, "compile_s"),
+            "nested": _get(bn, "moves_per_s"),
+            "hand": _get(_find(rows, "hand_fk", mv), "moves_per_s"),
+            "ratio": _ratio(best_task, best_bare),
+        })  # fmt: skip
+    return out
+
+
+def _dynamic(rows: list[dict]) -> list[dict]:
+    """One line per batch: the task's and MJX's raw physics steps/s at that many moves."""
+    out = []
+    batches = {r["moves"] for r in rows if r.get("mode") == "dynamic"}
+    batches |= {r["moves"] for r in rows if r["kind"].startswith("mjx_step")}
+    for mv in sorted(batches):
+        t = _find(rows, "task", mv, mode="dynamic", net="minimal")
+        raw = _find(rows, "mjx_step_raw", mv)
+        out.append({
+            "moves": mv, "n_nets": _get(t, "n_nets"), "task_moves": _get(t, "moves_per_s"),
+            "task": _get(t, "steps_per_s"), "task_compile": _get(t, "compile_s"),
+            "flat": _get(_find(rows, "task_flat", mv, mode="dynamic", net="minimal"),
+                         "steps_per_s"),
+            "raw": _get(raw, "steps_per_s"), "raw_compile": _get(raw, "compile_s"),
+            "ratio": _ratio(_get(t, "steps_per_s"), _get(raw, "steps_per_s")),
+            "limits": _get(_find(rows, "mjx_step_raw_limits", mv), "steps_per_s"),
+        })  # fmt: skip
+    return out
+
+
+def _other(rows: list[dict], substeps: int) -> list[dict]:
+    out = []
+    for r in rows:
+        if r["kind"] == "mjx_benchmark":
+            what = f"`mujoco.mjx.benchmark` (task's model, batch {r['moves']}, {substeps} steps)"
+        elif r.get("moves_per_start"):
+            what = (
+                f"task, kinematic, minimal net, closed loop {r['moves_per_start']} "
+                f"moves/start, {r['n_nets']} nets"
+            )
+        elif r.get("mode") == "dynamic" and r.get("net") == "paper":
+            what = f"task, dynamic, paper-size net, {r['n_nets']} nets"
+        else:
+            continue
+        out.append({"what": what, **r})
+    return out
+
+
+_G, _S = "{:.3g}", "{:.1f}"
+KINEMATIC = [
+    Column("moves", "moves", _G), Column("n_nets", "networks"),
+    Column("task", "task, minimal net", _G), Column("task_compile", "compile s", _S),
+    Column("flat", "task_flat, minimal net", _G),
+    Column("paper", "task, paper-size net", _G), Column("paper_compile", "compile s", _S),
+    Column("bare", "bare mjx.kinematics + projection", _G),
+    Column("bare_compile", "compile s", _S), Column("nested", "bare, nested [nets, 1023]", _G),
+    Column("hand", "hand-written FK + projection", _G),
+    Column("ratio", "task / best bare", "{:.2f}"),
+]  # fmt: skip
+DYNAMIC = [
+    Column("moves", "moves", _G), Column("n_nets", "networks"),
+    Column("task_moves", "task moves/s", _G), Column("task", "task steps/s", _G),
+    Column("task_compile", "compile s", _S), Column("flat", "task_flat steps/s", _G),
+    Column("raw", "raw mjx.step steps/s (task's model)", _G),
+    Column("raw_compile", "compile s", _S), Column("ratio", "task / raw (steps/s)", "{:.2f}"),
+    Column("limits", "raw mjx.step steps/s, limit constraints on (full arm.xml)", _G),
+]  # fmt: skip
+OTHER = [
+    Column("what", "what"), Column("moves", "moves", _G), Column("moves_per_s", "moves/s", _G),
+    Column("steps_per_s", "steps/s", _G), Column("compile_s", "compile s", _S),
+]  # fmt: skip
 
 
 def render(payload: dict[str, Any]) -> str:
     """The markdown tables of a payload (also usable on a partial run)."""
-    env = payload["environment"]
     rows = [r for r in payload["rows"] if "error" not in r]
-
-    def find(kind, moves, **kw):
-        for r in rows:
-            if (
-                r["kind"] == kind
-                and r["moves"] == moves
-                and all(r.get(k) == v for k, v in kw.items())
-            ):
-                return r
-        return None
-
+    substeps = payload["config"]["substeps"]
     lines = [
-        f"Visual servoing task throughput on **{env['device_kind']}** ({env['platform']}), "
-        f"jax {env['jax_version']}, {env['date_utc']}.",
-        "",
         "**Kinematic mode** (moves/s; a move = one network on one start pose: forward pass, "
-        "increments, arm, projection, cost):",
-        "",
-        "| moves | networks | task, minimal net | compile s | task_flat, minimal net "
-        "| task, paper-size net | compile s | bare mjx.kinematics + projection | compile s "
-        "| bare, nested [nets, 1023] | hand-written FK + projection | task / best bare |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "increments, arm, projection, cost):\n",
+        markdown_table(_kinematic(rows), KINEMATIC),
+        f"**Dynamic mode** ({substeps} `mjx.step` of 5 ms per move; steps/s counts physics "
+        "steps):\n",
+        markdown_table(_dynamic(rows), DYNAMIC),
     ]
-    kin_moves = sorted(
-        {r["moves"] for r in rows if r.get("mode") == "kinematic" and "moves_per_start" not in r}
-    )
-    for mv in kin_moves:
-        t = find("task", mv, mode="kinematic", net="minimal")
-        tf = find("task_flat", mv, mode="kinematic", net="minimal")
-        p = find("task", mv, mode="kinematic", net="paper")
-        b = find("bare_mjx_kinematics", mv)
-        bn = find("bare_mjx_kinematics_nested", mv)
-        h = find("hand_fk", mv)
-        best_bare = max([r["moves_per_s"] for r in (b, bn) if r] or [0]) or None
-        best_task = max([r["moves_per_s"] for r in (t, tf) if r] or [0]) or None
-        ratio = best_task / best_bare if best_task and best_bare else None
-        n_nets = (t or p or {}).get("n_nets")
-        lines.append(
-            f"| {mv:.3g} | {n_nets} | {_fmt(t and t['moves_per_s'])} "
-            f"| {_fmt(t and t['compile_s'], '{:.1f}')} | {_fmt(tf and tf['moves_per_s'])} "
-            f"| {_fmt(p and p['moves_per_s'])} | {_fmt(p and p['compile_s'], '{:.1f}')} "
-            f"| {_fmt(b and b['moves_per_s'])} | {_fmt(b and b['compile_s'], '{:.1f}')} "
-            f"| {_fmt(bn and bn['moves_per_s'])} "
-            f"| {_fmt(h and h['moves_per_s'])} | {_fmt(ratio, '{:.2f}')} |"
-        )
-    lines += [
-        "",
-        f"**Dynamic mode** ({payload['config']['substeps']} `mjx.step` of 5 ms per move; "
-        "steps/s counts physics steps):",
-        "",
-        "| moves | networks | task moves/s | task steps/s | compile s | task_flat steps/s "
-        "| raw mjx.step steps/s (task's model) | compile s | task / raw (steps/s) "
-        "| raw mjx.step steps/s, limit constraints on (full arm.xml) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
-    ]
-    dyn_moves = sorted(
-        {r["moves"] for r in rows if r.get("mode") == "dynamic" or r["kind"].startswith("mjx_step")}
-    )
-    for mv in dyn_moves:
-        t = find("task", mv, mode="dynamic", net="minimal")
-        tf = find("task_flat", mv, mode="dynamic", net="minimal")
-        raw = find("mjx_step_raw", mv)
-        lim = find("mjx_step_raw_limits", mv)
-        ratio = t["steps_per_s"] / raw["steps_per_s"] if t and raw else None
-        lines.append(
-            f"| {mv:.3g} | {t and t.get('n_nets')} | {_fmt(t and t['moves_per_s'])} "
-            f"| {_fmt(t and t['steps_per_s'])} | {_fmt(t and t['compile_s'], '{:.1f}')} "
-            f"| {_fmt(tf and tf['steps_per_s'])} "
-            f"| {_fmt(raw and raw['steps_per_s'])} | {_fmt(raw and raw['compile_s'], '{:.1f}')} "
-            f"| {_fmt(ratio, '{:.2f}')} | {_fmt(lim and lim['steps_per_s'])} |"
-        )
-    extra = [
-        r
-        for r in rows
-        if r.get("moves_per_start")
-        or (r.get("mode") == "dynamic" and r.get("net") == "paper")
-        or r["kind"] == "mjx_benchmark"
-    ]
-    if extra:
-        lines += [
-            "",
-            "Other rows:",
-            "",
-            "| what | moves | moves/s | steps/s | compile s |",
-            "| --- | --- | --- | --- | --- |",
-        ]
-        for r in extra:
-            if r["kind"] == "mjx_benchmark":
-                what = (
-                    f"`mujoco.mjx.benchmark` (task's model, batch {r['moves']}, "
-                    f"{payload['config']['substeps']} steps)"
-                )
-            elif r.get("moves_per_start"):
-                what = (
-                    f"task, kinematic, minimal net, closed loop {r['moves_per_start']} "
-                    f"moves/start, {r['n_nets']} nets"
-                )
-            else:
-                what = f"task, dynamic, paper-size net, {r['n_nets']} nets"
-            lines.append(
-                f"| {what} | {r['moves']:.3g} | {_fmt(r.get('moves_per_s'))} "
-                f"| {_fmt(r.get('steps_per_s'))} "
-                f"| {_fmt(r.get('compile_s'), '{:.1f}')} |"
-            )
+    other = _other(rows, substeps)
+    if other:
+        lines += ["Other rows:\n", markdown_table(other, OTHER)]
     errors = [r for r in payload["rows"] if "error" in r]
     if errors or payload.get("skipped"):
-        lines += [
-            "",
-            f"Failed rows: {len(errors)}; skipped for time: {len(payload.get('skipped', []))}.",
-        ]
+        lines.append(
+            f"Failed rows: {len(errors)}; skipped for time: {len(payload.get('skipped', []))}.\n"
+        )
     if payload.get("checks"):
-        lines += ["", "Checks: `" + json.dumps(payload["checks"]) + "`"]
-    return "\n".join(lines) + "\n"
+        lines.append("Checks: `" + json.dumps(payload["checks"]) + "`\n")
+    return "\n".join(lines)
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument(
-        "--out", default=None, help="JSON path (default bench/results/servo-<platform>.json)"
-    )
-    parser.add_argument("--quick", action="store_true", help="a CPU-sized smoke run")
-    parser.add_argument(
-        "--budget-s", type=float, default=330.0, help="stop starting rows after this"
-    )
-    parser.add_argument("--render", default=None, help="only print the tables of an existing JSON")
-    args = parser.parse_args(argv)
-    if args.render:
-        payload = json.loads(Path(args.render).read_text())
-        md = render(payload)
-        Path(args.render).with_suffix(".md").write_text(md)
-        print(md)
-        return
-    if args.out is None:
-        args.out = str(default_out("servo"))
-    payload = run(args)
-    print(render(payload))
+def _options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--budget-s", type=float, default=330.0, help="stop starting rows after this")
 
 
-if __name__ == "__main__":
-    main()
+SUITE = harness.Suite(
+    name="servo",
+    title="Visual servoing task throughput",
+    description=__doc__,
+    options=_options,
+    run=run,
+    render=render,
+)
+
+main = SUITE.main

@@ -1,15 +1,14 @@
-"""Helpers shared by the benchmarks: device tagging, timing, random genomes, output files.
+"""Helpers shared by the benchmarks: device tagging, timing, random genomes, markdown tables.
 
-Nothing here is specific to one benchmark. A benchmark builds a list of row dicts, then calls
-:func:`write_results` with a payload that starts from :func:`environment` and a markdown table
-from :func:`markdown_table`.
+Nothing here is specific to one benchmark. A suite builds row dicts into a payload that
+carries :func:`environment` and shows them with :func:`markdown_table`; :mod:`bench.harness`
+runs it (arguments, files, printing).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import datetime
-import json
 import platform
 import statistics
 import time
@@ -29,14 +28,13 @@ __all__ = [
     "Column",
     "Timing",
     "default_out",
+    "device_tag",
     "environment",
     "markdown_table",
     "minimal_genome",
     "random_genome",
     "random_population",
     "time_call",
-    "run_and_write",
-    "write_results",
 ]
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
@@ -69,9 +67,14 @@ def environment() -> dict[str, Any]:
     }
 
 
+def device_tag() -> str:
+    """The tag of result file names: the default JAX platform (``cpu``, ``gpu``, ``tpu``)."""
+    return jax.devices()[0].platform
+
+
 def default_out(name: str) -> Path:
-    """``bench/results/<name>-<platform>.json`` for the default JAX platform."""
-    return RESULTS_DIR / f"{name}-{jax.devices()[0].platform}.json"
+    """``bench/results/<name>-<device tag>.json``."""
+    return RESULTS_DIR / f"{name}-{device_tag()}.json"
 
 
 # ------------------------------------------------------------------------------ compiling
@@ -258,32 +261,3 @@ def markdown_table(rows: Sequence[dict], columns: Sequence[Column]) -> str:
             cells.append("—" if value is None else c.fmt.format(value))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
-
-
-def write_results(out: str | Path, payload: dict, markdown: str) -> tuple[Path, Path]:
-    """Write ``payload`` as JSON to ``out`` and ``markdown`` next to it (same name, ``.md``).
-
-    Returns:
-      ``(json_path, markdown_path)``.
-    """
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(payload, indent=2, sort_keys=False) + "\n")
-    md = out.with_suffix(".md")
-    md.write_text(markdown)
-    return out, md
-
-
-def run_and_write(name: str, args, run: Callable, render: Callable[[dict], str]) -> dict:
-    """Run a benchmark whose ``run(args, on_row=...)`` reports partial payloads, writing the
-    JSON and markdown after every case (a run cut off by a time limit keeps them) and once
-    at the end; prints the table. Returns the final payload."""
-    import sys
-
-    out = args.out or default_out(name)
-    payload = run(args, on_row=lambda p: write_results(out, p, render(p)))
-    md = render(payload)
-    json_path, md_path = write_results(out, payload, md)
-    print(md)
-    print(f"wrote {json_path} and {md_path}", file=sys.stderr)
-    return payload

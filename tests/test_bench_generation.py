@@ -18,4 +18,6 @@ def test_generation_bench_quick(tmp_path):
     assert [r["generation"] for r in gens] == [0, 1]
     assert all(r["seconds"] > 0 and r["new_evaluations"] > 0 for r in gens)
     assert all(r["attempt_ms"] > 0 and r["iteration_ms"] > 0 for r in payload["pruning"])
-    assert out.with_suffix(".md").read_text().startswith("Device:")
+    md = out.with_suffix(".md").read_text()
+    assert md.startswith("EANT2 generations, pruning and scaling on **")
+    assert "### Pruning attempt vs one CMA-ES iteration" in md

@@ -88,7 +88,11 @@ def test_pole_seeds_split_then_merged(tmp_path):
     other["config"]["budget"] = 7
     (tmp_path / "c.json").write_text(json.dumps(other))
     with pytest.raises(BenchInputError, match="budget"):
-        bench_pole.main(["--merge", str(a), str(tmp_path / "c.json"), "--out", str(merged)])
+        bench_pole.main(
+            ["--merge", str(a), str(tmp_path / "c.json"), "--out", str(tmp_path / "y.json")]
+        )
+    with pytest.raises(BenchInputError, match="exists; pass --force"):
+        bench_pole.main(["--merge", str(a), str(b), "--out", str(merged)])
     with pytest.raises(BenchInputError, match="is one of the merged files"):
         bench_pole.main(["--merge", str(a), str(b), "--out", str(a)])
     assert json.loads(a.read_text()) == single

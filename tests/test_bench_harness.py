@@ -1,0 +1,111 @@
+"""The benchmark harness: common options, output files, and the no-overwrite rule."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bench import harness
+from bench.common import BenchInputError, Column, markdown_table
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _suite(calls: list) -> harness.Suite:
+    """A suite that measures nothing: one row per ``--rows``, saved after each."""
+
+    def options(p):
+        p.add_argument("--rows", type=int, default=2)
+
+    def run(args, save):
+        calls.append(args)
+        payload = {"device_kind": "test", "platform": "cpu", "config": harness.settings(args)}
+        payload["rows"] = []
+        for i in range(args.rows):
+            payload["rows"].append({"i": i, "value": 0.5 * i})
+            save(payload)
+        return payload
+
+    return harness.Suite(
+        name="dummy",
+        title="Dummy",
+        description="A test suite.",
+        options=options,
+        run=run,
+        render=lambda p: markdown_table(p["rows"], [Column("i", "i"), Column("value", "v")]),
+        repeats=3,
+        min_repeats=2,
+    )
+
+
+def test_run_writes_json_and_markdown_with_a_header(tmp_path, capsys):
+    calls = []
+    out = tmp_path / "dummy.json"
+    payload = harness.main(_suite(calls), ["--out", str(out), "--rows", "3"])
+    assert json.loads(out.read_text()) == payload
+    assert payload["config"] == {"quick": False, "repeats": 3, "rows": 3}  # no --out, --force
+    md = out.with_suffix(".md").read_text()
+    assert md.startswith("Dummy on **test** (cpu)")
+    assert md.count("\n| ") == 3 + 2
+    assert capsys.readouterr().out.strip() == md.strip()
+
+
+def test_existing_results_are_not_overwritten_without_force(tmp_path):
+    calls = []
+    out = tmp_path / "dummy.json"
+    out.write_text('{"committed": true}\n')
+    before = out.read_bytes()
+    with pytest.raises(BenchInputError, match="exists; pass --force"):
+        harness.main(_suite(calls), ["--out", str(out)])
+    assert out.read_bytes() == before
+    assert not out.with_suffix(".md").exists()
+    assert calls == []  # refused before measuring anything
+    # The markdown alone counts too.
+    md = tmp_path / "other.md"
+    md.write_text("committed\n")
+    with pytest.raises(BenchInputError, match="other.md exists"):
+        harness.main(_suite(calls), ["--out", str(tmp_path / "other.json")])
+    assert md.read_text() == "committed\n" and not (tmp_path / "other.json").exists()
+    # --force replaces both files.
+    payload = harness.main(_suite(calls), ["--out", str(out), "--force"])
+    assert json.loads(out.read_text()) == payload != {"committed": True}
+    assert len(calls) == 1
+
+
+def test_render_rewrites_only_the_markdown_and_needs_force_over_it(tmp_path):
+    calls = []
+    out = tmp_path / "dummy.json"
+    harness.main(_suite(calls), ["--out", str(out)])
+    data, md = out.read_bytes(), out.with_suffix(".md")
+    md.write_text("old\n")
+    with pytest.raises(BenchInputError, match="pass --force to rewrite"):
+        harness.main(_suite(calls), ["--render", str(out)])
+    assert md.read_text() == "old\n"
+    harness.main(_suite(calls), ["--render", str(out), "--force"])
+    assert md.read_text().startswith("Dummy on") and out.read_bytes() == data
+    assert len(calls) == 1
+
+
+def test_repeats_below_the_suite_minimum_are_refused():
+    with pytest.raises(BenchInputError, match="at least 2"):
+        harness.parse_args(_suite([]), ["--repeats", "1"])
+
+
+def test_command_line_refusal_is_one_line_and_exit_2(tmp_path):
+    out = tmp_path / "scaling.json"
+    out.write_text("{}\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "bench", "scaling", "--quick", "--out", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "exists; pass --force" in lines[0], proc.stderr
+    assert out.read_text() == "{}\n"

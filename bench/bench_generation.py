@@ -17,7 +17,6 @@ Run: ``python -m bench generation [--parts generation,pruning,scaling] [--quick]
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 from typing import Any
 
@@ -27,9 +26,7 @@ import jax.numpy as jnp
 from bench import harness
 from bench.common import Column, CompileClock, environment, random_population, time_call
 from eant2_jax import exploitation as ex
-from eant2_jax import loop, tasks
-from eant2_jax.compiler import compile_genomes
-from eant2_jax.pruning import tables_for
+from eant2_jax import loop, tasks, tuning
 
 
 def bench_generations(args, clock: CompileClock) -> list[dict]:
@@ -37,16 +34,16 @@ def bench_generations(args, clock: CompileClock) -> list[dict]:
         task = tasks.make("servo", mode=args.mode, n_starts=args.moves)
     else:
         task = tasks.make(args.task)
-    # Record the padding bucket of every exploitation batch (wrapping the loop's compiler).
+    # Record the padding bucket of every exploitation batch (wrapping the handover's compiler).
     buckets: list[tuple] = []
-    compile_batch = loop.compile_genomes
+    compile_batch = tuning.compile_genomes
 
     def recording(*a, **k):
         batch = compile_batch(*a, **k)
         buckets.append((batch.bucket.genes, batch.bucket.neurons, batch.bucket.sweeps))
         return batch
 
-    loop.compile_genomes = recording
+    tuning.compile_genomes = recording
     config = loop.EANT2Config(
         population=args.population,
         exploit=ex.ExploitConfig(max_iters=args.max_iters, pruner=args.pruner),
@@ -89,31 +86,29 @@ def bench_generations(args, clock: CompileClock) -> list[dict]:
     return rows
 
 
-def exploit_batch(genomes, n_inputs: int, config: ex.ExploitConfig, seed: int = 0):
-    """``(batch, state, tables)``: the genomes compiled unpadded and their engine state."""
-    batch = compile_genomes(genomes, n_inputs, pad_count=False)
-    popsize = config.popsize or ex.default_popsize(batch.bucket.genes)
+def exploit_batch(genomes, task, config: ex.ExploitConfig, seed: int = 0):
+    """``(batch, state, tables)``: the genomes compiled unpadded and their engine state
+    (the handover's first steps, :func:`eant2_jax.tuning.prepare`)."""
     keys = jax.random.split(jax.random.key(seed), len(genomes))
-    st = ex.init(keys, batch.weights, batch.layout.gene_mask, config, popsize=popsize)
-    return batch, st, tables_for(genomes, batch.bucket.genes)
+    prep = tuning.prepare(
+        genomes, task, key=jax.random.key(seed), config=config, keys=keys, pad_count=False
+    )
+    return prep.batch, prep.state, prep.tables
 
 
-def _batch(seed: int, count: int, n_genes: int, n_inputs: int, config: ex.ExploitConfig):
+def _batch(seed: int, count: int, n_genes: int, task, config: ex.ExploitConfig):
     genomes = random_population(seed, count, n_genes)
-    return (genomes, *exploit_batch(genomes, n_inputs, config, seed))
+    return (genomes, *exploit_batch(genomes, task, config, seed))
 
 
 def _pruning_case(args, task, n_genes: int) -> dict:
     config = ex.ExploitConfig(pruner="covariance", max_iters=1, chunk=1)
-    _, batch, st, tables = _batch(args.seed, args.population, n_genes, task.n_inputs, config)
-    static, limits = ex._program_config(config)
-    plain = dataclasses.replace(static, pruner="none")
+    _, batch, st, tables = _batch(args.seed, args.population, n_genes, task, config)
+    plain = config.replace(pruner="none")
     key = jax.random.key(0)
-    step = jax.jit(lambda s: ex._step(s, batch.layout, tables, task, key, plain, limits)[0])
+    step = jax.jit(lambda s: ex._step(s, batch.layout, tables, task, key, plain)[0])
     trigger = jnp.ones(st.stop.shape, bool)
-    attempt = jax.jit(
-        lambda s: ex._prune(s, trigger, batch.layout, tables, task, key, static, limits)[0]
-    )
+    attempt = jax.jit(lambda s: ex._prune(s, trigger, batch.layout, tables, task, key, config)[0])
     t_step = time_call(lambda: step(st), repeats=args.repeats).median_s
     t_prune = time_call(lambda: attempt(st), repeats=args.repeats).median_s
     return {
@@ -147,7 +142,7 @@ def bench_scaling(args) -> list[dict]:
             patience=10**6,
             sigma_tol=0.0,
         )
-        _, batch, st, tables = _batch(args.seed, structures, n_genes, task.n_inputs, config)
+        _, batch, st, tables = _batch(args.seed, structures, n_genes, task, config)
         popsize = st.params.weights.shape[-1]
 
         def go(st=st, batch=batch, task=task, config=config, tables=tables):

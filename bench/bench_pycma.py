@@ -22,8 +22,7 @@ import numpy as np
 from bench import harness
 from bench.common import Column, environment, markdown_table, random_population
 from eant2_jax import exploitation as ex
-from eant2_jax import tasks
-from eant2_jax.compiler import compile_genomes
+from eant2_jax import tasks, tuning
 from eant2_jax.kernels import network as kn
 from eant2_jax.tasks import servo as sv
 
@@ -98,8 +97,14 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
 
     task = tasks.make("servo", n_starts=args.moves)
     genomes = random_population(2, args.structures, args.genes)
-    batch = compile_genomes(genomes, task.n_inputs, pad_count=False)
-    popsize = ex.default_popsize(batch.bucket.genes)
+    keys = jax.random.split(jax.random.key(0), args.structures)
+    # The engine's side, prepared as every caller does (compile, popsize, initial state).
+    config = ex.ExploitConfig(max_iters=args.iters, chunk=args.iters, patience=10**6,
+                              sigma_tol=0.0)  # fmt: skip
+    prep = tuning.prepare(
+        genomes, task, key=jax.random.key(0), config=config, keys=keys, pad_count=False
+    )
+    batch, popsize = prep.batch, prep.popsize
     lay = jax.tree.map(np.asarray, batch.layout)
     x = np.asarray(task.x_start, np.float64)
 
@@ -123,8 +128,9 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     trial = np.asarray(batch.weights)[:, None, :] + 0.3 * rng.normal(
         size=(args.structures, 4, batch.bucket.genes)
     )
-    nets = jax.vmap(jax.vmap(kn.network, in_axes=(None, 0)))(batch.layout, trial.astype(np.float32))
-    want = np.asarray(task.cost(jax.random.key(0), nets), np.float64)
+    want = np.asarray(
+        ex.costs(task, jax.random.key(0), batch.layout, trial.astype(np.float32)), np.float64
+    )
     got = np.stack([cost_np(i, trial[i]) for i in range(args.structures)])
     max_rel_err = float(np.max(np.abs(got - want) / np.abs(want)))
 
@@ -148,13 +154,9 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     t_pycma = (time.perf_counter() - t0) / args.iters
 
     # This project: the same structures and popsize, `iters` iterations in one compiled chunk.
-    config = ex.ExploitConfig(max_iters=args.iters, chunk=args.iters, patience=10**6,
-                              sigma_tol=0.0, popsize=popsize)  # fmt: skip
-    keys = jax.random.split(jax.random.key(0), args.structures)
 
     def engine():
-        st = ex.init(keys, batch.weights, batch.layout.gene_mask, config, popsize=popsize)
-        st, _ = ex.run(st, batch.layout, task, key=jax.random.key(1), config=config)
+        st, _ = ex.run(prep.state, batch.layout, task, key=jax.random.key(1), config=config)
         return jax.block_until_ready(st.evals)
 
     engine()  # compile

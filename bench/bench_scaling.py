@@ -18,7 +18,7 @@ import jax
 
 from bench import harness
 from bench.common import Column, environment, markdown_table, random_population
-from eant2_jax import distributed, loop, tasks
+from eant2_jax import distributed, tasks, tuning
 from eant2_jax import exploitation as ex
 
 
@@ -26,12 +26,12 @@ def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float,
     mesh = distributed.make_mesh(devices) if devices > 1 else None
     key = jax.random.key(0)
     t0 = time.perf_counter()
-    loop.exploit(genomes, task, key=key, config=config, mesh=mesh)
+    tuning.tune(genomes, task, key=key, config=config, mesh=mesh)
     first = time.perf_counter() - t0
     times = []
     for r in range(repeats):
         t0 = time.perf_counter()
-        loop.exploit(genomes, task, key=jax.random.fold_in(key, r + 1), config=config, mesh=mesh)
+        tuning.tune(genomes, task, key=jax.random.fold_in(key, r + 1), config=config, mesh=mesh)
         times.append(time.perf_counter() - t0)
     return first, sorted(times)[len(times) // 2]
 

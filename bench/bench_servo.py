@@ -53,7 +53,7 @@ import numpy as np
 
 from bench import harness
 from bench.common import Column, environment, markdown_table, random_population
-from eant2_jax.compiler import compile_genomes
+from eant2_jax.compiler import compile_genomes, network_batch
 from eant2_jax.kernels import network as kn
 
 N_INPUTS = 10
@@ -101,7 +101,7 @@ def networks(kind: str, count: int, seed: int = 0) -> tuple[kn.Network, dict[str
 
     layout = jax.tree.map(tile, batch.layout)
     weights = tile(batch.weights)
-    nets = jax.jit(jax.vmap(kn.network))(layout, weights)
+    nets = jax.jit(network_batch)(layout, weights)
     b = batch.bucket
     genes = float(np.mean([g.n_params for g in genomes]))
     return nets, {"neurons": b.neurons, "genes_bucket": b.genes, "sweeps": b.sweeps, "genes": genes}

@@ -16,13 +16,12 @@ def test_outputs_cost_matches_network_cost():
     # (same moves, same cost): float32, same ops, so a tight tolerance.
     from bench import bench_peers
     from eant2_jax import tasks
-    from eant2_jax.compiler import compile_genomes
+    from eant2_jax.compiler import networks
     from eant2_jax.kernels import network as kn
 
     task = tasks.make("servo", n_starts=17)
     genome = bench_peers.fixed_genome(np.random.default_rng(1), 2, scale=0.5)
-    batch = compile_genomes([genome], task.n_inputs, pad_count=False)
-    nets = jax.vmap(kn.network)(batch.layout, batch.weights)
+    nets = networks([genome], task.n_inputs)
     want = np.asarray(task.cost(None, nets))
     net = jax.tree.map(lambda a: a[0], nets)
     h0 = jnp.zeros_like(net.bias)

@@ -368,7 +368,7 @@ def report(
 
     best_run = min(runs, key=lambda r: r.generations[-1].best_cost)
     best = Genome.parse(best_run.generations[-1].best_genome)
-    draw_genome(best, out / "best_network.png", title=f"best network ({best_run['arm']})")
+    draw_genome(best, out / "best_network.png", title=f"best network ({best_run.arm})")
     figures.append("best_network.png")
     if condition is not None and "genome_before" in condition and "genome_after" in condition:
         draw_genome(

@@ -4,7 +4,8 @@ Suites: forward (the evaluator kernel), cmaes (batched CMA-ES), servo (the MJX t
 generation (whole EANT2 generations, pruning overhead, scaling), peers (CMA-ES, pycma,
 NEAT and EANT2 on the servo task at one evaluation budget), pole (evaluations to solve
 double pole balancing), profile (where a run's time goes: compilation, a profiler
-trace), scaling (over several devices), pycma (the batched engine against pycma + NumPy).
+trace), scaling (over several devices), pycma (the batched engine against pycma + NumPy),
+redundancy (pruning on networks of known redundancy).
 Each writes JSON (device, versions, config, compile time apart from steady state) and a
 markdown table, and never over an existing result file unless ``--force`` is given;
 ``--help`` after the suite name lists its options.
@@ -25,6 +26,7 @@ SUITES = {
     "peers": "bench.bench_peers",
     "pole": "bench.bench_pole",
     "profile": "bench.bench_profile",
+    "redundancy": "bench.bench_redundancy",
 }
 
 

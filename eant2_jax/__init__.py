@@ -28,6 +28,7 @@ from .reference import interpret as interpret
 __version__ = "0.1.0"
 from . import distributed as distributed
 from . import tasks as tasks
+from .config import enable_x64 as enable_x64
 from .exploitation import ExploitConfig as ExploitConfig
 from .loop import EANT2Config as EANT2Config
 from .loop import GenerationRecord as GenerationRecord

@@ -21,7 +21,15 @@ from flax import struct
 from .exploration import OPERATORS
 from .kernels.pruning import PRUNERS
 
-__all__ = ["EANT2Config", "ExploitConfig"]
+__all__ = ["EANT2Config", "ExploitConfig", "enable_x64"]
+
+
+def enable_x64() -> None:
+    """Turn on JAX's 64-bit mode, which ``ExploitConfig(dtype="float64")`` needs. Call it
+    before any array is made: arrays made earlier keep their 32-bit types."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
 
 
 def _static(default):
@@ -30,7 +38,12 @@ def _static(default):
     return struct.field(pytree_node=False, default=default)
 
 
-_INTS = ("max_iters", "patience", "prune_window")
+_INTS = ("max_iters", "patience", "prune_window", "bound_patience")
+DTYPES = ("float32", "float64")
+# The default bound on cond(C) by the dtype of the CMA-ES state: float32 resolves an
+# eigenvalue to about 1e-7 of the largest, so a larger bound lets rounding noise through
+# (sigma then explodes along an exactly flat direction); float64 honours the paper's 1e14.
+DEFAULT_MAX_CONDITION = {"float32": 1e7, "float64": 1e14}
 
 
 @struct.dataclass
@@ -58,18 +71,41 @@ class ExploitConfig:
         ``improve_rtol * |best| + improve_atol`` (the absolute part ends runs whose cost
         approaches an exact 0).
       max_condition: bound on cond(C); eigenvalues are clipped to keep it, and the history
-        reports each iteration where the bound bit.
+        reports each iteration where the bound bit. None: 1e7 for a float32 state (what
+        float32 can resolve), 1e14 for float64.
+      dtype: *static*. ``"float32"`` (default) or ``"float64"``, the dtype of the CMA-ES
+        state (networks are still evaluated in float32). float64 needs JAX's x64 mode
+        (:func:`eant2_jax.enable_x64`), for experiments with large condition numbers.
+      sigma_up: stop when ``sigma * max(D)`` exceeds ``sigma_up * sigma0`` ("sigma
+        growth": the search is diverging, as it does along an exactly flat direction once
+        the cost reaches the float resolution); the result is the best point seen before.
+      bound_patience: stop when cond(C) has sat at ``max_condition`` for this many
+        consecutive iterations ("condition bound").
       smoothing: g of sigma_bar (eq. 5); None uses :func:`smoothing_for` of each structure.
       target_cost: stop a structure once its best cost is at or below this (pycma's
         ``ftarget``); None never stops for it (held as ``-inf``, which no cost is below).
-      pruner: *static*. ``covariance`` (the paper's), ``magnitude``, ``obd``, ``obs`` or
-        ``none``.
+      pruner: *static*. ``covariance`` (the paper's), ``magnitude``, ``obd``, ``obs``,
+        ``snr`` (signal-to-noise) or ``none``.
       prune_window: W, a pruning attempt starts when sigma_bar has decreased for at least W
         iterations and then increases (paper IV.B.1).
       prune_tolerance: accept a removal iff the cost rises by less than this fraction
         (0.001: the paper's ``e~ < 1.001 e``).
-      prune_candidates: *static*. k, the best k candidates are evaluated in one batch and the
-        lowest shifted cost that passes is accepted (1 = the paper).
+      prune_candidates: *static*. k, the best k candidates are evaluated in one batch (1 =
+        the paper); see :func:`eant2_jax.pruning.attempt`.
+      prune_refit: *static*. CMA-ES iterations of the reduced structure after the shift,
+        before the acceptance test (0: none, the paper's literal rule).
+      prune_refit_scale: the re-fit's initial step size, as a fraction of the shift's RMS
+        length per kept coordinate (see :func:`eant2_jax.pruning.attempt`).
+      prune_reference: *static*. What the shifted (and re-fitted) cost is compared with:
+        ``"best"``, the best cost seen before the attempt (default), or ``"mean"``, the cost
+        of the current mean (the paper's literal rule).
+      prune_at_stop: *static*. Also attempt when a structure stops (no improvement, sigma
+        collapse, condition bound or the iteration budget): its CMA-ES has converged there,
+        which is the paper's condition for trusting C. An accepted removal lets a structure
+        stopped for any reason but the budget run on.
+
+    The defaults prune tentatively (re-fit, acceptance against the best cost, an attempt at
+    every stop); :meth:`literal` gives the paper's rule as written. docs/pruning.md says why.
     """
 
     popsize: int | None = _static(None)
@@ -80,13 +116,20 @@ class ExploitConfig:
     patience: int = 300
     improve_rtol: float = 1e-7
     improve_atol: float = 1e-12
-    max_condition: float = 1e14
+    max_condition: float | None = None
     smoothing: float | None = None
     target_cost: float | None = None
     pruner: str = _static("none")
-    prune_window: int = 250
+    prune_window: int = 100
     prune_tolerance: float = 1e-3
     prune_candidates: int = _static(1)
+    dtype: str = _static("float32")
+    sigma_up: float = 1e4
+    bound_patience: int = 100
+    prune_refit: int = _static(100)
+    prune_refit_scale: float = 0.3
+    prune_reference: str = _static("best")
+    prune_at_stop: bool = _static(True)
 
     def __post_init__(self):
         # JAX rebuilds this pytree with tracers (or other placeholders) as leaves when it
@@ -111,6 +154,12 @@ class ExploitConfig:
                 object.__setattr__(self, f.name, v)
         if self.target_cost is None:
             object.__setattr__(self, "target_cost", -math.inf)
+        if self.dtype not in DTYPES:
+            raise ValueError(
+                f"ExploitConfig.dtype must be one of {', '.join(DTYPES)}, got {self.dtype!r}"
+            )
+        if self.max_condition is None:
+            object.__setattr__(self, "max_condition", DEFAULT_MAX_CONDITION[self.dtype])
         checks = [
             ("popsize", self.popsize is None or self.popsize >= 2, ">= 2 (or None)"),
             ("sigma0", self.sigma0 > 0 and math.isfinite(self.sigma0), "> 0 and finite"),
@@ -131,12 +180,30 @@ class ExploitConfig:
             ("prune_window", self.prune_window >= 1, ">= 1"),
             ("prune_tolerance", self.prune_tolerance >= 0, ">= 0"),
             ("prune_candidates", self.prune_candidates >= 1, ">= 1"),
+            ("sigma_up", self.sigma_up > 1, "> 1"),
+            ("prune_refit_scale", self.prune_refit_scale >= 0, ">= 0"),
+            ("bound_patience", self.bound_patience >= 1, ">= 1"),
+            (
+                "prune_refit",
+                isinstance(self.prune_refit, int) and self.prune_refit >= 0,
+                "an integer >= 0",
+            ),
+            ("prune_reference", self.prune_reference in ("mean", "best"), "'mean' or 'best'"),
+            ("prune_at_stop", isinstance(self.prune_at_stop, bool), "True or False"),
         ]
         for name, ok, want in checks:
             if not ok:
                 raise ValueError(
                     f"ExploitConfig.{name} must be {want}, got {getattr(self, name)!r}"
                 )
+
+    @classmethod
+    def literal(cls, **options) -> ExploitConfig:
+        """The paper's pruning as written (IV.B): no re-fit, acceptance against the cost of
+        the current mean, attempts only when sigma_bar turns (no attempt at a stop)."""
+        return cls(
+            **{"prune_refit": 0, "prune_reference": "mean", "prune_at_stop": False, **options}
+        )
 
     def to_dict(self) -> dict:
         """JSON-ready fields (a target of ``-inf`` is written as None, its meaning)."""
@@ -160,7 +227,6 @@ class ExploitConfig:
                 f"ExploitConfig: {', '.join(known)}"
             )
         return cls(**options)
-
 
 
 @dataclasses.dataclass(frozen=True)

@@ -122,6 +122,11 @@ def _removable_input(genome: Genome, i: int) -> bool:
     )
 
 
+def _children(genome: Genome, neuron: int) -> list[Gene]:
+    """The genes that neuron gene ``neuron`` reads directly (its inputs)."""
+    return [g for i, g in enumerate(genome.genes) if genome.parent[i] == neuron]
+
+
 def mutate(
     rng: np.random.Generator,
     genome: Genome,
@@ -177,20 +182,34 @@ def mutate(
         return _insert_child(genome, target, [Gene(GeneKind.BIAS, -1, 0.0)])
     if operator == "add_connection":
         target = neurons[int(rng.integers(len(neurons)))]
-        # A forward jumper may read any neuron to the right of the target (already evaluated
-        # at this step, so no cycle); a recurrent jumper any neuron.
-        right = [genome[i].ref for i in neurons if i > target]
-        kinds = ["input", "bias", "recurrent"] + (["forward"] if right else [])
+        # A connection the target already has would be an exact duplicate: two weights on one
+        # edge, a flat direction of the cost that adds nothing. Each kind offers only new
+        # sources; a forward jumper may read any neuron to the right of the target (already
+        # evaluated at this step, so no cycle), a recurrent jumper any neuron.
+        have = {(g.kind, g.ref) for g in _children(genome, target)}
+        ids = [genome[i].ref for i in neurons]
+        sources = {
+            GeneKind.INPUT: [j for j in range(n_inputs) if (GeneKind.INPUT, j) not in have],
+            GeneKind.BIAS: [-1] if (GeneKind.BIAS, -1) not in have else [],
+            GeneKind.RECURRENT: [r for r in ids if (GeneKind.RECURRENT, r) not in have],
+            GeneKind.FORWARD: [
+                genome[i].ref
+                for i in neurons
+                if i > target
+                and (GeneKind.FORWARD, genome[i].ref) not in have
+                and (GeneKind.NEURON, genome[i].ref) not in have
+            ],
+        }
+        kinds = [
+            k
+            for k in (GeneKind.INPUT, GeneKind.BIAS, GeneKind.RECURRENT, GeneKind.FORWARD)
+            if sources[k]
+        ]
+        if not kinds:
+            return None
         kind = kinds[int(rng.integers(len(kinds)))]
-        if kind == "input":
-            gene = Gene(GeneKind.INPUT, int(rng.integers(n_inputs)), 0.0)
-        elif kind == "bias":
-            gene = Gene(GeneKind.BIAS, -1, 0.0)
-        elif kind == "forward":
-            gene = Gene(GeneKind.FORWARD, right[int(rng.integers(len(right)))], 0.0)
-        else:
-            ids = [genome[i].ref for i in neurons]
-            gene = Gene(GeneKind.RECURRENT, ids[int(rng.integers(len(ids)))], 0.0)
+        options = sources[kind]
+        gene = Gene(kind, options[int(rng.integers(len(options)))], 0.0)
         return _insert_child(genome, target, [gene])
     raise ValueError(f"unknown operator {operator!r}; known: {', '.join(OPERATORS)}")
 

@@ -31,6 +31,7 @@ from .kernels.pruning import PRUNERS, Tables
 
 __all__ = [
     "PRUNERS",
+    "REFERENCES",
     "AttemptRecord",
     "PruneAttempt",
     "attempt",
@@ -40,6 +41,11 @@ __all__ = [
     "tables_for",
     "where_rows",
 ]
+
+
+# What an attempt's cost is compared with: the current mean's cost (the paper) or the best
+# cost seen before the attempt.
+REFERENCES = ("mean", "best")
 
 
 def where_rows(pred: jax.Array, new, old):
@@ -62,7 +68,11 @@ class AttemptRecord:
       gene: the candidate gene (-1 without an attempt).
       axis: the covariance pruner's principal axis j* (-1 otherwise).
       factor: its scaling factor s_{i*j*} (eq. 7; NaN otherwise).
-      e: the cost before the shift; e_shifted: the cost after it (NaN without an attempt).
+      e: the cost of the mean before the shift; e_shifted: the cost after it (NaN without an
+        attempt).
+      e_refit: the best cost of the re-fit of the reduced structure (NaN without a re-fit).
+      e_reference: the cost the acceptance compared with (``e``, or the best cost before
+        the attempt).
       accepted: the removal was accepted.
       cond_before, cond_after: cond(C) before and after the attempt (NaN without one).
     """
@@ -73,6 +83,8 @@ class AttemptRecord:
     factor: jax.Array
     e: jax.Array
     e_shifted: jax.Array
+    e_refit: jax.Array
+    e_reference: jax.Array
     accepted: jax.Array
     cond_before: jax.Array
     cond_after: jax.Array
@@ -83,7 +95,7 @@ class AttemptRecord:
         nan = jnp.full(s_count, jnp.nan, jnp.float32)
         no = jnp.zeros(s_count, bool)
         none = jnp.full(s_count, -1, jnp.int32)
-        return cls(no, none, none, nan, nan, nan, no, nan, nan)
+        return cls(no, none, none, nan, nan, nan, nan, nan, no, nan, nan)
 
 
 def attempt(
@@ -92,12 +104,26 @@ def attempt(
     params: cmaes.Params,
     trigger: jax.Array,
     tables: Tables,
+    keys: jax.Array,
     *,
     pruner: str,
     candidates: int = 1,
     tolerance: float | jax.Array = 1e-3,
+    refit: int = 0,
+    refit_scale: float | jax.Array = 0.3,
+    reference: str = "mean",
 ) -> tuple[cmaes.State, cmaes.Params, AttemptRecord]:
     """A pruning attempt for every triggered structure of a batch (paper IV.B, fig. 5).
+
+    The paper's attempt (``refit=0, reference="mean"``): the candidate of eqs. 5-8 (or a
+    baseline pruner's), the shift onto ``p_i = 0``, and acceptance iff the shifted cost
+    rises by less than ``tolerance`` over the cost ``e`` of the current mean. The tentative
+    attempt (``refit > 0``) adds a short CMA-ES run of the reduced structure from the
+    shifted mean, with the removed weights clamped to 0 (the other weights move back onto
+    the cost's valley, which a straight-line shift leaves), before the acceptance test; with
+    ``reference="best"`` the test is against the best cost seen before the attempt, never
+    the mean that CMA-ES has drifted from it. A rejected attempt leaves the CMA-ES state
+    exactly as it was.
 
     Args:
       cost_fn: costs ``[S, K]`` of weight vectors ``[S, K, P]`` (the task's, on the key of
@@ -105,27 +131,49 @@ def attempt(
       cma: batched CMA-ES state ``[S]``; params: its hyper-parameters ``[S]``.
       trigger: ``[S]`` bool, the structures that attempt now (the engine's trigger).
       tables: batched pruner tables ``[S, P]`` (:func:`tables_for`).
-      pruner: ``covariance``, ``magnitude``, ``obd`` or ``obs`` (static).
-      candidates: k, the k best-scored parameters are tried in one batch; the lowest
-        shifted cost that passes is taken (static; 1 = the paper).
+      keys: ``[S]`` PRNG keys of the re-fit's samples (unused without a re-fit).
+      pruner: ``covariance``, ``magnitude``, ``obd``, ``obs`` or ``snr`` (static).
+      candidates: k, the k best-scored parameters are shifted and evaluated in one batch
+        (static; 1 = the paper). Without a re-fit the lowest shifted cost that passes is
+        taken; with one, the lowest shifted cost is re-fitted and tested.
       tolerance: accept iff the cost rises by less than this fraction (0.001: the paper).
+      refit: CMA-ES iterations of the re-fit (static; 0 = none, the paper).
+      refit_scale: the re-fit starts from step size ``max(sigma, refit_scale * |shift| /
+        sqrt(n))``, ``n`` the kept coordinates: the shift's error grows with its length.
+      reference: ``"mean"`` (the paper: the cost of the current mean) or ``"best"`` (the
+        best cost before the attempt) (static).
 
     Returns:
       ``(cma, params, record)``: the state and hyper-parameters with accepted removals
       applied (others unchanged), and the :class:`AttemptRecord`. A structure attempts only
       if it has a removable parameter; ``record.attempted`` says which did, and each costs
-      ``1 + k`` evaluations.
+      ``1 + k + refit * popsize`` evaluations.
     """
+    if reference not in REFERENCES:
+        raise ValueError(f"reference must be one of {', '.join(REFERENCES)}, got {reference!r}")
     removable = jax.vmap(kp.removable)(tables, cma.mask)
     trigger = trigger & jnp.any(removable, axis=-1)
     skipped = AttemptRecord.skipped(trigger.shape[0])
     go = functools.partial(
-        _attempt, cost_fn, tables, removable, pruner=pruner, k=candidates, tolerance=tolerance
+        _attempt,
+        cost_fn,
+        tables,
+        removable,
+        keys,
+        pruner=pruner,
+        k=candidates,
+        tolerance=tolerance,
+        refit=refit,
+        refit_scale=refit_scale,
+        reference=reference,
     )
     return jax.lax.cond(jnp.any(trigger), go, lambda c, p, t: (c, p, skipped), cma, params, trigger)
 
 
-def _attempt(cost_fn, tables, removable, cma, params, trigger, *, pruner, k, tolerance):
+def _attempt(
+    cost_fn, tables, removable, keys, cma, params, trigger, *, pruner, k, tolerance, refit,
+    refit_scale, reference,
+):  # fmt: skip
     s_count, p = removable.shape
     k = min(k, p)
     score, shifted, axis, factor = jax.vmap(functools.partial(kp.scores, pruner))(
@@ -139,15 +187,19 @@ def _attempt(cost_fn, tables, removable, cma, params, trigger, *, pruner, k, tol
     trial = jnp.where(removed, 0, shifted[rows, top])  # [S, k, P]
     costs = cost_fn(jnp.concatenate([cma.mean[:, None], trial], axis=1))
     e, e_trial = costs[:, 0], costs[:, 1:]
-    ok = kp.accept(e[:, None], e_trial, tolerance)
-    ok &= jnp.isfinite(score[rows, top])
-    # Among the candidates that pass, the lowest shifted cost; if none passes, report the
-    # best-scored one.
-    pick = jnp.where(jnp.any(ok, axis=1), jnp.argmin(jnp.where(ok, e_trial, jnp.inf), 1), 0)
-    accepted = trigger & jnp.any(ok, axis=1)
+    e_ref = cma.best_cost if reference == "best" else e
+    scored = jnp.isfinite(score[rows, top])
+    ok = kp.accept(e_ref[:, None], e_trial, tolerance) & scored
+    if refit:
+        # The lowest shifted cost goes on to the re-fit (the best-scored if none is finite).
+        pick = jnp.argmin(jnp.where(scored & jnp.isfinite(e_trial), e_trial, jnp.inf), 1)
+    else:
+        # Among the candidates that pass, the lowest shifted cost; if none passes, report
+        # the best-scored one.
+        pick = jnp.where(jnp.any(ok, axis=1), jnp.argmin(jnp.where(ok, e_trial, jnp.inf), 1), 0)
     s_idx = jnp.arange(s_count)
     gene = top[s_idx, pick]
-    remove = removed[s_idx, pick] & accepted[:, None]
+    remove = removed[s_idx, pick] & trigger[:, None]
     mean = trial[s_idx, pick]
     e_new = e_trial[s_idx, pick]
     keep = cma.mask & ~remove
@@ -160,6 +212,7 @@ def _attempt(cost_fn, tables, removable, cma, params, trigger, *, pruner, k, tol
     new_params = jax.vmap(lambda n, bound: cmaes.default_params(n, popsize, max_condition=bound))(
         jnp.maximum(n, 1), params.max_condition
     )
+    new_params = jax.tree.map(lambda a, b: a.astype(b.dtype), new_params, params)
     pruned = cma.replace(
         mean=jnp.where(keep, mean, 0),
         p_sigma=jnp.where(keep, cma.p_sigma, 0),
@@ -175,16 +228,36 @@ def _attempt(cost_fn, tables, removable, cma, params, trigger, *, pruner, k, tol
         best_x=jnp.where(keep, mean, 0),
         best_cost=e_new.astype(cma.best_cost.dtype),
     )
+    if refit:
+        # The straight-line shift is exact only on a quadratic; its error grows with the
+        # length of the shift. A converged sigma is far smaller than that, so the re-fit
+        # starts from a step size of ``refit_scale`` times the shift's RMS length per kept
+        # coordinate (or the current sigma if larger).
+        n_keep = jnp.maximum(jnp.sum(keep, axis=-1), 1).astype(cma.sigma.dtype)
+        step = jnp.linalg.norm(jnp.where(keep, mean - cma.mean, 0), axis=-1)
+        sigma = jnp.maximum(cma.sigma, refit_scale * step / jnp.sqrt(n_keep))
+        pruned = _refit(
+            cost_fn, keys, pruned.replace(sigma=sigma.astype(cma.sigma.dtype)), new_params, refit
+        )
+        e_after = pruned.best_cost
+        passed = kp.accept(e_ref, e_after, tolerance) & scored[s_idx, pick]
+    else:
+        e_after = e_new
+        passed = jnp.any(ok, axis=1)
+    accepted = trigger & passed
+    nan = jnp.nan
     record = AttemptRecord(
         attempted=trigger,
         gene=jnp.where(trigger, gene, -1).astype(jnp.int32),
         axis=jnp.where(trigger, axis[s_idx, gene], -1),
-        factor=jnp.where(trigger, factor[s_idx, gene], jnp.nan),
-        e=jnp.where(trigger, e, jnp.nan),
-        e_shifted=jnp.where(trigger, e_new, jnp.nan),
+        factor=jnp.where(trigger, factor[s_idx, gene], nan),
+        e=jnp.where(trigger, e, nan),
+        e_shifted=jnp.where(trigger, e_new, nan),
+        e_refit=jnp.where(trigger & (refit > 0), e_after, nan),
+        e_reference=jnp.where(trigger, e_ref, nan),
         accepted=accepted,
-        cond_before=jnp.where(trigger, cma.cond, jnp.nan),
-        cond_after=jnp.where(trigger, jnp.where(accepted, cond, cma.cond), jnp.nan),
+        cond_before=jnp.where(trigger, cma.cond, nan),
+        cond_after=jnp.where(trigger, jnp.where(accepted, pruned.cond, cma.cond), nan),
     )
     skipped = AttemptRecord.skipped(s_count)
     record = jax.tree.map(lambda a, b: a.astype(b.dtype), record, skipped)
@@ -193,6 +266,19 @@ def _attempt(cost_fn, tables, removable, cma, params, trigger, *, pruner, k, tol
         where_rows(accepted, new_params, params),
         record,
     )
+
+
+def _refit(cost_fn, keys, cma, params, iterations: int):
+    """``iterations`` CMA-ES iterations of every structure from its shifted state (the removed
+    coordinates are masked out, so they stay exactly 0); the best cost and weights include
+    the shifted mean's own."""
+
+    def body(r, state):
+        ks = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, r)
+        x, state = jax.vmap(cmaes.ask)(ks, state, params)
+        return jax.vmap(cmaes.tell)(state, x, cost_fn(x), params)
+
+    return jax.lax.fori_loop(0, iterations, body, cma)
 
 
 # ------------------------------------------------------------------------------------ host
@@ -288,7 +374,9 @@ class PruneAttempt:
       gene: the candidate gene; kind: its kind (``input``, ``bias``, ``neuron``, ...).
       axis: the covariance pruner's principal axis j* (-1 for the other pruners).
       s: its scaling factor s_{i*j*} (eq. 7), None for the other pruners.
-      e, e_shifted: the cost before and after the shift.
+      e, e_shifted: the cost of the mean before the shift, and of the shifted mean.
+      e_refit: the best cost of the re-fit of the reduced structure (None without one).
+      e_reference: the cost the acceptance compared with.
       accepted: the removal was kept.
       cond_before, cond_after: cond(C) before and after.
       generation: the EANT2 generation (None outside the loop).
@@ -303,6 +391,8 @@ class PruneAttempt:
     s: float | None
     e: float
     e_shifted: float
+    e_refit: float | None
+    e_reference: float
     accepted: bool
     cond_before: float
     cond_after: float
@@ -316,6 +406,8 @@ class PruneAttempt:
 
     @classmethod
     def from_json(cls, d: dict) -> PruneAttempt:
+        # Records written before the tentative attempt existed have neither field.
+        d = {"e_refit": None, "e_reference": d.get("e"), **d}
         return cls(**d)
 
 
@@ -356,6 +448,8 @@ def attempt_records(
                 s=None if np.isnan(factor) else factor,
                 e=float(history.e[it, s]),
                 e_shifted=float(history.e_shifted[it, s]),
+                e_refit=None if np.isnan(history.e_refit[it, s]) else float(history.e_refit[it, s]),
+                e_reference=float(history.e_reference[it, s]),
                 accepted=bool(history.accepted[it, s]),
                 cond_before=float(history.cond_before[it, s]),
                 cond_after=float(history.cond_after[it, s]),

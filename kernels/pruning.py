@@ -34,7 +34,7 @@ __all__ = [
     "scores",
 ]
 
-PRUNERS = ("covariance", "magnitude", "obd", "obs", "none")
+PRUNERS = ("covariance", "magnitude", "obd", "obs", "snr", "none")
 
 
 @struct.dataclass
@@ -101,7 +101,7 @@ def scores(
     """Every parameter's pruning score and shifted mean, for one pruner.
 
     Args:
-      pruner: ``covariance``, ``magnitude``, ``obd`` or ``obs`` (static).
+      pruner: ``covariance``, ``magnitude``, ``obd``, ``obs`` or ``snr`` (static).
       mean: ``[P]`` CMA-ES mean m.
       sigma: ``[]`` step size.
       C: ``[P, P]`` covariance; B ``[P, P]`` its eigenvectors (columns), D ``[P]`` the square
@@ -138,6 +138,12 @@ def scores(
         inv_d2 = jnp.where(valid_axes, 1 / jnp.where(valid_axes, D, 1) ** 2, 0)
         h_diag = jnp.sum(B**2 * inv_d2[None, :], axis=1) / sigma**2
         score = 0.5 * mean**2 * h_diag
+        shifted = jnp.broadcast_to(mean, (p, p))
+    elif pruner == "snr":
+        # Signal-to-noise (Lange & Sprekeler's ES-lottery rule): |m_i| / (sigma sqrt(C_ii)),
+        # the mean in units of the search distribution's own spread along i; no shift.
+        spread = sigma * jnp.sqrt(jnp.maximum(jnp.diagonal(C), 0))
+        score = jnp.where(spread > 0, jnp.abs(mean) / jnp.where(spread > 0, spread, 1), inf)
         shifted = jnp.broadcast_to(mean, (p, p))
     elif pruner == "obs":
         # OBS with H^-1 ~ sigma^2 C: saliency m_i^2 / (2 sigma^2 C_ii), eq. (2);

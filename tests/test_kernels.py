@@ -400,24 +400,38 @@ def test_wheel_installs_kernels_inside_the_package(tmp_path):
     (wheel,) = dist.glob("eant2_jax-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
     assert "eant2_jax/kernels/network.py" in names
+    # Every stage and application module, and the servo task's model, ship in the wheel.
+    for module in ("tuning", "exploitation", "pruning", "config", "multirun", "app/cli"):
+        assert f"eant2_jax/{module}.py" in names, module
+    assert "eant2_jax/tasks/arm.xml" in names
     assert not any(n.startswith("kernels/") for n in names), "a top-level kernels/ was packaged"
     top_level = [n for n in names if n.endswith(".dist-info/top_level.txt")]
     if top_level:
         assert zipfile.ZipFile(wheel).read(top_level[0]).decode().split() == ["eant2_jax"]
 
-    # jax and the other dependencies come from this interpreter's site-packages: no network.
+    # A fresh venv that sees this interpreter's packages (jax and the other dependencies: no
+    # network) through a path file. ``--system-site-packages`` would see the BASE
+    # interpreter's packages instead, which inside a venv have no jax. Site directories
+    # listed in a path file are plain path entries: their own .pth files (this checkout's
+    # editable install among them) are not run, so eant2_jax can only come from the wheel.
     subprocess.run(
-        [sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", str(venv)],
-        check=True,
-        timeout=120,
+        [sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120
     )
     python = str(venv / ("Scripts/python.exe" if os.name == "nt" else "bin/python"))
+    purelib = _run_python(
+        "import sysconfig; print(sysconfig.get_paths()['purelib'])", python=python, cwd=elsewhere
+    ).strip()
+    import site
+
+    outer = [d for d in site.getsitepackages() if Path(d).is_dir()]
+    (Path(purelib) / "outer-site.pth").write_text("\n".join(outer) + "\n")
     install = subprocess.run(
-        [python, "-m", "pip", "install", "--no-deps", "--no-index", "-q", str(wheel)],
+        [sys.executable, "-m", "pip", "install", "--no-deps", "--no-index", "-q",
+         "--target", purelib, str(wheel)],
         capture_output=True,
         text=True,
         timeout=300,
-    )
+    )  # fmt: skip
     assert install.returncode == 0, install.stdout[-3000:] + install.stderr[-3000:]
     out = _run_python(
         """

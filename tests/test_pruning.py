@@ -61,7 +61,12 @@ NO_EFFECT = Genome.parse("N0/2*1 I0*0.7 I1*0.3")  # gene 2 (I1) has no effect
 PARALLEL = Genome.parse("N0/2*1 I0*0.7 I0*0.5")  # genes 1, 2: parallel copies
 BOTH = Genome.parse("N0/3*1 I0*0.7 I0*0.5 I1*0.3")
 SEEDS = (0, 1, 2)
-PRUNE_OPTIONS = dict(popsize=8, max_iters=1500, pruner="covariance", prune_window=100, patience=300)
+# The paper's rule as written (ExploitConfig.literal): these tests check it exactly; the
+# tentative attempt (the default) has tests of its own below.
+LITERAL = dict(prune_refit=0, prune_reference="mean", prune_at_stop=False)
+PRUNE_OPTIONS = dict(
+    popsize=8, max_iters=1500, pruner="covariance", prune_window=100, patience=300, **LITERAL
+)
 
 
 @functools.cache
@@ -252,7 +257,7 @@ def attempt_task():
     return regression(x, y, hidden="tanh", output="tanh")
 
 
-_INIT_CONFIG = ex.ExploitConfig(popsize=8)
+_INIT_CONFIG = ex.ExploitConfig(popsize=8, max_condition=1e14)
 
 
 @jax.jit
@@ -306,7 +311,7 @@ def test_pruning_attempt_matches_host_recomputation(pruner, k):
     recomputes the hyper-parameters and resets the best to (m~, e~); a rejection leaves the
     CMA-ES untouched. Costs are recomputed from the PRUNED genomes (their own programs)."""
     task = attempt_task()
-    config = ex.ExploitConfig(popsize=8, pruner=pruner, prune_candidates=k)
+    config = ex.ExploitConfig(popsize=8, pruner=pruner, prune_candidates=k, **LITERAL)
     batch = compile_genomes(ATTEMPT_GENOMES, 2, pad_count=False)
     tables = tables_for(ATTEMPT_GENOMES, P)
     mask = np.asarray(batch.layout.gene_mask)
@@ -731,3 +736,93 @@ def test_accept_tolerance_and_batch():
 
 def test_attempt_records_without_pruner_are_empty():
     assert attempt_records(None, [NO_EFFECT], "none") == []
+
+
+# --------------------------------------------------------------------------------------------
+# The tentative attempt (the default): re-fit, acceptance against the best cost, restore.
+
+
+@pytest.mark.parametrize("pruner", ["covariance", "snr"])
+def test_tentative_attempt_refits_and_restores_on_rejection(pruner):
+    """With a re-fit, the attempt compares the re-fitted cost of the reduced structure with
+    the best cost seen BEFORE the attempt; a rejection leaves the CMA-ES state bit for bit
+    as it was, an acceptance continues from the re-fit; each attempt costs
+    1 + k + refit * popsize evaluations."""
+    task = attempt_task()
+    refit = 6
+    config = ex.ExploitConfig(popsize=8, pruner=pruner, prune_refit=refit, prune_reference="best")
+    batch = compile_genomes(ATTEMPT_GENOMES, 2, pad_count=False)
+    tables = tables_for(ATTEMPT_GENOMES, P)
+    mask = np.asarray(batch.layout.gene_mask)
+    covariances = np.stack([_spd_on(mask[r], seed=20 + r) for r in range(2)])
+    st = _attempt_state(batch.weights, batch.layout.gene_mask, covariances)
+    # A best cost before the attempt, below the mean's own (the mean has drifted from it).
+    best = eant2_jax.cost(list(ATTEMPT_GENOMES), task, key=jax.random.key(0)) * 0.999
+    st = st.replace(cma=st.cma.replace(best_cost=jnp.asarray(best, jnp.float32)))
+    new, rec = jax.device_get(_attempt(st, batch.layout, tables, task, config))
+    st = jax.device_get(st)
+    for r in range(2):
+        old, got = _row(st.cma, r), _row(new.cma, r)
+        assert rec.attempted[r]
+        assert rec.e_reference[r] == np.float32(best[r])
+        # The re-fit starts from the shifted mean and keeps the best it saw.
+        assert rec.e_refit[r] <= rec.e_shifted[r]
+        assert rec.accepted[r] == _accept_np(rec.e_reference[r], rec.e_refit[r])
+        assert new.evals[r] == st.evals[r] + 1 + 1 + refit * 8
+        if rec.accepted[r]:
+            removed = ~got.mask & old.mask
+            assert removed[rec.gene[r]] and got.n == old.mask.sum() - removed.sum()
+            assert got.best_cost == np.float32(rec.e_refit[r])
+            assert np.all(got.mean[removed] == 0) and np.all(got.best_x[removed] == 0)
+        else:
+            for leaf_old, leaf_new in zip(jax.tree.leaves(old), jax.tree.leaves(got), strict=True):
+                np.testing.assert_array_equal(leaf_new, leaf_old)
+    # The tiny copy goes (its re-fit even improves on the best); the genome that needs every
+    # connection keeps them all.
+    assert rec.accepted[0] and rec.gene[0] == 4
+    assert not rec.accepted[1]
+
+
+def test_literal_preset_is_the_papers_rule():
+    config = ex.ExploitConfig.literal(pruner="covariance")
+    assert (config.prune_refit, config.prune_reference, config.prune_at_stop) == (0, "mean", False)
+    assert ex.ExploitConfig().prune_refit > 0 and ex.ExploitConfig().prune_reference == "best"
+
+
+# Known redundancy, through optimize() with DEFAULT settings: a parallel copy of an input, an
+# input with no effect, a duplicated hidden neuron; identity and tanh outputs. The targets are
+# one-neuron functions plus noise over many samples, so that the extra capacity of the
+# redundant connection fits the noise by far less than the 0.1% tolerance (about p / n).
+def _known_redundancy(output: str):
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(16384, 3))
+    noise = 0.05 * rng.normal(size=(16384, 1))
+    f = np.tanh if output == "tanh" else (lambda v: v)
+    return {
+        # name: (targets, genome, genes that may go, inputs that must stay)
+        "parallel": (f(1.5 * x[:, :1]) + noise, "N0/3*1 I0*0.7 I0*0.8 I1*0.5", {1, 2, 3}, {0}),
+        "no_effect": (f(x[:, :1] - x[:, 1:2]) + noise, "N0/3*1 I0*0.5 I1*-0.5 I2*0.3", {3}, {0, 1}),
+        "duplicate": (
+            f(1.2 * np.tanh(x[:, :1] + x[:, 1:2])) + noise,
+            "N0/2*1 N1/2*0.6 I0*1.0 I1*1.0 N2/2*0.5 I0*0.9 I1*1.1",
+            {1, 4},
+            {0, 1},
+        ),
+    }, x
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("output", ["identity", "tanh"])
+def test_default_optimize_prunes_known_redundancy(output):
+    problems, x = _known_redundancy(output)
+    for name, (y, text, may_go, must_stay) in problems.items():
+        task = regression(x, y, hidden="tanh", output=output)
+        for seed in (0, 1):
+            key = jax.random.key(seed)
+            base = optimize(text, task, key=key)  # pruner "none" is optimize's default
+            res = optimize(text, task, key=key, pruner="covariance")
+            removed = {r.gene for r in res.pruning if r.accepted}
+            reads = {g.ref for g in res.genome.genes if g.kind == GeneKind.INPUT}
+            assert removed and removed <= may_go, (name, seed, removed)
+            assert must_stay <= reads, (name, seed, str(res.genome))
+            assert res.cost <= 1.01 * base.cost, (name, seed, res.cost, base.cost)

@@ -14,6 +14,7 @@ def test_reproduce_short_servo(tmp_path):
     cmd = [
         sys.executable, "-m", "eant2_jax.app.cli", "reproduce", "--runs", "2", "--generations", "2",
         "--population", "3", "--max-iters", "30", "--condition-iters", "60",
+        "--condition-inits", "2", "--pruners", "covariance,covariance-literal",
         "--task-option", "n_starts=16", "--out", str(out),
     ]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
@@ -24,13 +25,21 @@ def test_reproduce_short_servo(tmp_path):
         assert (report / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     text = (report / "report.md").read_text()
     assert "| covariance | 2 |" in text and "| none | 2 |" in text
+    assert "| covariance-literal | 2 |" in text
     assert "The paper's claims" in text and "Baselines" in text
     summary = json.loads((report / "summary.json").read_text())
-    assert set(summary) == {"covariance", "none"}
-    for arm in ("covariance", "none"):
+    assert set(summary) == {"covariance", "covariance-literal", "none"}
+    cond = json.loads((out / "condition.json").read_text())
+    assert cond["dtype"] == "float64" and len(cond["peak_before"]) == 2
+    assert all(len(c) == 60 for c in cond["before"] + cond["after"])
+    for arm in ("covariance", "covariance-literal", "none"):
         for seed in (0, 1):
             gens = (out / f"{arm}-s{seed}" / "generations.jsonl").read_text().splitlines()
             assert len(gens) == 3  # generations 0, 1, 2
+    # An unknown arm is one line before anything runs.
+    bad = subprocess.run([*cmd[:-1], str(tmp_path / "bad"), "--pruners", "covariance-exact"],
+                         capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert bad.returncode == 2 and "unknown arm" in bad.stderr and not (tmp_path / "bad").exists()
     # The output directory is never overwritten.
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert again.returncode == 2 and "not overwriting" in again.stderr

@@ -215,6 +215,10 @@ def _reproduce(args: argparse.Namespace) -> int:
     options.update(_task_options(args.task_option))
     task = eant2_jax.tasks.make(args.task, **options)
     pruners = [p.strip() for p in args.pruners.split(",") if p.strip()]
+    from eant2_jax.app.experiments import arm_config
+
+    for arm in pruners:  # one clear line before anything runs
+        arm_config(EANT2Config(), arm)
     exploit = {} if args.max_iters is None else {"max_iters": args.max_iters}
     config = EANT2Config(population=args.population, exploit=ExploitConfig(**exploit))
     out = Path(args.out) if args.out else _free_dir(f"reproduce-{args.task}", args.seed)
@@ -242,6 +246,8 @@ def _reproduce(args: argparse.Namespace) -> int:
         workers_per_device=args.workers,
         condition=not args.no_condition,
         condition_iters=args.condition_iters,
+        condition_inits=args.condition_inits,
+        condition_dtype=args.condition_dtype,
         callback=progress,
     )
     print(f"report: {path}")
@@ -342,7 +348,7 @@ def _parser() -> argparse.ArgumentParser:
     rep = sub.add_parser(
         "reproduce", help="the paper's experiments (with/without pruning) + report"
     )
-    rep.add_argument("--runs", type=_positive, default=5, help="runs per arm (default 5)")
+    rep.add_argument("--runs", type=_positive, default=10, help="runs per arm (default 10)")
     rep.add_argument("--generations", type=_non_negative, default=15, help="default 15")
     rep.add_argument(
         "--mode",
@@ -353,7 +359,9 @@ def _parser() -> argparse.ArgumentParser:
     rep.add_argument(
         "--pruners",
         default="covariance",
-        help="comma-separated pruning arms, e.g. covariance,obs,obd,magnitude",
+        help="comma-separated pruning arms, e.g. covariance,covariance-literal,obs,obd,"
+        "magnitude,snr (NAME-literal: the paper's rule as written); an arm without pruning "
+        "is always added",
     )
     rep.add_argument("--population", type=_positive, default=20, help="population size")
     rep.add_argument(
@@ -368,8 +376,20 @@ def _parser() -> argparse.ArgumentParser:
     rep.add_argument(
         "--condition-iters",
         type=_positive,
-        default=2000,
-        help="CMA-ES budget of each run of the condition experiment (default 2000)",
+        default=10_000,
+        help="CMA-ES budget of each run of the condition experiment (default 10000)",
+    )
+    rep.add_argument(
+        "--condition-inits",
+        type=_positive,
+        default=5,
+        help="random initialisations of each network in the condition experiment (default 5)",
+    )
+    rep.add_argument(
+        "--condition-dtype",
+        choices=["float64", "float32"],
+        default="float64",
+        help="CMA-ES state in the condition experiment (default float64: x64 mode after the runs)",
     )
     rep.add_argument(
         "--task-option",

@@ -211,6 +211,18 @@ class LoadedRun:
     pruning: list[PruneAttempt]
 
 
+def _peaks(condition: dict, which: str) -> list[float]:
+    """Peak cond(C) of each run of the condition experiment (one run in older files)."""
+    curves = condition[which]
+    if curves and not isinstance(curves[0], list):
+        curves = [curves]
+    return [float(max(c)) for c in curves]
+
+
+def _fmt_list(values: list[float]) -> str:
+    return "[" + ", ".join(f"{v:.3g}" for v in values) + "]"
+
+
 def load_runs(dirs: Sequence[str | Path]) -> list[LoadedRun]:
     """Read run directories: config, generation records and arm label of each."""
     from ..rundir import RunDir
@@ -356,8 +368,15 @@ def report(
     figures = ["fitness_size.png"]
     if condition is not None:
         fig, ax = plt.subplots(figsize=(6, 4))
-        ax.semilogy(condition["before"], label=f"original ({condition.get('size_before')} params)")
-        ax.semilogy(condition["after"], label=f"pruned ({condition.get('size_after')} params)")
+        for name, colour, label in (
+            ("before", "C0", f"original ({condition.get('size_before')} params)"),
+            ("after", "C1", f"pruned ({condition.get('size_after')} params)"),
+        ):
+            curves = condition[name]
+            if curves and not isinstance(curves[0], list):  # one run (older condition.json)
+                curves = [curves]
+            for i, c in enumerate(curves):
+                ax.semilogy(c, color=colour, lw=0.8, label=label if i == 0 else None)
         ax.set(xlabel="CMA-ES iteration", ylabel="cond(C)", title="condition of C")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
@@ -419,10 +438,13 @@ def report(
             "",
         ]
     if condition is not None:
+        peaks = {k: _peaks(condition, k) for k in ("before", "after")}
         lines += [
-            f"Condition experiment (V.A): cond(C) peaked at {max(condition['before']):.3g} for "
-            f"the original network ({condition.get('size_before')} parameters) and at "
-            f"{max(condition['after']):.3g} after pruning ({condition.get('size_after')}).",
+            f"Condition experiment (V.A): peak cond(C) per initialisation "
+            f"{_fmt_list(peaks['before'])} for the original network "
+            f"({condition.get('size_before')} parameters) and {_fmt_list(peaks['after'])} after "
+            f"pruning ({condition.get('size_after')}); medians {np.median(peaks['before']):.3g} "
+            f"and {np.median(peaks['after']):.3g}.",
             "",
         ]
     if "notes" in extra:

@@ -1,0 +1,22 @@
+"""The code passes ``ruff check`` (CI runs README's test command only, so lint runs here)."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_ruff_check():
+    pytest.importorskip("ruff")
+    folders = [str(REPO / d) for d in ("eant2_jax", "kernels", "tests", "bench")]
+    done = subprocess.run(
+        [sys.executable, "-m", "ruff", "check", "--no-cache", *folders],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stdout[-6000:] + done.stderr[-2000:]

@@ -221,17 +221,17 @@ def test_same_bucket_does_not_compile_again():
 
     with count_compiles() as c:
         y1 = eant2_jax.evaluate(first, x)
-    assert c.count >= 1
+    assert c.of("rollout_batch") == 1, c.names
     with count_compiles() as c:
         y2 = eant2_jax.evaluate(second, x)
     assert c.count == 0, "a same-bucket batch compiled again"
     with count_compiles() as c:
         eant2_jax.evaluate(second, 2 * x)  # new input values: no new program either
     assert c.count == 0
-    # The check can fail: a bigger bucket does compile.
+    # The check can fail: a bigger bucket does compile, once.
     with count_compiles() as c:
         y3 = eant2_jax.evaluate(third, x)
-    assert c.count >= 1
+    assert c.of("rollout_batch") == 1, c.names
     with count_compiles() as c:
         eant2_jax.evaluate(third, x)
     assert c.count == 0

@@ -120,6 +120,7 @@ def test_streams_are_independent():
 
 
 # ------------------------------------------------------------------------ property: compiled
+@pytest.mark.slow
 @given(batch=genome_batches(max_size=ROWS), x=inputs(5, 2))
 def test_compiled_matches_reference(batch, x):
     """Batches of 1-4 genomes of different sizes, 1-3 outputs, exactly the sweeps their depth
@@ -127,6 +128,7 @@ def test_compiled_matches_reference(batch, x):
     assert_close(run_fixed_bucket(batch, x), reference(batch, x))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("hidden", "output"), list(itertools.product(ACTIVATIONS, repeat=2)))
 @fewer_examples(0.1)  # 16 pairs; one program each
 @given(batch=genome_batches(n_outputs=2, min_size=ROWS, max_size=ROWS), x=inputs(4, 3))
@@ -135,6 +137,7 @@ def test_every_activation_pair(hidden, output, batch, x):
     assert_close(got, reference(batch, x, hidden, output))
 
 
+@pytest.mark.slow
 @fewer_examples(0.08)  # each example may compile a program of its own
 @given(
     batch=genome_batches(max_size=3),

@@ -1,9 +1,29 @@
-"""Count XLA compilations through JAX's public monitoring events (not ``_cache_size()``)."""
+"""Count XLA compilations through JAX's public monitoring events (not ``_cache_size()``).
+
+JAX records the event ``/jax/core/compile/backend_compile_duration`` once per program that XLA
+compiles (a persistent-cache hit included; an in-memory cache hit records nothing), with the
+program's name as ``fun_name``: ``jit(<the function's __name__>)`` in jax 0.10. Eager
+operations compile small programs of their own (``jit(add)``, ``jit(broadcast_in_dim)``, ...),
+so "this function compiled once" is ``c.of(name) == 1``, while ``c.count == 0`` says nothing
+compiled at all. ``tests/test_compiles.py`` checks that the event still fires and carries the
+name, so a rename in a future JAX cannot make ``c.count == 0`` pass vacuously.
+
+Usage::
+
+    with count_compiles() as c:
+        f(x)
+    assert c.count == 0                  # nothing compiled at all
+    assert c.of("rollout_batch") == 1    # the jitted function rollout_batch compiled once
+
+``c`` is live inside the block too (read ``c.count`` between calls); blocks may nest.
+"""
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
+from collections.abc import Iterator
 
 import jax
 
@@ -13,25 +33,54 @@ EVENT = "/jax/core/compile/backend_compile_duration"
 
 @dataclasses.dataclass
 class Compiles:
-    count: int = 0
+    """The compilations seen inside one :func:`count_compiles` block.
+
+    Attributes:
+      names: each compiled program's name (``fun_name``), in order, one per compilation.
+      seconds: backend compile seconds, summed.
+    """
+
+    names: list[str] = dataclasses.field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def count(self) -> int:
+        """Programs compiled (any program, eager operations included)."""
+        return len(self.names)
+
+    def of(self, name: str) -> int:
+        """Compilations of the jitted function named ``name`` (``"f"`` and ``"jit(f)"`` both
+        match the program of ``jax.jit(f)``)."""
+        return sum(_bare(n) == _bare(name) for n in self.names)
+
+    def by_name(self) -> dict[str, int]:
+        """Compilations per program name."""
+        return dict(collections.Counter(self.names))
+
+
+def _bare(name: str) -> str:
+    """``jit(f)`` -> ``f``; ``f`` -> ``f``."""
+    head, sep, rest = name.partition("(")
+    return rest[:-1] if sep and rest.endswith(")") and head.isidentifier() else name
 
 
 _active: list[Compiles] = []
 
 
 def _listen(event: str, duration: float, **kwargs) -> None:
-    del duration, kwargs
     if event == EVENT:
         for c in _active:
-            c.count += 1
+            c.names.append(str(kwargs.get("fun_name", "")))
+            c.seconds += duration
 
 
 jax.monitoring.register_event_duration_secs_listener(_listen)
 
 
 @contextlib.contextmanager
-def count_compiles():
-    """``with count_compiles() as c: ...``; ``c.count`` programs were compiled inside."""
+def count_compiles() -> Iterator[Compiles]:
+    """``with count_compiles() as c: ...``: ``c.count`` programs were compiled inside,
+    ``c.of(name)`` of them by the jitted function ``name``."""
     c = Compiles()
     _active.append(c)
     try:

@@ -22,6 +22,7 @@ pytest.importorskip(
 from bench import bench_cmaes  # noqa: E402
 
 
+@pytest.mark.slow
 def test_quick_run_writes_json_and_markdown(tmp_path, capsys):
     out = tmp_path / "cmaes.json"
     bench_cmaes.main(["--quick", "--out", str(out)])

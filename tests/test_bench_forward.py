@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 # bench/ is a folder of scripts at the repository root, not part of the installed package;
 # plain `pytest` puts tests/ (not the root) on sys.path.
@@ -39,6 +40,7 @@ ROW_FIELDS = {
 }
 
 
+@pytest.mark.slow
 def test_quick_run_writes_json_and_markdown(tmp_path, capsys):
     out = tmp_path / "forward.json"
     bench_forward.main(["--quick", "--out", str(out)])

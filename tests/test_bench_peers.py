@@ -10,6 +10,9 @@ import pytest
 pytest.importorskip("cma")
 pytest.importorskip("neat")
 
+# Each runs a peer or the pole benchmark end to end (10 to 30 s on a 2-core CPU).
+pytestmark = pytest.mark.slow
+
 
 def test_outputs_cost_matches_network_cost():
     # The NEAT path scores raw outputs; for a network it must equal task.cost exactly
@@ -47,7 +50,6 @@ def test_peers_quick(tmp_path):
     assert out.with_suffix(".md").exists()
 
 
-@pytest.mark.slow
 def test_peers_quick_all_methods(tmp_path):
     from bench import bench_peers
 

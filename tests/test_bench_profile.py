@@ -59,6 +59,7 @@ def test_analyse_trace_on_a_hand_made_trace(tmp_path):
     assert out["devices"] == ["/device:GPU:0"]
 
 
+@pytest.mark.slow
 def test_profile_quick_trace_run(tmp_path):
     # A real (tiny) servo run under jax.profiler: one window per generation, host functions
     # of the loop found; on a CPU there is no device process, so no device time.

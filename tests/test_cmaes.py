@@ -156,12 +156,14 @@ def _assert_params_match(n: int, popsize: int, ours: cmaes.Params):
 POPSIZES = [2, 3, 8, 15, 64]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 10, 40, 200])
 @pytest.mark.parametrize("popsize", POPSIZES)
 def test_default_params_match_evosax(n, popsize):
     _assert_params_match(n, popsize, cmaes.default_params(n, popsize))
 
 
+@pytest.mark.slow
 @settings(deadline=None, max_examples=25)
 @given(n=st.integers(1, 500), popsize=st.sampled_from(POPSIZES))
 def test_default_params_match_evosax_random(n, popsize):
@@ -218,6 +220,7 @@ def _ours_from_evosax(es_state, n: int, popsize: int):
     return state, params
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n", [4, 16])
 @pytest.mark.parametrize("kind", ["init", "random"])
 @pytest.mark.parametrize("nan_last", [False, True])
@@ -400,6 +403,7 @@ def _assert_padded_zero(state, n):
     assert np.all(np.asarray(state.B[n:][:, state.valid_axes]) == 0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("P", [8, 16, 64])
 def test_padding_invariance(P):
     n = PAD_N
@@ -415,6 +419,7 @@ def test_padding_invariance(P):
     _assert_padded_zero(state, n)
 
 
+@pytest.mark.slow
 def test_vmap_structures_match_solo_runs_float64():
     """S = 3 structures of n = 3, 7, 12 in one P = 16, vmapped, equal their solo runs.
 
@@ -498,6 +503,7 @@ def test_nonfinite_costs_rank_last_and_never_poison():
     np.testing.assert_allclose(state.mean[:6], 0.5, atol=1e-3)
 
 
+@pytest.mark.slow
 def test_nonfinite_count_and_all_failed_generation():
     n, P, popsize = 5, 8, 8
     params = cmaes.default_params(n, popsize)
@@ -524,6 +530,7 @@ def test_nonfinite_count_and_all_failed_generation():
 # 7. jit, vmap, no second compile; dtypes.
 
 
+@pytest.mark.slow
 def test_jit_matches_eager_and_compiles_once():
     n, P = 5, 8
     params = cmaes.default_params(n, 8)
@@ -560,6 +567,7 @@ def test_jit_matches_eager_and_compiles_once():
     tell(state2, x2, jnp.sum(x2**2, axis=-1), params2)
 
 
+@pytest.mark.slow
 def test_vmapped_step_compiles_once():
     S, P, popsize = 3, 8, 8
     masks = jnp.arange(P)[None, :] < jnp.array([2, 5, 8])[:, None]

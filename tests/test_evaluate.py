@@ -120,6 +120,7 @@ def test_streams_are_independent():
 
 
 # ------------------------------------------------------------------------ property: compiled
+@pytest.mark.slow
 @given(batch=genome_batches(max_size=ROWS), x=inputs(5, 2))
 def test_compiled_matches_reference(batch, x):
     """Batches of 1-4 genomes of different sizes, 1-3 outputs, exactly the sweeps their depth
@@ -127,6 +128,7 @@ def test_compiled_matches_reference(batch, x):
     assert_close(run_fixed_bucket(batch, x), reference(batch, x))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("hidden", "output"), list(itertools.product(ACTIVATIONS, repeat=2)))
 @fewer_examples(0.1)  # 16 pairs; one program each
 @given(batch=genome_batches(n_outputs=2, min_size=ROWS, max_size=ROWS), x=inputs(4, 3))
@@ -135,6 +137,7 @@ def test_every_activation_pair(hidden, output, batch, x):
     assert_close(got, reference(batch, x, hidden, output))
 
 
+@pytest.mark.slow
 @fewer_examples(0.08)  # each example may compile a program of its own
 @given(
     batch=genome_batches(max_size=3),
@@ -221,17 +224,17 @@ def test_same_bucket_does_not_compile_again():
 
     with count_compiles() as c:
         y1 = eant2_jax.evaluate(first, x)
-    assert c.count >= 1
+    assert c.of("rollout_batch") == 1, c.names
     with count_compiles() as c:
         y2 = eant2_jax.evaluate(second, x)
     assert c.count == 0, "a same-bucket batch compiled again"
     with count_compiles() as c:
         eant2_jax.evaluate(second, 2 * x)  # new input values: no new program either
     assert c.count == 0
-    # The check can fail: a bigger bucket does compile.
+    # The check can fail: a bigger bucket does compile, once.
     with count_compiles() as c:
         y3 = eant2_jax.evaluate(third, x)
-    assert c.count >= 1
+    assert c.of("rollout_batch") == 1, c.names
     with count_compiles() as c:
         eant2_jax.evaluate(third, x)
     assert c.count == 0

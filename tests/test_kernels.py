@@ -382,6 +382,20 @@ def _copy_sources(dest: Path) -> None:
             )
 
 
+def _expected_in_wheel() -> set[str]:
+    """Every module and data file the wheel must hold, read off pyproject.toml's packages,
+    package-dir and package-data (so a new module or task file is covered automatically)."""
+    tool = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    package_dir, package_data = tool.get("package-dir", {}), tool.get("package-data", {})
+    expected = set()
+    for package in tool["packages"]:
+        folder = REPO / package_dir.get(package, package.replace(".", "/"))
+        patterns = ["*.py", *package_data.get(package, [])]
+        files = {f for pattern in patterns for f in folder.glob(pattern) if f.is_file()}
+        expected |= {f"{package.replace('.', '/')}/{f.name}" for f in files}
+    return expected
+
+
 @pytest.mark.slow
 def test_wheel_installs_kernels_inside_the_package(tmp_path):
     """Build a wheel, install it in a fresh venv, import from outside the repository."""
@@ -404,6 +418,8 @@ def test_wheel_installs_kernels_inside_the_package(tmp_path):
     for module in ("tuning", "exploitation", "pruning", "config", "multirun", "app/cli"):
         assert f"eant2_jax/{module}.py" in names, module
     assert "eant2_jax/tasks/arm.xml" in names
+    missing = _expected_in_wheel() - set(names)
+    assert not missing, f"not in the wheel: {sorted(missing)}"
     assert not any(n.startswith("kernels/") for n in names), "a top-level kernels/ was packaged"
     top_level = [n for n in names if n.endswith(".dist-info/top_level.txt")]
     if top_level:
@@ -445,14 +461,26 @@ def test_wheel_installs_kernels_inside_the_package(tmp_path):
         y = eant2_jax.evaluate("N0/2*2 I0*0.5 R0*1", np.array([[[1.0]], [[2.0]], [[3.0]]]))
         print(np.asarray(y).ravel().tolist())
         print("kernels" in sys.modules)
+        import eant2_jax.tasks.servo  # (MJX may print a line of its own on import)
+        print("arm:", eant2_jax.tasks.servo.ARM_XML)
+        for name, module in sorted(sys.modules.items()):
+            if name.split(".")[0] == "eant2_jax":
+                print("module:", module.__file__)
         """,
         python=python,
         cwd=elsewhere,
     )
     prefix, package, network, y, imported = out.split("\n")[:5]
+    tagged = [line.split(": ", 1) for line in out.split("\n") if ": " in line]
+    (arm,) = [f for tag, f in tagged if tag == "arm"]
+    modules = [f for tag, f in tagged if tag == "module"]
     assert Path(prefix).resolve() == venv.resolve()
-    for f in (package, network):
+    # Every eant2_jax module imported (evaluate's and the servo task's dependencies) is the
+    # installed copy; none came from this checkout.
+    assert len(modules) > 10, modules
+    for f in (package, network, arm, *modules):
         assert Path(f).resolve().is_relative_to(venv.resolve()), f
+    assert Path(arm).is_file()
     assert Path(network).resolve().parent == Path(package).resolve().parent / "kernels"
     assert y == "[1.0, 3.0, 6.0]"
     assert imported == "False"

@@ -286,6 +286,7 @@ def test_rollout_matches_trajectory(mult):
 
 
 # --------------------------------------------------------------- jit, vmap, compiled once
+@pytest.mark.slow
 def test_cost_jit_vmap_batch_and_single_compile():
     rng = np.random.default_rng(0)
     n = len(LQR) + 1
@@ -317,6 +318,7 @@ def test_cost_jit_vmap_batch_and_single_compile():
     cost(other, batch_of(w[::-1].copy()))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("chunk", [7, _STEPS])
 def test_damping_cost_batched_and_chunk_does_not_change_it(chunk):
     """dpnv costs of networks batched [2, 3] under jit equal the one-network rollouts, for any
@@ -341,6 +343,7 @@ def test_linear_controller_balances_through_the_public_cost():
     assert float(eant2_jax.cost(LQR_GENOME, task, key=jax.random.key(0))[0]) == -2000
 
 
+@pytest.mark.slow
 def test_solved_reports_both_parts():
     task = pole.dpv()
     check = dict(long_steps=2000, test_steps=200)

@@ -98,6 +98,7 @@ def _accepted(runs, genome):
     ]
 
 
+@pytest.mark.slow
 def test_removes_a_connection_without_effect(runs):
     best = min(r.cost for r in runs.values())
     removed = 0
@@ -115,6 +116,7 @@ def test_removes_a_connection_without_effect(runs):
     assert any(runs[(str(BOTH), s)].genome.n_params < BOTH.n_params for s in SEEDS)
 
 
+@pytest.mark.slow
 def test_removes_one_of_two_parallel_copies(runs):
     best = min(r.cost for r in runs.values())
     accepted = _accepted(runs, PARALLEL)
@@ -128,6 +130,7 @@ def test_removes_one_of_two_parallel_copies(runs):
         assert res.cost < (1 + TOL) * best
 
 
+@pytest.mark.slow
 def test_necessary_connection_is_never_removed(runs):
     for (_, seed), res in runs.items():
         assert _reads(res.genome, 0) >= 1, seed
@@ -139,6 +142,7 @@ def test_necessary_connection_is_never_removed(runs):
             assert rec.gene != 0, key  # the root's own weight is never a candidate
 
 
+@pytest.mark.slow
 def test_every_attempt_obeys_the_acceptance_rule(runs):
     n_attempts = 0
     for key, res in runs.items():
@@ -188,6 +192,7 @@ def _like_optimize(text: str, seed: int):
     return res.state, res.history
 
 
+@pytest.mark.slow
 def test_dimension_drops_by_one_and_optimisation_continues(runs):
     seed = 0
     res = runs[(str(NO_EFFECT), seed)]
@@ -218,6 +223,7 @@ def test_dimension_drops_by_one_and_optimisation_continues(runs):
     assert int(st.prune_accepted[0]) == 1
 
 
+@pytest.mark.slow
 def test_pruned_genome_evaluates_as_the_pruned_parameter_vector(runs):
     task = redundant_task()
     for genome, seed in ((NO_EFFECT, 0), (PARALLEL, 0)):
@@ -302,6 +308,7 @@ def _accept_np(e: float, e_new: float) -> bool:
     return bool(np.isfinite(e_new) and (e_new < limit if e > 0 else e_new <= limit))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("pruner", "k"), [("covariance", 1), ("obs", 1), ("obd", 3), ("magnitude", 2)]
 )
@@ -742,6 +749,7 @@ def test_attempt_records_without_pruner_are_empty():
 # The tentative attempt (the default): re-fit, acceptance against the best cost, restore.
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("pruner", ["covariance", "snr"])
 def test_tentative_attempt_refits_and_restores_on_rejection(pruner):
     """With a re-fit, the attempt compares the re-fitted cost of the reduced structure with

@@ -198,6 +198,7 @@ def test_move_cost_penalties(task):
 
 
 # -------------------------------------------------------------------------- baselines
+@pytest.mark.slow
 def test_zero_controller_cost_is_mean_initial_error(task, sweep):
     gains, costs = sweep
     assert gains[0] == 0.0
@@ -207,6 +208,7 @@ def test_zero_controller_cost_is_mean_initial_error(task, sweep):
     np.testing.assert_allclose(task.baselines()["zero"], initial, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_ibvs_reduces_the_error(task, sweep):
     """docs/tasks.md: zero 0.2797, IBVS 0.0594 at gain 0.95 (factor 4.7), gain 1 0.0603."""
     base = task.baselines()
@@ -238,6 +240,7 @@ def test_image_jacobian_matches_finite_differences(task):
 
 
 # ------------------------------------------------------------------ physics modes
+@pytest.mark.slow
 def test_kinematic_and_dynamic_modes_agree_for_ibvs(task):
     gain = task.ibvs_gain()
     gains = jnp.asarray([0.0, gain], jnp.float32)
@@ -358,6 +361,7 @@ def reference_cost(arrays: dict, i: int, task: sv.Servo, moves: int) -> float:
     return total / len(q0s)
 
 
+@pytest.mark.slow
 def test_network_costs_under_jit_and_vmap_match_numpy():
     """Closed loop (2 moves per start, recurrent state carried) on 16 starts; a [2, 3] batch
     of networks (vmapped inside the cost) under jit; a second task built alike reuses the

@@ -1,0 +1,30 @@
+"""The compile counter of ``tests/compiles.py``: JAX still emits the event it listens to,
+with the program's name, once per compilation."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+from compiles import count_compiles
+
+
+def test_counts_each_new_program_once_by_name():
+    @jax.jit
+    def counted_program(x):
+        return x * 2 + 1
+
+    with count_compiles() as c:
+        counted_program(np.ones(3, np.float32))
+        assert c.of("counted_program") == 1, c.names
+        counted_program(np.zeros(3, np.float32))  # same shapes: the cached program
+        assert c.of("counted_program") == 1, c.names
+        with count_compiles() as inner:  # blocks nest
+            counted_program(np.ones(4, np.float32))  # a new shape: a new program
+    assert inner.of("counted_program") == 1, inner.names
+    assert c.of("counted_program") == c.of("jit(counted_program)") == 2, c.names
+    assert c.by_name()["jit(counted_program)"] == 2 and c.seconds > 0
+    with count_compiles() as again:
+        counted_program(np.ones(4, np.float32))
+    assert again.count == 0, again.names
+    counted_program(np.ones(5, np.float32))  # outside every block: counted nowhere
+    assert c.of("counted_program") == 2 and again.count == 0

@@ -590,3 +590,19 @@ def test_cli_asks_for_deterministic_gpu_programs_unless_told_otherwise():
     assert not _deterministic_gpu(env) and env["XLA_FLAGS"] == "--xla_gpu_deterministic_ops=false"
     env = {"EANT2_GPU_DETERMINISTIC": "0"}
     assert not _deterministic_gpu(env) and "XLA_FLAGS" not in env
+
+
+@pytest.mark.slow
+def test_cli_x64_run_records_float64_and_resumes(cli_cache, tmp_path):
+    """``eant2 run --x64`` keeps the CMA-ES state in float64; resume turns x64 on again."""
+    out = tmp_path / "x64"
+    rc, _, err = _finish(
+        _eant2("run", "xor", "--generations", "1", "--population", "3", "--max-iters", "40",
+               "--x64", "--out", str(out), cache=cli_cache)
+    )  # fmt: skip
+    assert rc == 0, err
+    config = json.loads((out / "config.json").read_text())
+    assert config["config"]["exploit"]["dtype"] == "float64"
+    rc, _, err = _finish(_eant2("resume", str(out), "--generations", "2", cache=cli_cache))
+    assert rc == 0, err
+    assert len(_jsonl(out, GENERATIONS)) == 3

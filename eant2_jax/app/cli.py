@@ -132,8 +132,12 @@ def _run(args: argparse.Namespace) -> int:
     from eant2_jax.loop import EANT2Config
 
     options = _task_options(args.task_option)
+    if args.x64:  # before any array is made
+        eant2_jax.enable_x64()
     task = eant2_jax.tasks.make(args.task, **options)
     exploit = {"pruner": "none" if not args.prune else args.pruner}
+    if args.x64:
+        exploit["dtype"] = "float64"
     if args.max_iters is not None:
         exploit["max_iters"] = args.max_iters
     config = EANT2Config(
@@ -164,6 +168,9 @@ def _resume(args: argparse.Namespace) -> int:
     meta = rundir.config()
     if "task" not in meta:
         raise RunDirError(f"{args.dir}: config.json names no task (was it written by the CLI?)")
+    exploit = meta.get("config", {}).get("exploit", {})
+    if isinstance(exploit, dict) and exploit.get("dtype") == "float64":
+        eant2_jax.enable_x64()  # the run was started with --x64
     task = eant2_jax.tasks.make(meta["task"], **meta.get("task_options", {}))
     total = args.generations if args.generations is not None else meta.get("generations", 0)
     result = eant2_jax.resume(
@@ -324,6 +331,11 @@ def _parser() -> argparse.ArgumentParser:
         type=_devices,
         default=None,
         help="split exploitation over devices: 'all' or a count (default: JAX's default device)",
+    )
+    run.add_argument(
+        "--x64",
+        action="store_true",
+        help="keep the CMA-ES state in float64 (JAX's x64 mode; networks stay float32)",
     )
     run.add_argument(
         "--target-cost",

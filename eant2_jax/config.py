@@ -93,7 +93,8 @@ class ExploitConfig:
       prune_candidates: *static*. k, the best k candidates are evaluated in one batch (1 =
         the paper); see :func:`eant2_jax.pruning.attempt`.
       prune_refit: *static*. CMA-ES iterations of the reduced structure after the shift,
-        before the acceptance test (0: none, the paper's literal rule).
+        before the acceptance test (0: none, the paper's literal rule); at most
+        ``max_iters``.
       prune_refit_scale: the re-fit's initial step size, as a fraction of the shift's RMS
         length per kept coordinate (see :func:`eant2_jax.pruning.attempt`).
       prune_reference: *static*. What the shifted (and re-fitted) cost is compared with:

@@ -111,6 +111,7 @@ def attempt(
     tolerance: float | jax.Array = 1e-3,
     refit: int = 0,
     refit_scale: float | jax.Array = 0.3,
+    refit_limit: int | jax.Array | None = None,
     reference: str = "mean",
 ) -> tuple[cmaes.State, cmaes.Params, AttemptRecord]:
     """A pruning attempt for every triggered structure of a batch (paper IV.B, fig. 5).
@@ -138,6 +139,8 @@ def attempt(
         taken; with one, the lowest shifted cost is re-fitted and tested.
       tolerance: accept iff the cost rises by less than this fraction (0.001: the paper).
       refit: CMA-ES iterations of the re-fit (static; 0 = none, the paper).
+      refit_limit: at most this many re-fit iterations (traced; the engine passes the
+        structure's own iteration budget, so a short run is not dominated by its re-fits).
       refit_scale: the re-fit starts from step size ``max(sigma, refit_scale * |shift| /
         sqrt(n))``, ``n`` the kept coordinates: the shift's error grows with its length.
       reference: ``"mean"`` (the paper: the cost of the current mean) or ``"best"`` (the
@@ -147,7 +150,7 @@ def attempt(
       ``(cma, params, record)``: the state and hyper-parameters with accepted removals
       applied (others unchanged), and the :class:`AttemptRecord`. A structure attempts only
       if it has a removable parameter; ``record.attempted`` says which did, and each costs
-      ``1 + k + refit * popsize`` evaluations.
+      ``1 + k + min(refit, refit_limit) * popsize`` evaluations.
     """
     if reference not in REFERENCES:
         raise ValueError(f"reference must be one of {', '.join(REFERENCES)}, got {reference!r}")
@@ -165,6 +168,7 @@ def attempt(
         tolerance=tolerance,
         refit=refit,
         refit_scale=refit_scale,
+        refit_limit=refit if refit_limit is None else refit_limit,
         reference=reference,
     )
     return jax.lax.cond(jnp.any(trigger), go, lambda c, p, t: (c, p, skipped), cma, params, trigger)
@@ -172,7 +176,7 @@ def attempt(
 
 def _attempt(
     cost_fn, tables, removable, keys, cma, params, trigger, *, pruner, k, tolerance, refit,
-    refit_scale, reference,
+    refit_scale, refit_limit, reference,
 ):  # fmt: skip
     s_count, p = removable.shape
     k = min(k, p)
@@ -236,9 +240,9 @@ def _attempt(
         n_keep = jnp.maximum(jnp.sum(keep, axis=-1), 1).astype(cma.sigma.dtype)
         step = jnp.linalg.norm(jnp.where(keep, mean - cma.mean, 0), axis=-1)
         sigma = jnp.maximum(cma.sigma, refit_scale * step / jnp.sqrt(n_keep))
-        pruned = _refit(
-            cost_fn, keys, pruned.replace(sigma=sigma.astype(cma.sigma.dtype)), new_params, refit
-        )
+        iterations = jnp.minimum(refit, refit_limit)
+        pruned = pruned.replace(sigma=sigma.astype(cma.sigma.dtype))
+        pruned = _refit(cost_fn, keys, pruned, new_params, iterations)
         e_after = pruned.best_cost
         passed = kp.accept(e_ref, e_after, tolerance) & scored[s_idx, pick]
     else:
@@ -268,7 +272,7 @@ def _attempt(
     )
 
 
-def _refit(cost_fn, keys, cma, params, iterations: int):
+def _refit(cost_fn, keys, cma, params, iterations: jax.Array):
     """``iterations`` CMA-ES iterations of every structure from its shifted state (the removed
     coordinates are masked out, so they stay exactly 0); the best cost and weights include
     the shifted mean's own."""

@@ -825,7 +825,7 @@ def test_default_optimize_prunes_known_redundancy(output):
     problems, x = _known_redundancy(output)
     for name, (y, text, may_go, must_stay) in problems.items():
         task = regression(x, y, hidden="tanh", output=output)
-        for seed in (0, 1):
+        for seed in (0,):  # 10 seeds per case: python -m bench redundancy
             key = jax.random.key(seed)
             base = optimize(text, task, key=key)  # pruner "none" is optimize's default
             res = optimize(text, task, key=key, pruner="covariance")

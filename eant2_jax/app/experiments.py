@@ -259,6 +259,9 @@ def reproduce(
             task,
             key=jax.random.key(seed + 10_000),
             iters=condition_iters,
+            # The pruning rounds from the tuned weights need no more than the runs from
+            # random weights (and a short setting stays short).
+            prune_iters=min(condition_iters, 2000),
             inits=condition_inits,
             dtype=condition_dtype,
         )

@@ -37,6 +37,7 @@ __all__ = [
     "attempt",
     "attempt_records",
     "inert_tables",
+    "kept_genes",
     "prune_genome",
     "tables_for",
     "where_rows",
@@ -327,6 +328,18 @@ def tables_for(genomes: Sequence[Genome], genes: int, rows: int | None = None) -
         reads=jnp.asarray(reads),
         is_neuron=jnp.asarray(is_neuron),
     )
+
+
+def kept_genes(original: Genome, pruned: Genome) -> list[int]:
+    """Indices of ``original``'s genes that ``pruned`` kept, matched in order (the pruner
+    removes whole sub-genomes and keeps the order of the rest). If ``pruned`` is not such a
+    sub-sequence, fewer than ``len(pruned)`` indices come back."""
+    kept, j = [], 0
+    for i, g in enumerate(original.genes):
+        if j < len(pruned) and (pruned[j].kind, pruned[j].ref) == (g.kind, g.ref):
+            kept.append(i)
+            j += 1
+    return kept
 
 
 def prune_genome(genome: Genome, keep: np.ndarray, weights: np.ndarray | None = None) -> Genome:

@@ -24,6 +24,7 @@ from ..genome import Genome
 from ..kernels.pruning import PRUNERS
 from ..loop import EANT2Config
 from ..multirun import run_many
+from ..pruning import kept_genes
 from ..rundir import RunDirError
 from ..tasks.base import ReportingTask, Task
 from ..tuning import optimize, tune
@@ -139,14 +140,9 @@ def condition_experiment(
 
 
 def _kept_genes(original: Genome, pruned: Genome) -> np.ndarray:
-    """Indices of the original's genes that the pruned genome kept (the pruner removes whole
-    sub-genomes and keeps the order of the rest)."""
-    kept, j = [], 0
-    for i, g in enumerate(original.genes):
-        if j < len(pruned) and (pruned[j].kind, pruned[j].ref) == (g.kind, g.ref):
-            kept.append(i)
-            j += 1
-    if j != len(pruned):
+    """:func:`eant2_jax.pruning.kept_genes`, refusing a genome that is not a pruned copy."""
+    kept = kept_genes(original, pruned)
+    if len(kept) != len(pruned):
         raise ValueError("the pruned genome is not a sub-sequence of the original")
     return np.asarray(kept, np.int64)
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..genome import GeneKind, Genome
 from ..loop import GenerationRecord
-from ..pruning import PruneAttempt
+from ..pruning import PruneAttempt, kept_genes
 
 __all__ = ["LoadedRun", "draw_genome", "genome_stats", "load_runs", "report", "summarise"]
 
@@ -183,13 +183,7 @@ def draw_genome(
 
 def _removed_genes(genome: Genome, pruned: Genome) -> set[int]:
     """Gene indices of ``genome`` missing from ``pruned`` (pruning keeps gene order)."""
-    removed, j = set(), 0
-    for i, g in enumerate(genome):
-        if j < len(pruned) and (pruned[j].kind, pruned[j].ref) == (g.kind, g.ref):
-            j += 1
-        else:
-            removed.add(i)
-    return removed
+    return set(range(len(genome))) - set(kept_genes(genome, pruned))
 
 
 @dataclasses.dataclass(frozen=True)

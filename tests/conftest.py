@@ -15,8 +15,13 @@ from __future__ import annotations
 import os
 import warnings
 
-import jax
-from hypothesis import settings
+# Under pytest-xdist every worker is its own JAX process; on a GPU machine the default
+# preallocation (75% of the memory per process) would leave the second worker nothing.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
+import jax  # noqa: E402
+from hypothesis import settings  # noqa: E402
 
 # When a property fails, hypothesis' pytest plugin imports libcst (to write a patch of the
 # failing example); libcst's import emits a DeprecationWarning, which "warnings are errors"

@@ -6,15 +6,14 @@ import sys
 
 import pytest
 
-pytestmark = pytest.mark.slow
 
-
+@pytest.mark.slow
 def test_reproduce_short_servo(tmp_path):
     out = tmp_path / "rep"
     cmd = [
         sys.executable, "-m", "eant2_jax.app.cli", "reproduce", "--runs", "2", "--generations", "2",
         "--population", "3", "--max-iters", "30", "--condition-iters", "60",
-        "--condition-inits", "2", "--pruners", "covariance,covariance-literal",
+        "--condition-inits", "2", "--pruners", "covariance",
         "--task-option", "n_starts=16", "--out", str(out),
     ]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
@@ -25,14 +24,13 @@ def test_reproduce_short_servo(tmp_path):
         assert (report / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     text = (report / "report.md").read_text()
     assert "| covariance | 2 |" in text and "| none | 2 |" in text
-    assert "| covariance-literal | 2 |" in text
     assert "The paper's claims" in text and "Baselines" in text
     summary = json.loads((report / "summary.json").read_text())
-    assert set(summary) == {"covariance", "covariance-literal", "none"}
+    assert set(summary) == {"covariance", "none"}
     cond = json.loads((out / "condition.json").read_text())
     assert cond["dtype"] == "float64" and len(cond["peak_before"]) == 2
     assert all(len(c) == 60 for c in cond["before"] + cond["after"])
-    for arm in ("covariance", "covariance-literal", "none"):
+    for arm in ("covariance", "none"):
         for seed in (0, 1):
             gens = (out / f"{arm}-s{seed}" / "generations.jsonl").read_text().splitlines()
             assert len(gens) == 3  # generations 0, 1, 2
@@ -43,3 +41,20 @@ def test_reproduce_short_servo(tmp_path):
     # The output directory is never overwritten.
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert again.returncode == 2 and "not overwriting" in again.stderr
+
+
+def test_arms_name_a_pruner_and_its_rule():
+    from eant2_jax.app.experiments import arm_config
+    from eant2_jax.config import EANT2Config
+
+    base = EANT2Config()
+    tentative = arm_config(base, "covariance").exploit
+    assert tentative.pruner == "covariance" and tentative.prune_refit == base.exploit.prune_refit
+    literal = arm_config(base, "obs-literal").exploit
+    assert literal.pruner == "obs"
+    rule = (literal.prune_refit, literal.prune_reference, literal.prune_at_stop)
+    assert rule == (0, "mean", False)  # as ExploitConfig.literal() sets it
+    assert arm_config(base, "none").exploit.pruner == "none"
+    for bad in ("covariance-exact", "none-literal", "lottery"):
+        with pytest.raises(ValueError, match="unknown arm"):
+            arm_config(base, bad)

@@ -1,10 +1,12 @@
 """Pruning (paper section IV, figure 5): one stage, on device and on the host.
 
-* Device: :func:`attempt` is the pruning attempt of a batch of CMA-ES runs — candidate
-  (eqs. 5-8, with the sign erratum), shift, acceptance (IV.B.3) and the conditioned
-  covariance of the reduced structure — for whichever structures the engine triggered. It
-  takes the cost function as an argument and imports nothing from the CMA-ES engine
-  (:mod:`eant2_jax.exploitation`), which decides when to call it; the maths lives in
+* Device: the pruning attempt of a batch of CMA-ES runs, as stages that the engine
+  (:mod:`eant2_jax.exploitation`) drives with its own iterations: :func:`propose` (the
+  candidate of eqs. 5-8 with the sign erratum, or a baseline's, and the shift onto
+  ``p_i = 0``), :func:`trial_points` (what the next evaluation is), :func:`judge`
+  (acceptance, IV.B.3, and the conditioned covariance of the reduced structure) and, after a
+  re-fit, :func:`conclude`. The stages never call the task: the engine evaluates the points
+  they ask for with the same cost call as its CMA-ES iterations. The maths lives in
   :mod:`eant2_jax.kernels.pruning`.
 * Host: :func:`tables_for`, the genome structure the device pruner reads; a removed
   connection is switched off in the CMA-ES mask, so the gene slots of a structure never move
@@ -17,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -30,12 +32,20 @@ from .kernels import pruning as kp
 from .kernels.pruning import PRUNERS, Tables
 
 __all__ = [
+    "NORMAL",
     "PRUNERS",
     "REFERENCES",
+    "REFIT",
+    "TRIAL",
+    "Attempt",
     "AttemptRecord",
     "PruneAttempt",
-    "attempt",
     "attempt_records",
+    "conclude",
+    "judge",
+    "propose",
+    "trial_count",
+    "trial_points",
     "inert_tables",
     "kept_genes",
     "prune_genome",
@@ -76,6 +86,8 @@ class AttemptRecord:
         the attempt).
       accepted: the removal was accepted.
       cond_before, cond_after: cond(C) before and after the attempt (NaN without one).
+      iteration: the structure's CMA-ES iteration when the attempt started (-1 without one);
+        a re-fit's iterations come after it and are not counted as CMA-ES iterations.
     """
 
     attempted: jax.Array
@@ -89,6 +101,7 @@ class AttemptRecord:
     accepted: jax.Array
     cond_before: jax.Array
     cond_after: jax.Array
+    iteration: jax.Array
 
     @classmethod
     def skipped(cls, s_count: int) -> AttemptRecord:
@@ -96,91 +109,101 @@ class AttemptRecord:
         nan = jnp.full(s_count, jnp.nan, jnp.float32)
         no = jnp.zeros(s_count, bool)
         none = jnp.full(s_count, -1, jnp.int32)
-        return cls(no, none, none, nan, nan, nan, nan, nan, no, nan, nan)
+        return cls(no, none, none, nan, nan, nan, nan, nan, no, nan, nan, none)
 
 
-def attempt(
-    cost_fn: Callable[[jax.Array], jax.Array],
+# An attempt in progress is a small state machine per structure, driven by the engine's
+# iterations: the engine evaluates whatever points each structure's phase asks for with ONE
+# call of the task's cost, so the cost is compiled once per program, not once for CMA-ES
+# and again for the shifted means and again for the re-fit (which made the pruner
+# 2-3x the compile time of the engine without it).
+NORMAL, TRIAL, REFIT = 0, 1, 2
+
+
+@struct.dataclass
+class Attempt:
+    """The pruning attempts of S structures in progress (``[S]`` leading dims).
+
+    Attributes:
+      phase: ``NORMAL`` (CMA-ES iterations), ``TRIAL`` (the next evaluation is of the mean
+        and the k shifted means) or ``REFIT`` (CMA-ES iterations of the reduced structure).
+      trial: ``[S, k, P]`` the shifted means, removed coordinates at 0; removed: ``[S, k, P]``
+        each candidate's removal set; gene, axis, factor, scored: ``[S, k]`` each candidate's
+        gene, principal axis, scaling factor and whether its score was finite.
+      record: the attempt's record so far (completed when it is decided).
+      picked_scored: the re-fitted candidate's score was finite.
+      saved_cma, saved_params: the state before the attempt, restored on rejection.
+      refit_left, refit_done: re-fit iterations still to do, and done.
+      deferred_stop: the stop an attempt at a stop postponed (0 = none).
+    """
+
+    phase: jax.Array
+    trial: jax.Array
+    removed: jax.Array
+    gene: jax.Array
+    axis: jax.Array
+    factor: jax.Array
+    scored: jax.Array
+    record: AttemptRecord
+    picked_scored: jax.Array
+    saved_cma: cmaes.State
+    saved_params: cmaes.Params
+    refit_left: jax.Array
+    refit_done: jax.Array
+    deferred_stop: jax.Array
+
+    @classmethod
+    def idle(cls, cma: cmaes.State, params: cmaes.Params, k: int) -> Attempt:
+        """No attempt in progress, room for ``k`` candidates of ``[S, P]`` weights."""
+        s_count, p = cma.mean.shape
+        k = trial_count(k, p, params.weights.shape[-1])
+        zeros = jnp.zeros(s_count, jnp.int32)
+        return cls(
+            phase=zeros,
+            trial=jnp.zeros((s_count, k, p), cma.mean.dtype),
+            removed=jnp.zeros((s_count, k, p), bool),
+            gene=jnp.zeros((s_count, k), jnp.int32),
+            axis=jnp.zeros((s_count, k), jnp.int32),
+            factor=jnp.zeros((s_count, k), jnp.float32),
+            scored=jnp.zeros((s_count, k), bool),
+            record=AttemptRecord.skipped(s_count),
+            picked_scored=jnp.zeros(s_count, bool),
+            saved_cma=cma,
+            saved_params=params,
+            refit_left=zeros,
+            refit_done=zeros,
+            deferred_stop=zeros,
+        )
+
+
+def trial_count(k: int, genes: int, popsize: int) -> int:
+    """Candidates per attempt: ``k``, at most the genes and ``popsize - 1`` (the mean and the
+    shifted means are evaluated as one population of the engine)."""
+    return max(1, min(k, genes, popsize - 1))
+
+
+def propose(
+    att: Attempt,
     cma: cmaes.State,
-    params: cmaes.Params,
     trigger: jax.Array,
     tables: Tables,
-    keys: jax.Array,
+    iteration: jax.Array,
     *,
     pruner: str,
-    candidates: int = 1,
-    tolerance: float | jax.Array = 1e-3,
-    refit: int = 0,
-    refit_scale: float | jax.Array = 0.3,
-    refit_limit: int | jax.Array | None = None,
-    reference: str = "mean",
-) -> tuple[cmaes.State, cmaes.Params, AttemptRecord]:
-    """A pruning attempt for every triggered structure of a batch (paper IV.B, fig. 5).
-
-    The paper's attempt (``refit=0, reference="mean"``): the candidate of eqs. 5-8 (or a
-    baseline pruner's), the shift onto ``p_i = 0``, and acceptance iff the shifted cost
-    rises by less than ``tolerance`` over the cost ``e`` of the current mean. The tentative
-    attempt (``refit > 0``) adds a short CMA-ES run of the reduced structure from the
-    shifted mean, with the removed weights clamped to 0 (the other weights move back onto
-    the cost's valley, which a straight-line shift leaves), before the acceptance test; with
-    ``reference="best"`` the test is against the best cost seen before the attempt, never
-    the mean that CMA-ES has drifted from it. A rejected attempt leaves the CMA-ES state
-    exactly as it was.
+) -> Attempt:
+    """Start an attempt for every triggered structure (paper eqs. 5-8, or a baseline's
+    scores): its k best-scored parameters, their shifted means with their sub-genomes set to
+    0, and the next phase ``TRIAL``. Other structures are unchanged.
 
     Args:
-      cost_fn: costs ``[S, K]`` of weight vectors ``[S, K, P]`` (the task's, on the key of
-        the current iteration, so the shifted means are ranked on the same draw as ``e``).
-      cma: batched CMA-ES state ``[S]``; params: its hyper-parameters ``[S]``.
-      trigger: ``[S]`` bool, the structures that attempt now (the engine's trigger).
-      tables: batched pruner tables ``[S, P]`` (:func:`tables_for`).
-      keys: ``[S]`` PRNG keys of the re-fit's samples (unused without a re-fit).
+      att: the attempts in progress (none for the triggered structures).
+      cma: the CMA-ES state; trigger: ``[S]`` the structures that attempt.
+      tables: the pruner tables ``[S, P]``; iteration: ``[S]`` each one's CMA-ES iteration.
       pruner: ``covariance``, ``magnitude``, ``obd``, ``obs`` or ``snr`` (static).
-      candidates: k, the k best-scored parameters are shifted and evaluated in one batch
-        (static; 1 = the paper). Without a re-fit the lowest shifted cost that passes is
-        taken; with one, the lowest shifted cost is re-fitted and tested.
-      tolerance: accept iff the cost rises by less than this fraction (0.001: the paper).
-      refit: CMA-ES iterations of the re-fit (static; 0 = none, the paper).
-      refit_limit: at most this many re-fit iterations (traced; the engine passes the
-        structure's own iteration budget, so a short run is not dominated by its re-fits).
-      refit_scale: the re-fit starts from step size ``max(sigma, refit_scale * |shift| /
-        sqrt(n))``, ``n`` the kept coordinates: the shift's error grows with its length.
-      reference: ``"mean"`` (the paper: the cost of the current mean) or ``"best"`` (the
-        best cost before the attempt) (static).
-
-    Returns:
-      ``(cma, params, record)``: the state and hyper-parameters with accepted removals
-      applied (others unchanged), and the :class:`AttemptRecord`. A structure attempts only
-      if it has a removable parameter; ``record.attempted`` says which did, and each costs
-      ``1 + k + min(refit, refit_limit) * popsize`` evaluations.
     """
-    if reference not in REFERENCES:
-        raise ValueError(f"reference must be one of {', '.join(REFERENCES)}, got {reference!r}")
+    s_count, p = cma.mean.shape
+    k = att.trial.shape[1]
     removable = jax.vmap(kp.removable)(tables, cma.mask)
-    trigger = trigger & jnp.any(removable, axis=-1)
-    skipped = AttemptRecord.skipped(trigger.shape[0])
-    go = functools.partial(
-        _attempt,
-        cost_fn,
-        tables,
-        removable,
-        keys,
-        pruner=pruner,
-        k=candidates,
-        tolerance=tolerance,
-        refit=refit,
-        refit_scale=refit_scale,
-        refit_limit=refit if refit_limit is None else refit_limit,
-        reference=reference,
-    )
-    return jax.lax.cond(jnp.any(trigger), go, lambda c, p, t: (c, p, skipped), cma, params, trigger)
-
-
-def _attempt(
-    cost_fn, tables, removable, keys, cma, params, trigger, *, pruner, k, tolerance, refit,
-    refit_scale, refit_limit, reference,
-):  # fmt: skip
-    s_count, p = removable.shape
-    k = min(k, p)
     score, shifted, axis, factor = jax.vmap(functools.partial(kp.scores, pruner))(
         cma.mean, cma.sigma, cma.C, cma.B, cma.D, cma.valid_axes, removable
     )
@@ -189,23 +212,71 @@ def _attempt(
     removed = jax.vmap(jax.vmap(kp.removal_set, in_axes=(None, None, 0)))(
         tables, cma.mask, top
     )  # [S, k, P]
-    trial = jnp.where(removed, 0, shifted[rows, top])  # [S, k, P]
-    costs = cost_fn(jnp.concatenate([cma.mean[:, None], trial], axis=1))
-    e, e_trial = costs[:, 0], costs[:, 1:]
+    proposed = att.replace(
+        phase=jnp.full_like(att.phase, TRIAL),
+        trial=jnp.where(removed, 0, shifted[rows, top]).astype(att.trial.dtype),
+        removed=removed,
+        gene=top.astype(jnp.int32),
+        axis=axis[rows, top].astype(jnp.int32),
+        factor=factor[rows, top].astype(jnp.float32),
+        scored=jnp.isfinite(score[rows, top]),
+        record=att.record.replace(iteration=iteration.astype(jnp.int32)),
+    )
+    return where_rows(trigger, proposed, att)
+
+
+def trial_points(att: Attempt, mean: jax.Array, popsize: int) -> jax.Array:
+    """``[S, popsize, P]``: the mean, the k shifted means, then the mean again as filler."""
+    s_count, k, p = att.trial.shape
+    mean = mean.astype(att.trial.dtype)
+    fill = jnp.broadcast_to(mean[:, None], (s_count, popsize - 1 - k, p))
+    return jnp.concatenate([mean[:, None], att.trial, fill], axis=1)
+
+
+def judge(
+    att: Attempt,
+    cma: cmaes.State,
+    params: cmaes.Params,
+    costs: jax.Array,
+    active: jax.Array,
+    *,
+    tolerance: float | jax.Array,
+    refit: int,
+    refit_scale: float | jax.Array,
+    refit_limit: int | jax.Array,
+    reference: str,
+) -> tuple[Attempt, cmaes.State, cmaes.Params, AttemptRecord, jax.Array]:
+    """The ``TRIAL`` phase of the ``active`` structures, given the costs of
+    :func:`trial_points` (IV.B.3).
+
+    Without a re-fit (the paper): accept iff the lowest shifted cost that passes rises by
+    less than ``tolerance`` over the reference (the mean's cost ``e``, or the best cost
+    before the attempt with ``reference="best"``); the attempt is decided here. With one, the
+    lowest shifted cost goes on to ``min(refit, refit_limit)`` CMA-ES iterations of the
+    reduced structure (phase ``REFIT``; its step size is ``max(sigma, refit_scale *
+    |shift| / sqrt(n))``, since the straight-line shift is exact only on a quadratic), and
+    :func:`conclude` decides.
+
+    Returns:
+      ``(attempt, cma, params, record, decided)``: ``record`` holds the attempts decided now
+      (``decided`` ``[S]``); a rejected attempt leaves the CMA-ES state exactly as it was.
+    """
+    if reference not in REFERENCES:
+        raise ValueError(f"reference must be one of {', '.join(REFERENCES)}, got {reference!r}")
+    s_count, k, _ = att.trial.shape
+    e, e_trial = costs[:, 0], costs[:, 1 : 1 + k]
     e_ref = cma.best_cost if reference == "best" else e
-    scored = jnp.isfinite(score[rows, top])
-    ok = kp.accept(e_ref[:, None], e_trial, tolerance) & scored
+    ok = kp.accept(e_ref[:, None], e_trial, tolerance) & att.scored
     if refit:
         # The lowest shifted cost goes on to the re-fit (the best-scored if none is finite).
-        pick = jnp.argmin(jnp.where(scored & jnp.isfinite(e_trial), e_trial, jnp.inf), 1)
+        pick = jnp.argmin(jnp.where(att.scored & jnp.isfinite(e_trial), e_trial, jnp.inf), 1)
     else:
         # Among the candidates that pass, the lowest shifted cost; if none passes, report
         # the best-scored one.
         pick = jnp.where(jnp.any(ok, axis=1), jnp.argmin(jnp.where(ok, e_trial, jnp.inf), 1), 0)
     s_idx = jnp.arange(s_count)
-    gene = top[s_idx, pick]
-    remove = removed[s_idx, pick] & trigger[:, None]
-    mean = trial[s_idx, pick]
+    remove = att.removed[s_idx, pick]
+    mean = att.trial[s_idx, pick]
     e_new = e_trial[s_idx, pick]
     keep = cma.mask & ~remove
     conditioned = jax.vmap(kp.condition)(cma.C, keep, remove)
@@ -233,57 +304,95 @@ def _attempt(
         best_x=jnp.where(keep, mean, 0),
         best_cost=e_new.astype(cma.best_cost.dtype),
     )
+    nan = jnp.nan
+    gene = att.gene[s_idx, pick]
+    record = AttemptRecord(
+        attempted=active,
+        gene=jnp.where(active, gene, -1),
+        axis=jnp.where(active, att.axis[s_idx, pick], -1),
+        factor=jnp.where(active, att.factor[s_idx, pick], nan),
+        e=jnp.where(active, e, nan),
+        e_shifted=jnp.where(active, e_new, nan),
+        e_refit=jnp.full(s_count, nan),
+        e_reference=jnp.where(active, e_ref, nan),
+        accepted=jnp.zeros(s_count, bool),
+        cond_before=jnp.where(active, cma.cond, nan),
+        cond_after=jnp.where(active, cma.cond, nan),
+        iteration=att.record.iteration,
+    )
+    record = _cast_record(record)
     if refit:
-        # The straight-line shift is exact only on a quadratic; its error grows with the
-        # length of the shift. A converged sigma is far smaller than that, so the re-fit
-        # starts from a step size of ``refit_scale`` times the shift's RMS length per kept
-        # coordinate (or the current sigma if larger).
-        n_keep = jnp.maximum(jnp.sum(keep, axis=-1), 1).astype(cma.sigma.dtype)
+        n_keep = jnp.maximum(n, 1).astype(cma.sigma.dtype)
         step = jnp.linalg.norm(jnp.where(keep, mean - cma.mean, 0), axis=-1)
         sigma = jnp.maximum(cma.sigma, refit_scale * step / jnp.sqrt(n_keep))
-        iterations = jnp.minimum(refit, refit_limit)
         pruned = pruned.replace(sigma=sigma.astype(cma.sigma.dtype))
-        pruned = _refit(cost_fn, keys, pruned, new_params, iterations)
-        e_after = pruned.best_cost
-        passed = kp.accept(e_ref, e_after, tolerance) & scored[s_idx, pick]
-    else:
-        e_after = e_new
-        passed = jnp.any(ok, axis=1)
-    accepted = trigger & passed
-    nan = jnp.nan
-    record = AttemptRecord(
-        attempted=trigger,
-        gene=jnp.where(trigger, gene, -1).astype(jnp.int32),
-        axis=jnp.where(trigger, axis[s_idx, gene], -1),
-        factor=jnp.where(trigger, factor[s_idx, gene], nan),
-        e=jnp.where(trigger, e, nan),
-        e_shifted=jnp.where(trigger, e_new, nan),
-        e_refit=jnp.where(trigger & (refit > 0), e_after, nan),
-        e_reference=jnp.where(trigger, e_ref, nan),
-        accepted=accepted,
-        cond_before=jnp.where(trigger, cma.cond, nan),
-        cond_after=jnp.where(trigger, jnp.where(accepted, pruned.cond, cma.cond), nan),
+        started = att.replace(
+            phase=jnp.full_like(att.phase, REFIT),
+            record=record,
+            picked_scored=att.scored[s_idx, pick],
+            saved_cma=cma,
+            saved_params=params,
+            refit_left=jnp.broadcast_to(
+                jnp.maximum(jnp.minimum(refit, refit_limit), 1), att.refit_left.shape
+            ).astype(jnp.int32),
+            refit_done=jnp.zeros_like(att.refit_done),
+        )
+        return (
+            where_rows(active, started, att),
+            where_rows(active, pruned, cma),
+            where_rows(active, new_params, params),
+            AttemptRecord.skipped(s_count),
+            jnp.zeros(s_count, bool),
+        )
+    accepted = active & jnp.any(ok, axis=1)
+    record = record.replace(
+        accepted=accepted, cond_after=jnp.where(accepted, pruned.cond, record.cond_after)
     )
-    skipped = AttemptRecord.skipped(s_count)
-    record = jax.tree.map(lambda a, b: a.astype(b.dtype), record, skipped)
+    record = _cast_record(record)
+    done = att.replace(phase=jnp.where(active, NORMAL, att.phase))
     return (
+        done,
         where_rows(accepted, pruned, cma),
         where_rows(accepted, new_params, params),
+        record,
+        active,
+    )
+
+
+def conclude(
+    att: Attempt,
+    cma: cmaes.State,
+    params: cmaes.Params,
+    finishing: jax.Array,
+    *,
+    tolerance: float | jax.Array,
+) -> tuple[Attempt, cmaes.State, cmaes.Params, AttemptRecord]:
+    """The end of the re-fit of the ``finishing`` structures: accept iff the re-fit's best
+    cost (the shifted mean's own included) passes against the attempt's reference; on
+    rejection restore the state from before the attempt exactly."""
+    rec = att.record
+    e_after = cma.best_cost
+    accepted = finishing & kp.accept(rec.e_reference, e_after, tolerance) & att.picked_scored
+    rejected = finishing & ~accepted
+    record = rec.replace(
+        attempted=finishing,
+        e_refit=jnp.where(finishing, e_after, jnp.nan),
+        accepted=accepted,
+        cond_after=jnp.where(accepted, cma.cond, rec.cond_before),
+    )
+    record = where_rows(finishing, _cast_record(record), AttemptRecord.skipped(finishing.shape[0]))
+    return (
+        att.replace(phase=jnp.where(finishing, NORMAL, att.phase)),
+        where_rows(rejected, att.saved_cma, cma),
+        where_rows(rejected, att.saved_params, params),
         record,
     )
 
 
-def _refit(cost_fn, keys, cma, params, iterations: jax.Array):
-    """``iterations`` CMA-ES iterations of every structure from its shifted state (the removed
-    coordinates are masked out, so they stay exactly 0); the best cost and weights include
-    the shifted mean's own."""
-
-    def body(r, state):
-        ks = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, r)
-        x, state = jax.vmap(cmaes.ask)(ks, state, params)
-        return jax.vmap(cmaes.tell)(state, x, cost_fn(x), params)
-
-    return jax.lax.fori_loop(0, iterations, body, cma)
+def _cast_record(record: AttemptRecord) -> AttemptRecord:
+    """The record in the dtypes of :meth:`AttemptRecord.skipped` (one structure per branch)."""
+    skipped = AttemptRecord.skipped(record.attempted.shape[0])
+    return jax.tree.map(lambda a, b: a.astype(b.dtype), record, skipped)
 
 
 # ------------------------------------------------------------------------------------ host
@@ -457,7 +566,7 @@ def attempt_records(
         out.append(
             PruneAttempt(
                 structure=int(s if structure_ids is None else structure_ids[s]),
-                iteration=int(it) + 1,
+                iteration=int(history.iteration[it, s]),
                 pruner=pruner,
                 gene=gene,
                 kind=_KIND_NAME[genomes[s][gene].kind],

@@ -128,7 +128,7 @@ class Tuned:
       evaluations: each one's cost evaluations (pruning trials included).
       stop_reasons: why each one stopped (see ``exploitation.STOP_REASONS``).
       history: the engine's :class:`~eant2_jax.exploitation.StepRecord` of
-        ``[iterations, rows]`` arrays (padding rows included).
+        ``[ticks, rows]`` arrays (padding rows included).
       pruning: one :class:`~eant2_jax.pruning.PruneAttempt` per attempt; ``structure``
         is the index in ``genomes``.
       state: the engine's final state (on device).
@@ -229,9 +229,10 @@ class OptimizeResult(NamedTuple):
     Attributes:
       genome: the genome with its best weights.
       cost: the best cost found (of ``genome``'s weights).
-      history: :class:`~eant2_jax.exploitation.StepRecord` of ``[iterations]`` arrays
-        (``sigma``, ``sigma_bar``, ``cond``, ``cond_bounded``, ``best_cost``,
-        ``evaluations``, ``nonfinite``, ``running``; ``prune`` with a pruner).
+      history: :class:`~eant2_jax.exploitation.StepRecord` of ``[ticks]`` arrays, one per
+        engine iteration it ran (``sigma``, ``sigma_bar``, ``cond``, ``cond_bounded``,
+        ``best_cost``, ``evaluations``, ``nonfinite``, ``running``, ``phase``: a pruning
+        attempt's iterations have ``phase`` > 0; ``prune`` with a pruner).
       stop_reason: why the run stopped (see ``STOP_REASONS``).
       pruning: one :class:`~eant2_jax.pruning.PruneAttempt` per pruning attempt; empty
         without a pruner.
@@ -263,11 +264,10 @@ def optimize(genome: Genome | str, task: Task, *, key: jax.Array, **options: Any
     # One structure starts from the start key itself (not fold_in(start, 0)): the seeded
     # results of optimize() predate the batch rule and are kept.
     res = tune([genome], task, key=key, config=config, keys=init_key[None], pad_count=False)
-    n_iter = int(res.state.iteration[0])
     return OptimizeResult(
         res.genomes[0],
         res.costs[0],
-        res.history.structure(0, n_iter),
+        res.history.structure(0),
         res.stop_reasons[0],
         res.pruning,
     )

@@ -42,6 +42,7 @@ from strategies import fewer_examples, genomes
 
 import eant2_jax
 from eant2_jax import exploitation as ex
+from eant2_jax import pruning
 from eant2_jax.compiler import compile_genomes
 from eant2_jax.genome import GeneKind, Genome
 from eant2_jax.kernels import cmaes
@@ -147,7 +148,10 @@ def test_every_attempt_obeys_the_acceptance_rule(runs):
     n_attempts = 0
     for key, res in runs.items():
         h = res.history
-        for rec in res.pruning:
+        # The engine iterations in which the attempts were decided, in order.
+        rows = np.flatnonzero(h.prune.attempted)
+        assert len(rows) == len(res.pruning)
+        for rec, row in zip(res.pruning, rows, strict=True):
             n_attempts += 1
             e, e_new = np.float32(rec.e), np.float32(rec.e_shifted)
             assert np.isfinite(e), key
@@ -165,8 +169,10 @@ def test_every_attempt_obeys_the_acceptance_rule(runs):
             assert rec.pruner == "covariance"
             assert rec.kind == "input"
             assert rec.axis >= 0 and rec.s is not None
-            row = rec.iteration - 1
-            assert h.prune.attempted[row]
+            # Started after CMA-ES iteration rec.iteration, decided in the next engine
+            # iteration, in which the shifted means were evaluated (no re-fit).
+            assert h.prune.iteration[row] == rec.iteration and h.phase[row] == pruning.TRIAL
+            assert h.phase[row - 1] == pruning.NORMAL
             if rec.accepted:
                 # The best is reset to the shifted mean m~ and its cost e~.
                 assert h.best_cost[row] == np.float32(rec.e_shifted)
@@ -214,7 +220,11 @@ def test_dimension_drops_by_one_and_optimisation_continues(runs):
     it = rec.iteration
     n_iter = int(st.iteration[0])
     assert n_iter > it + 10
-    after = h.best_cost[it - 1 : n_iter, 0]
+    (row,) = np.flatnonzero(h.prune.attempted[:, 0])  # the engine iteration it was decided in
+    assert h.prune.iteration[row, 0] == it
+    ticks = int(np.flatnonzero(h.running[:, 0])[-1]) + 1
+    assert ticks == n_iter + 1  # every CMA-ES iteration, and the attempt's one
+    after = h.best_cost[row:ticks, 0]
     assert after[0] == np.float32(rec.e_shifted)
     assert np.all(np.diff(after) <= 0)
     assert res.cost <= rec.e_shifted < (1 + TOL) * rec.e
@@ -281,10 +291,11 @@ def _attempt_state(weights, mask, covariances):
 
 @jax.jit
 def _attempt(st, layout, tables, task, config):
-    """The engine's pruning stage (pruning.attempt and its bookkeeping), every structure
-    triggered."""
+    """A whole pruning attempt of every structure, through the engine's own iterations
+    (exploitation._attempt drives exploitation._step until each is decided)."""
     trigger = jnp.ones(st.stop.shape, bool)
-    return ex._prune(st, trigger, layout, tables, task, jax.random.key(0), config)
+    st = st.replace(attempt=pruning.Attempt.idle(st.cma, st.params, config.prune_candidates))
+    return ex._attempt(st, trigger, layout, tables, task, jax.random.key(0), config)
 
 
 @functools.partial(jax.jit, static_argnames="pruner")

@@ -9,7 +9,7 @@
 prints, on standard error, one line per generation (a live line that rewrites itself on a
 terminal)::
 
-    gen 0/30: compiling the exploitation program (24 structures, 16 genes, 9 candidates)...
+    gen 0/30: compiling the exploitation program (24 structures, 12 genes, depth 1, 11 candidates)...
     gen 0/30 | best -23.5 | size 8 (2 neurons) | pruned 0/0 | 1,840 evals, 12/s | 31.2 s
     gen 1/30 | best -500 | size 9 (2 neurons) | pruned 1/3 | 5,112 evals, 140/s | 36.6 s
 
@@ -70,8 +70,8 @@ class ProgressReporter:
         if kind == "compiling":
             text = (
                 f"{self._gen(event['generation'])}: compiling the exploitation program "
-                f"({event['structures']} structures, {event['genes']} genes, "
-                f"{event['popsize']} candidates)..."
+                f"({event['structures']} structures, {event['genes']} genes, depth "
+                f"{event['sweeps']}, {event['popsize']} candidates)..."
             )
             if live:
                 self._line(text)

@@ -3,15 +3,16 @@
 
 ::
 
-    result = eant2_jax.run(task, key=key, generations=30,
-                           callback=eant2_jax.ProgressReporter(30))
+    result = eant2_jax.run(task, key=key, generations=2,
+                           callback=eant2_jax.ProgressReporter(2))
 
-prints, on standard error, one line per generation (a live line that rewrites itself on a
-terminal)::
+prints, on standard error, one line per event (a live line that rewrites itself on a
+terminal); from ``docs/examples/point_mass.py``::
 
-    gen 0/30: compiling the exploitation program (24 structures, 12 genes, depth 1, 11 candidates)...
-    gen 0/30 | best -23.5 | size 8 (2 neurons) | pruned 0/0 | 1,840 evals, 12/s | 31.2 s
-    gen 1/30 | best -500 | size 9 (2 neurons) | pruned 1/3 | 5,112 evals, 140/s | 36.6 s
+    gen 0/2: compiling the exploitation program (6 structures, 8 genes, depth 1, 10 candidates)...
+    gen 0/2 | best 0.0217 | size 3 (1 neurons) | pruned 0/0 | 1,001 evals, 166/s | 6.0 s
+    gen 1/2: compiling the exploitation program (6 structures, 8 genes, depth 2, 10 candidates)...
+    gen 1/2 | best 0.01761 | size 4 (1 neurons) | pruned 0/0 | 7,007 evals, 794/s | 8.8 s
 
 The ``eant2`` command line renders its runs with the same class.
 """

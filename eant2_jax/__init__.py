@@ -7,7 +7,8 @@ fast path is tested against), :mod:`~eant2_jax.exploitation` (the batched CMA-ES
 :mod:`~eant2_jax.pruning` (the pruning stage), :mod:`~eant2_jax.tuning` (the host/device
 handover: "tune these genomes on this task"), :mod:`~eant2_jax.exploration` (mutation and
 selection), :mod:`~eant2_jax.loop` (the EANT2 loop), :mod:`~eant2_jax.multirun` (many runs
-over devices), :mod:`~eant2_jax.rundir` (crash-safe run directories). The applications
+over devices), :mod:`~eant2_jax.rundir` (crash-safe run directories), :mod:`~eant2_jax.progress`
+(a ready progress reporter). The applications
 built on the library (the ``eant2`` command line, the paper's experiments, reports) live
 apart, in :mod:`eant2_jax.app`. Kernels other JAX code may import live in
 :mod:`eant2_jax.kernels`.
@@ -37,6 +38,7 @@ from .loop import RunResult as RunResult
 from .loop import resume as resume
 from .loop import run as run
 from .multirun import run_many as run_many
+from .progress import ProgressReporter as ProgressReporter
 from .pruning import PruneAttempt as PruneAttempt
 from .tuning import OptimizeResult as OptimizeResult
 from .tuning import cost as cost

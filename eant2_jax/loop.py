@@ -35,6 +35,8 @@ from .exploration import OPERATORS, initial_genome, mutate, select
 from .genome import Genome
 from .pruning import PruneAttempt
 from .rundir import RunDir, RunDirError
+from .tasks import check_task, spec_of
+from .tasks import make as make_task
 from .tasks.base import Task
 from .tuning import tune
 
@@ -249,6 +251,10 @@ def _generation(
         if callback is not None:
             callback({"event": "exploit", "generation": gen, **info})
 
+    def compiling(info):
+        if callback is not None:
+            callback({"event": "compiling", "generation": gen, **info})
+
     if state is None:
         genomes, next_id = _initialise(task, mut_key, config)
         parents: list[Individual] = []
@@ -269,6 +275,7 @@ def _generation(
             key=exp_key,
             config=config.exploit,
             on_chunk=progress,
+            on_compile=compiling,
             mesh=mesh,
             # Every generation's batch gets the same number of rows: one program per bucket.
             min_rows=(config.offspring or config.population)
@@ -324,9 +331,13 @@ def run(
         networks; the result has ``generations + 1`` generation records).
       out: optional run directory to create (must not exist or be empty); a run written
         there continues with :func:`resume` after a crash or a kill.
-      callback: receives progress events (dicts with ``event`` = ``generation`` or
-        ``exploit``).
-      meta: extra JSON fields for ``config.json`` (the CLI stores the task name there).
+      callback: receives progress events: dicts with ``event`` = ``generation`` (a
+        :class:`GenerationRecord`'s fields), ``exploit`` (after each chunk of CMA-ES
+        iterations) or ``compiling`` (before a program is first compiled).
+        :class:`eant2_jax.progress.ProgressReporter` prints them.
+      meta: extra JSON fields for ``config.json``. A task built by
+        :func:`eant2_jax.tasks.make` records its spec and options there by itself, so that
+        :func:`resume` can rebuild it.
 
     Returns:
       :class:`RunResult`.
@@ -334,11 +345,14 @@ def run(
     config = EANT2Config() if config is None else config
     if generations < 0:
         raise ValueError(f"generations must be >= 0, got {generations}")
+    check_task(task)  # before anything is written
     rundir = None
     if out is not None:
+        spec = spec_of(task) or {"task_type": f"{type(task).__module__}.{type(task).__qualname__}"}
         rundir = RunDir.create(
             out,
             {
+                **spec,
                 **(meta or {}),
                 "generations": generations,
                 "key": list(_key_data(key)),
@@ -350,7 +364,7 @@ def run(
 
 def resume(
     out: str,
-    task: Task,
+    task: Task | None = None,
     *,
     generations: int | None = None,
     callback: Callable[[dict], None] | None = None,
@@ -359,12 +373,20 @@ def resume(
 
     Args:
       out: the run directory.
-      task: the task it was run on (the CLI rebuilds it from ``config.json``).
+      task: the task it was run on; None rebuilds it from the spec in ``config.json``
+        (recorded when the task came from :func:`eant2_jax.tasks.make`: a registered name,
+        ``module:factory`` or ``file.py:factory``).
       generations: new total number of generations (default: the one in ``config.json``).
       callback: progress events, as for :func:`run`.
+
+    Raises:
+      RunDirError: not a run directory, a corrupt one, or no task given and none recorded.
     """
     rundir = RunDir.open(out)
     meta = rundir.config()
+    if task is None:
+        task = _task_from_meta(meta, rundir)
+    check_task(task)
     try:
         config = EANT2Config.from_dict(meta["config"])
         total = int(meta["generations"] if generations is None else generations)
@@ -381,6 +403,21 @@ def resume(
     else:
         key = _key_from_data(state.key)
     return _loop(task, state, key, config, total, rundir, callback)
+
+
+def _task_from_meta(meta: dict, rundir: RunDir) -> Task:
+    """Rebuild a run's task from the spec its ``config.json`` records."""
+    if not isinstance(meta.get("task"), str):
+        kind = meta.get("task_type", "unknown")
+        raise RunDirError(
+            f"{rundir.path}: config.json records no task spec (its task, {kind}, was not built "
+            f"by eant2_jax.tasks.make); pass the task to resume(), or start runs with "
+            f"tasks.make('module:factory')"
+        )
+    options = meta.get("task_options", {})
+    if not isinstance(options, dict):
+        raise RunDirError(f"{rundir.path}: config.json is corrupt: task_options is not a dict")
+    return make_task(meta["task"], **options)
 
 
 def _key_from_meta(meta: dict, rundir: RunDir) -> jax.Array:

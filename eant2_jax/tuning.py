@@ -9,7 +9,9 @@ tests — goes through :func:`tune`, which does the whole round trip once:
 4. build the pruner's tables (:func:`eant2_jax.pruning.tables_for`);
 5. run the engine (:func:`eant2_jax.exploitation.run`), optionally over a device mesh;
 6. gather the result to the host and turn each structure back into a genome, with the
-   pruned genes dropped (:func:`eant2_jax.pruning.prune_genome`).
+   pruned genes dropped (:func:`eant2_jax.pruning.prune_genome`);
+7. on a noisy task (``task.noisy``), score each tuned genome again on fresh episodes: the
+   best cost seen during a search is the best of many draws, an optimistic estimate.
 
 :func:`cost` is the other host entry point: the task's cost of genomes as they stand.
 """
@@ -30,7 +32,7 @@ from .compiler import Bucket, CompiledBatch, compile_genomes, network_batch
 from .evaluate import as_genomes
 from .genome import Genome
 from .pruning import PruneAttempt, attempt_records, prune_genome, tables_for
-from .tasks.base import Task
+from .tasks.base import Task, check_costs, check_task
 
 __all__ = [
     "OptimizeResult",
@@ -54,21 +56,6 @@ def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch) -> int:
     most one candidate.
     """
     return config.popsize or ex.default_popsize(batch.bucket.genes)
-
-
-def check_task(task: Task, genomes: Sequence[Genome]) -> None:
-    """TypeError/ValueError naming the first genome that does not fit the task."""
-    if not isinstance(task, Task):
-        raise TypeError(f"expected a task (see eant2_jax.tasks), got {type(task).__name__}")
-    for i, g in enumerate(genomes):
-        if g.n_outputs != task.n_outputs:
-            raise ValueError(
-                f"genome {i} has {g.n_outputs} outputs but the task expects {task.n_outputs}"
-            )
-        if g.n_inputs > task.n_inputs:
-            raise ValueError(
-                f"genome {i} reads input {g.n_inputs - 1} but the task has {task.n_inputs} inputs"
-            )
 
 
 class Prepared(NamedTuple):
@@ -124,14 +111,18 @@ class Tuned:
     Attributes:
       genomes: the tuned genomes (best weights, pruned genes dropped), in input order; a
         structure that never saw a finite cost is returned unchanged.
-      costs: each one's best cost (inf where none was finite).
-      evaluations: each one's cost evaluations (pruning trials included).
+      costs: each one's cost (inf where none was finite): the best cost of its search, or
+        on a noisy task its cost on fresh episodes (:func:`tune`, step 7).
+      evaluations: each one's cost evaluations (pruning trials and the re-evaluation on a
+        noisy task included).
       stop_reasons: why each one stopped (see ``exploitation.STOP_REASONS``).
       history: the engine's :class:`~eant2_jax.exploitation.StepRecord` of
         ``[ticks, rows]`` arrays (padding rows included).
       pruning: one :class:`~eant2_jax.pruning.PruneAttempt` per attempt; ``structure``
         is the index in ``genomes``.
       state: the engine's final state (on device).
+      search_costs: the best cost each search saw (equal to ``costs`` on a task that is
+        not noisy).
     """
 
     genomes: list[Genome]
@@ -141,6 +132,7 @@ class Tuned:
     history: ex.StepRecord
     pruning: list[PruneAttempt]
     state: ex.ExploitState
+    search_costs: list[float]
 
 
 def tune(
@@ -155,6 +147,7 @@ def tune(
     pad_count: bool = True,
     on_chunk: Callable[[dict], None] | None = None,
     mesh: jax.sharding.Mesh | None = None,
+    on_compile: Callable[[dict], None] | None = None,
 ) -> Tuned:
     """Tune (and prune) a batch of structures together: ONE batched CMA-ES run.
 
@@ -170,6 +163,8 @@ def tune(
       pad_count: round the rows up the bucket series (see ``compile_genomes``).
       on_chunk: progress callback (see :func:`eant2_jax.exploitation.run`).
       mesh: split the structures over these devices (see :mod:`eant2_jax.distributed`).
+      on_compile: called before a program is compiled (see
+        :func:`eant2_jax.exploitation.run`).
 
     Returns:
       :class:`Tuned`.
@@ -197,6 +192,7 @@ def tune(
         tables=prep.tables,
         on_chunk=on_chunk,
         mesh=mesh,
+        on_compile=on_compile,
     )
     best_x, best_cost, mask, spent, stop = distributed.gather(
         (st.cma.best_x, st.cma.best_cost, st.cma.mask, st.evals, st.stop)
@@ -212,14 +208,33 @@ def tune(
             tuned.append(g)
             costs.append(float("inf"))
     count = len(genomes)
+    evaluations = [int(e) for e in spent[:count]]
+    search_costs = list(costs)
+    if getattr(task, "noisy", False):
+        # A key no CMA-ES iteration used (those fold the iteration number into run_key).
+        fresh_key = jax.random.split(key, 3)[2]
+        batch = compile_genomes(
+            tuned,
+            task.n_inputs,
+            bucket=prep.batch.bucket,
+            min_rows=prep.batch.layout.slot.shape[0],
+            pad_count=pad_count,
+        )
+        fresh = np.asarray(_cost_batch(batch.layout, batch.weights, task, fresh_key), np.float64)
+        costs = [
+            float(f) if np.isfinite(c) and np.isfinite(f) else float("inf")
+            for c, f in zip(costs, fresh[:count], strict=True)
+        ]
+        evaluations = [e + 1 for e in evaluations]
     return Tuned(
         genomes=tuned,
         costs=costs,
-        evaluations=[int(e) for e in spent[:count]],
+        evaluations=evaluations,
         stop_reasons=[ex.STOP_REASONS[int(s)] for s in stop[:count]],
         history=hist,
         pruning=attempt_records(hist.prune, genomes, config.pruner),
         state=st,
+        search_costs=search_costs,
     )
 
 
@@ -228,7 +243,8 @@ class OptimizeResult(NamedTuple):
 
     Attributes:
       genome: the genome with its best weights.
-      cost: the best cost found (of ``genome``'s weights).
+      cost: the best cost found (of ``genome``'s weights); on a noisy task (``task.noisy``)
+        its cost on fresh episodes, which the search never saw.
       history: :class:`~eant2_jax.exploitation.StepRecord` of ``[ticks]`` arrays, one per
         engine iteration it ran (``sigma``, ``sigma_bar``, ``cond``, ``cond_bounded``,
         ``best_cost``, ``evaluations``, ``nonfinite``, ``running``, ``phase``: a pruning
@@ -275,7 +291,7 @@ def optimize(genome: Genome | str, task: Task, *, key: jax.Array, **options: Any
 
 @jax.jit
 def _cost_batch(layout, weights, task, key):
-    return task.cost(key, network_batch(layout, weights))
+    return check_costs(task, task.cost(key, network_batch(layout, weights)), weights.shape[:1])
 
 
 def cost(

@@ -464,7 +464,7 @@ def _corrupt(d: Path, name: str, text: str | None) -> None:
         ("generations.jsonl", None, "missing generations.jsonl"),
         ("config.json", "{not json", "config.json is unreadable or corrupt"),
         ("config.json", "[1, 2]", "not a run configuration"),
-        ("config.json", '{"format": 1, "seed": 0}', "names no task"),
+        ("config.json", '{"format": 1, "seed": 0}', "records no task spec"),
         (
             "config.json",
             '{"format": 1, "task": "nope", "generations": 1, "key": [0, 0], "config": {}}',

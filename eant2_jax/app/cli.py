@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -50,51 +49,6 @@ def _demo(args: argparse.Namespace) -> int:
     return 0 if solved else 1
 
 
-class _Progress:
-    """Renders the library's progress events: one live line on a terminal, else a line per
-    generation."""
-
-    def __init__(self, total: int, stream=sys.stderr, header: str | None = None):
-        self.total = total
-        # Printed with the first event, i.e. once the run directory has been accepted: an
-        # error before that is then the only line on stderr.
-        self.header = header
-        self.stream = stream
-        self.live = stream.isatty()
-        self.last = None
-        self.t0 = time.perf_counter()
-
-    def __call__(self, event: dict) -> None:
-        if self.header is not None:
-            print(self.header, file=self.stream, flush=True)
-            self.header = None
-        if event["event"] == "exploit":
-            if self.live:
-                best = "" if self.last is None else f" | best {self.last.best_cost:.4g}"
-                self._line(
-                    f"gen {event['generation']}/{self.total} | exploit iter {event['iteration']}"
-                    f" ({event['running']} running){best}"
-                )
-            return
-        self.last = event
-        rate = event["evaluations"] / max(time.perf_counter() - self.t0, 1e-9)
-        text = (
-            f"gen {event['generation']}/{self.total} | best {event['best_cost']:.4g}"
-            f" | size {event['best_size']} ({event['best_neurons']} neurons)"
-            f" | pruned {event['prune_accepted']}/{event['prune_attempts']}"
-            f" | {event['evaluations']} evals, {rate:,.0f}/s"
-        )
-        if self.live:
-            self._line(text)
-            self.stream.write("\n")
-        else:
-            print(text, file=self.stream, flush=True)
-
-    def _line(self, text: str) -> None:
-        self.stream.write("\r" + text[:160].ljust(100))
-        self.stream.flush()
-
-
 def _task_options(pairs: list[str]) -> dict:
     out = {}
     for pair in pairs:
@@ -109,7 +63,10 @@ def _task_options(pairs: list[str]) -> dict:
 
 
 def _free_dir(task: str, seed: int) -> Path:
-    base = Path("runs") / f"{task}-s{seed}"
+    # A spec may be a path or module:factory: name the directory by its last part.
+    name = task.replace("\\", "/").rstrip("/").split("/")[-1].replace(".py", "")
+    name = "".join(c if c.isalnum() or c in "-_." else "-" for c in name).strip("-.") or "task"
+    base = Path("runs") / f"{name}-s{seed}"
     path, n = base, 1
     while path.exists():
         n += 1
@@ -124,17 +81,44 @@ def _finish(result, out: Path) -> int:
     return 0
 
 
+def _user_modules() -> None:
+    """Let ``eant2 run module:factory`` import modules from the working directory, as
+    ``python -m`` does (appended: installed packages are never shadowed)."""
+    import os
+
+    if os.getcwd() not in sys.path:
+        sys.path.append(os.getcwd())
+
+
+def _task_spec(args: argparse.Namespace) -> str:
+    if args.task_file is not None:
+        if args.task is not None:
+            raise ValueError(f"give a task or --task-file, not both ({args.task!r})")
+        path, sep, factory = args.task_file.rpartition(":")
+        if not sep or not path.endswith(".py"):  # no factory, or a colon inside the path
+            path, factory = args.task_file, ""
+        if not path.endswith(".py"):
+            raise ValueError(f"--task-file expects PATH.py[:FACTORY], got {args.task_file!r}")
+        return f"{path}:{factory}" if factory else path
+    if args.task is None:
+        raise ValueError("name a task (xor, gymnax:CartPole-v1, module:factory) or --task-file")
+    return args.task
+
+
 def _run(args: argparse.Namespace) -> int:
     import jax
 
     import eant2_jax
     from eant2_jax.exploitation import ExploitConfig
     from eant2_jax.loop import EANT2Config
+    from eant2_jax.progress import ProgressReporter
 
+    spec = _task_spec(args)
     options = _task_options(args.task_option)
     if args.x64:  # before any array is made
         eant2_jax.enable_x64()
-    task = eant2_jax.tasks.make(args.task, **options)
+    _user_modules()
+    task = eant2_jax.tasks.make(spec, **options)
     exploit = {"pruner": "none" if not args.prune else args.pruner}
     if args.x64:
         exploit["dtype"] = "float64"
@@ -146,15 +130,16 @@ def _run(args: argparse.Namespace) -> int:
         target_cost=args.target_cost,
         exploit=ExploitConfig(**exploit),
     )
-    out = Path(args.out) if args.out else _free_dir(args.task, args.seed)
-    meta = {"task": args.task, "task_options": options, "seed": args.seed}
+    out = Path(args.out) if args.out else _free_dir(spec, args.seed)
+    # config.json records the task's spec and options (tasks.make remembers them).
+    meta = {"seed": args.seed}
     result = eant2_jax.run(
         task,
         key=jax.random.key(args.seed),
         config=config,
         generations=args.generations,
         out=str(out),
-        callback=_Progress(args.generations, header=f"eant2 run {args.task}: writing {out}"),
+        callback=ProgressReporter(args.generations, header=f"eant2 run {spec}: writing {out}"),
         meta=meta,
     )
     return _finish(result, out)
@@ -162,22 +147,20 @@ def _run(args: argparse.Namespace) -> int:
 
 def _resume(args: argparse.Namespace) -> int:
     import eant2_jax
-    from eant2_jax.rundir import RunDir, RunDirError
+    from eant2_jax.progress import ProgressReporter
+    from eant2_jax.rundir import RunDir
 
-    rundir = RunDir.open(args.dir)
-    meta = rundir.config()
-    if "task" not in meta:
-        raise RunDirError(f"{args.dir}: config.json names no task (was it written by the CLI?)")
+    meta = RunDir.open(args.dir).config()
     exploit = meta.get("config", {}).get("exploit", {})
     if isinstance(exploit, dict) and exploit.get("dtype") == "float64":
         eant2_jax.enable_x64()  # the run was started with --x64
-    task = eant2_jax.tasks.make(meta["task"], **meta.get("task_options", {}))
+    _user_modules()
     total = args.generations if args.generations is not None else meta.get("generations", 0)
+    # The task is rebuilt from the spec config.json records.
     result = eant2_jax.resume(
         args.dir,
-        task,
         generations=args.generations,
-        callback=_Progress(total, header=f"eant2 resume {args.dir}"),
+        callback=ProgressReporter(total, header=f"eant2 resume {args.dir}"),
     )
     return _finish(result, Path(args.dir))
 
@@ -297,7 +280,19 @@ def _parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_demo)
 
     run = sub.add_parser("run", help="run EANT2 on a task, writing a run directory")
-    run.add_argument("task", help="task name (xor, servo, dpv, dpnv, ...)")
+    run.add_argument(
+        "task",
+        nargs="?",
+        default=None,
+        help="task: a name (xor, servo, dpv, dpnv), gymnax:ENV (e.g. gymnax:CartPole-v1), "
+        "module:factory or file.py:factory (docs/tasks-custom.md)",
+    )
+    run.add_argument(
+        "--task-file",
+        default=None,
+        metavar="PATH.py[:FACTORY]",
+        help="a Python file defining the task's factory (default name: make_task)",
+    )
     run.add_argument(
         "--prune",
         dest="prune",

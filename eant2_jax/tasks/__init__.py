@@ -1,27 +1,64 @@
 """Tasks: what a network is scored on, and the registry that names them.
 
-``make(name, **options)`` builds a registered task; ``register(name, factory)`` adds one.
+``make(spec, **options)`` builds a task from a spec, which is one of
+
+* a registered name (``xor``, ``servo``, ``dpv``, ``dpnv``; :func:`names`);
+* ``NAMESPACE:NAME`` for a registered family of tasks (``gymnax:CartPole-v1``;
+  :func:`namespaces`);
+* ``module.path:factory``, a factory in an importable module;
+* ``path/to/file.py:factory`` (or ``path/to/file.py``, factory ``make_task``), a factory in
+  a Python file.
+
+``register(name, factory)`` and ``register_namespace(prefix, factory)`` add to the registry.
+A task built by :func:`make` remembers its spec and options (:func:`spec_of`), so a run
+directory records how to rebuild it and :func:`eant2_jax.resume` needs no task.
+The protocol a task must follow is :class:`Task` (``docs/tasks-custom.md``);
+:func:`check_task` checks it with one clear line per mistake.
 """
 
 from __future__ import annotations
 
+import hashlib
+import importlib
+import importlib.util
+import inspect
+import sys
+import weakref
 from collections.abc import Callable
+from pathlib import Path
 
 from .base import ReportingTask as ReportingTask
 from .base import Task as Task
+from .base import TaskError as TaskError
+from .base import check_task as check_task
 from .base import map_networks as map_networks
 from .regression import Regression as Regression
 from .regression import regression as regression
 from .regression import xor as xor
 
 _REGISTRY: dict[str, Callable[..., Task]] = {}
+_NAMESPACES: dict[str, Callable[..., Task]] = {}
+DEFAULT_FACTORY = "make_task"  # the factory of a file spec without ":factory"
 
 
 def register(name: str, factory: Callable[..., Task], *, overwrite: bool = False) -> None:
     """Register a task factory under ``name`` (ValueError if taken, unless ``overwrite``)."""
+    if ":" in name:
+        raise ValueError(f"task name {name!r} must not contain ':' (specs use it)")
     if not overwrite and name in _REGISTRY:
         raise ValueError(f"task {name!r} is already registered")
     _REGISTRY[name] = factory
+
+
+def register_namespace(
+    prefix: str, factory: Callable[..., Task], *, overwrite: bool = False
+) -> None:
+    """Register a family of tasks: ``make("PREFIX:NAME", **o)`` calls ``factory(NAME, **o)``."""
+    if not prefix.isidentifier():
+        raise ValueError(f"namespace {prefix!r} must be an identifier")
+    if not overwrite and prefix in _NAMESPACES:
+        raise ValueError(f"namespace {prefix!r} is already registered")
+    _NAMESPACES[prefix] = factory
 
 
 def names() -> list[str]:
@@ -29,32 +66,147 @@ def names() -> list[str]:
     return sorted(_REGISTRY)
 
 
-def make(name: str, **options) -> Task:
-    """Build the registered task ``name`` with its options.
+def namespaces() -> list[str]:
+    """The registered task families (``make("PREFIX:NAME")``), sorted."""
+    return sorted(_NAMESPACES)
+
+
+# How each task made by make() was built: id(task) -> (weak reference, spec, options). A
+# side table, not a field, so that a task stays the user's own pytree.
+_SPECS: dict[int, tuple[weakref.ref, str, dict]] = {}
+
+
+def spec_of(task: Task) -> dict | None:
+    """``{"task": spec, "task_options": options}`` of a task built by :func:`make`, else
+    None. The spec is canonical (a file spec holds the file's absolute path), so
+    ``make(d["task"], **d["task_options"])`` rebuilds the task from anywhere."""
+    entry = _SPECS.get(id(task))
+    if entry is None or entry[0]() is not task:
+        return None
+    return {"task": entry[1], "task_options": dict(entry[2])}
+
+
+def _remember(task: Task, spec: str, options: dict) -> None:
+    key = id(task)
+    try:
+        ref = weakref.ref(task, lambda _: _SPECS.pop(key, None))
+    except TypeError:  # a type without weak references: nothing to remember
+        return
+    _SPECS[key] = (ref, spec, dict(options))
+
+
+def _load_file(path: Path):
+    """Import a Python file as a module (once per file and modification time)."""
+    stamp = f"{path}:{path.stat().st_mtime_ns}"
+    name = f"eant2_user_task_{path.stem}_{hashlib.sha1(stamp.encode()).hexdigest()[:10]}"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise ValueError(f"cannot import {path} as Python")
+    module = importlib.util.module_from_spec(spec)
+    # Registered before it runs: dataclasses (flax.struct) look their module up by name.
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        del sys.modules[name]
+        raise
+    return module
+
+
+def _resolve(spec: str) -> tuple[Callable[..., Task], str]:
+    """The factory a spec names, and the spec in canonical form."""
+    if not isinstance(spec, str) or not spec:
+        raise ValueError(f"a task spec is a non-empty string, got {spec!r}")
+    if spec in _REGISTRY:
+        return _REGISTRY[spec], spec
+    head, sep, name = spec.partition(":")
+    if sep and head in _NAMESPACES:
+        if not name:
+            raise ValueError(f"task {spec!r}: name the task after '{head}:'")
+        family = _NAMESPACES[head]
+
+        def make_in_family(**options):
+            return family(name, **options)
+
+        make_in_family.__signature__ = _options_signature(family)
+        return make_in_family, spec
+    if sep:
+        source, attr = spec.rsplit(":", 1)
+    elif spec.endswith(".py"):
+        source, attr = spec, DEFAULT_FACTORY
+    else:
+        families = "".join(f"{p}:NAME, " for p in namespaces())
+        raise ValueError(
+            f"unknown task {spec!r}; known tasks: {', '.join(names())}; "
+            f"or {families}module:factory, file.py[:factory]"
+        )
+    if not attr.isidentifier():
+        raise ValueError(f"task {spec!r}: {attr!r} is not a factory name")
+    if source.endswith(".py"):
+        path = Path(source).expanduser().resolve()
+        if not path.is_file():
+            raise ValueError(f"task {spec!r}: no such file {path}")
+        module = _load_file(path)
+        canonical = f"{path}:{attr}"
+    else:
+        try:
+            module = importlib.import_module(source)
+        except ModuleNotFoundError as e:
+            raise ValueError(
+                f"task {spec!r}: cannot import module {source!r} ({e}); is it on PYTHONPATH?"
+            ) from None
+        canonical = f"{source}:{attr}"
+    factory = getattr(module, attr, None)
+    if factory is None:
+        raise ValueError(f"task {spec!r}: {source} defines no {attr!r}")
+    if not callable(factory):
+        raise ValueError(f"task {spec!r}: {attr!r} is a {type(factory).__name__}, not a factory")
+    return factory, canonical
+
+
+def _options_signature(family: Callable[..., Task]) -> inspect.Signature | None:
+    """The keyword options of a family's factory ``factory(name, **options)``."""
+    try:
+        params = list(inspect.signature(family).parameters.values())[1:]
+    except (TypeError, ValueError):
+        return None
+    return inspect.Signature(params)
+
+
+def make(spec: str, **options) -> Task:
+    """Build a task from its spec (module docstring) and options.
 
     Raises:
-      ValueError: unknown name (the message lists the known ones) or a bad option.
+      ValueError: unknown name (the message lists the known ones), a module or file that
+        cannot be found, a bad option, or a factory that returns something that is not a
+        task (:class:`TaskError`, naming what is missing).
     """
+    factory, canonical = _resolve(spec)
     try:
-        factory = _REGISTRY[name]
-    except KeyError:
-        raise ValueError(f"unknown task {name!r}; known tasks: {', '.join(names())}") from None
-    try:
-        return factory(**options)
+        inspect.signature(factory).bind(**options)
     except TypeError as e:
-        raise ValueError(f"bad options for task {name!r}: {e}") from None
+        raise ValueError(f"bad options for task {spec!r}: {e}") from None
+    except ValueError:  # no signature (a builtin): let the call decide
+        pass
+    try:
+        task = factory(**options)
+    except TypeError as e:
+        raise ValueError(f"bad options for task {spec!r}: {e}") from None
+    check_task(task, what=f"task {spec!r}")
+    _remember(task, canonical, options)
+    return task
 
 
 register("xor", xor)
 
 
 def _lazy(module: str, factory: str) -> Callable[..., Task]:
-    """A factory that imports its module on first use (MJX is slow to import)."""
+    """A factory that imports its module on first use (MJX, gymnax are slow to import)."""
 
-    def make_task(**options) -> Task:
-        import importlib
-
-        return getattr(importlib.import_module(f"{__name__}.{module}"), factory)(**options)
+    def make_task(*args, **options) -> Task:
+        return getattr(importlib.import_module(f"{__name__}.{module}"), factory)(*args, **options)
 
     make_task.__name__ = factory
     return make_task
@@ -63,3 +215,4 @@ def _lazy(module: str, factory: str) -> Callable[..., Task]:
 register("servo", _lazy("servo", "servo"))
 register("dpv", _lazy("pole", "dpv"))
 register("dpnv", _lazy("pole", "dpnv"))
+register_namespace("gymnax", _lazy("gymnax_task", "gymnax"))

@@ -5,18 +5,29 @@ turns a batch of compiled networks (any leading batch shape) plus a PRNG key int
 costs (lower is better), as a pure JAX function. Tasks are frozen pytrees, so they are passed
 INTO jit-compiled functions as arguments: two tasks of the same kind and shapes share one
 compiled program, and a task's data is never baked into a program as a constant.
+
+:func:`check_task` checks the protocol before anything runs, and :func:`check_costs` checks
+what ``cost`` returns while it is traced; each mistake is one :class:`TaskError` line.
+``docs/tasks-custom.md`` walks through writing a task.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Protocol, runtime_checkable
+import inspect
+import numbers
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol, runtime_checkable
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
-from ..kernels.network import Network
+from ..kernels.network import Network, activation
 
-__all__ = ["ReportingTask", "Task", "map_networks"]
+__all__ = ["ReportingTask", "Task", "TaskError", "check_costs", "check_task", "map_networks"]
+
+PROTOCOL = ("n_inputs", "n_outputs", "hidden", "output", "cost")
+_GUIDE = "see docs/tasks-custom.md"
 
 
 @runtime_checkable
@@ -42,6 +53,12 @@ class Task(Protocol):
         candidates of one CMA-ES iteration are ranked on the same draw.
         """
         ...
+
+
+# Optional attribute of a task (not part of the protocol's isinstance check):
+#   noisy: bool — True when costs depend on the key (random starts, noise). Then
+#   eant2_jax.tuning.tune re-evaluates each tuned network on fresh episodes (a key no
+#   CMA-ES iteration used) and reports THAT cost, not the best draw seen during the search.
 
 
 @runtime_checkable
@@ -75,3 +92,110 @@ def map_networks(fn: Callable[[Network], jax.Array], nets: Network) -> jax.Array
     for _ in batch:
         fn = jax.vmap(fn)
     return fn(nets)
+
+
+class TaskError(TypeError, ValueError):
+    """A task that does not follow the protocol (one line naming what is wrong).
+
+    Both a ``TypeError`` (a wrong kind of object) and a ``ValueError`` (a bad value), so
+    callers catching either see it.
+    """
+
+
+def _name(task: Any) -> str:
+    return type(task).__name__
+
+
+def check_task(task: Any, genomes: Sequence[Any] = (), *, what: str | None = None) -> None:
+    """Check that ``task`` follows the :class:`Task` protocol (and fits ``genomes``).
+
+    Args:
+      task: the object to check.
+      genomes: optional genomes that must fit it (outputs equal, inputs within).
+      what: how to name the task in messages (default: its type's name).
+
+    Raises:
+      TaskError: one line naming the first mistake.
+    """
+    what = what or f"task {_name(task)}"
+    missing = [m for m in PROTOCOL if not hasattr(task, m)]
+    if missing:
+        raise TaskError(
+            f"expected a task: {what} has no {', '.join(missing)} (a task needs n_inputs, "
+            f"n_outputs, hidden, output and cost(key, nets); {_GUIDE})"
+        )
+    for field in ("n_inputs", "n_outputs"):
+        n = getattr(task, field)
+        if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+            raise TaskError(f"{what}: {field} must be an int >= 1 (a static size), got {n!r}")
+    for field in ("hidden", "output"):
+        name = getattr(task, field)
+        if not isinstance(name, str):
+            raise TaskError(f"{what}: {field} must be an activation name, got {name!r}")
+        try:
+            activation(name)
+        except ValueError as e:
+            raise TaskError(f"{what}: {field}: {e}") from None
+    if not callable(task.cost):
+        raise TaskError(f"{what}: cost must be a method cost(key, nets)")
+    try:
+        inspect.signature(task.cost).bind(None, None)
+    except TypeError:
+        raise TaskError(
+            f"{what}: cost must take (key, nets); its signature is {inspect.signature(task.cost)}"
+        ) from None
+    except ValueError:  # no signature to read (a builtin): the call will tell
+        pass
+    noisy = getattr(task, "noisy", False)
+    if not isinstance(noisy, bool | np.bool_):
+        raise TaskError(f"{what}: noisy must be True or False, got {noisy!r}")
+    leaves = jax.tree.leaves(task)
+    if len(leaves) == 1 and leaves[0] is task:
+        raise TaskError(
+            f"{what} is not a JAX pytree: declare its class with @flax.struct.dataclass "
+            f"(sizes and names as struct.field(pytree_node=False)); {_GUIDE}"
+        )
+    for leaf in leaves:
+        if not isinstance(leaf, jax.Array | np.ndarray | np.generic | numbers.Number):
+            raise TaskError(
+                f"{what}: a field holds a {type(leaf).__name__}, which cannot enter a jit-"
+                f"compiled function: make it an array or a static field "
+                f"(struct.field(pytree_node=False))"
+            )
+    for i, g in enumerate(genomes):
+        if g.n_outputs != task.n_outputs:
+            raise ValueError(
+                f"genome {i} has {g.n_outputs} outputs but the task expects {task.n_outputs}"
+            )
+        if g.n_inputs > task.n_inputs:
+            raise ValueError(
+                f"genome {i} reads input {g.n_inputs - 1} but the task has {task.n_inputs} inputs"
+            )
+
+
+def check_costs(task: Any, costs: Any, batch: tuple[int, ...]) -> jax.Array:
+    """Check, while tracing, what ``task.cost`` returned for networks of shape ``batch``.
+
+    Returns:
+      ``costs`` as an array ``[*batch]``.
+
+    Raises:
+      TaskError: not one floating-point cost per network.
+    """
+    try:
+        c = jnp.asarray(costs)
+    except TypeError:
+        raise TaskError(
+            f"task {_name(task)}: cost returned a {type(costs).__name__}, not an array of costs"
+        ) from None
+    if c.shape != tuple(batch):
+        raise TaskError(
+            f"task {_name(task)}: cost returned shape {c.shape} for networks of batch shape "
+            f"{tuple(batch)}; it must return one cost per network (use map_networks)"
+        )
+    if not jnp.issubdtype(c.dtype, jnp.floating):
+        raise TaskError(
+            f"task {_name(task)}: cost returned {c.dtype} costs; return floats "
+            f"(e.g. cost.astype(jnp.float32))"
+        )
+    return c

@@ -1,0 +1,287 @@
+"""gymnax environments as EANT2 tasks: ``tasks.make("gymnax:CartPole-v1")``.
+
+gymnax (Lange 2022, https://github.com/RobertTLange/gymnax) re-implements classic control,
+MinAtar, bsuite and other environments as pure JAX functions. It is an optional extra:
+``pip install "eant2-jax[gymnax]"``.
+
+A network controls the environment for one episode at a time:
+
+* **observation -> inputs**: the observation, flattened to float32, then normalised with
+  fixed numbers (``normalize="bounds"``, the default): every dimension whose observation
+  space has finite bounds is mapped from ``[low, high]`` to ``[-1, 1]``; unbounded ones (the
+  cart's and the pole's velocities in CartPole) are left as they are. Fixed rather than
+  running statistics (evosax's and OpenAI-ES's choice): a running normaliser changes the
+  cost function while CMA-ES searches it, and the task stays a pure function of its key.
+  ``normalize="none"`` passes observations through.
+* **outputs -> action**: a discrete action space gets one output per action and the action
+  is the ``argmax`` (output activation ``identity``); a continuous (``Box``) one gets one
+  output per action dimension, clipped to ``[-1, 1]`` and mapped linearly onto
+  ``[low, high]`` (output activation ``tanh``).
+* **recurrent state**: the network's neuron outputs are carried from step to step
+  (:func:`eant2_jax.kernels.network.step`), so recurrent jumpers see the previous step;
+  they start at zero in every episode.
+* **episode**: at most ``max_steps`` steps (the environment's own limit by default, 500 for
+  CartPole-v1); steps after the episode ends (terminated or truncated) are masked out, so
+  every episode of a batch runs the same program. Episodes run in blocks of ``chunk`` steps
+  inside a ``lax.while_loop`` that stops once every episode of the batch has ended.
+* **cost**: ``-mean return`` over ``episodes`` episodes; their start states and the
+  environment's noise come from the cost's key, the same draws for every network of the call
+  (common random numbers).
+
+The task is ``noisy``: costs depend on the key, and the exploitation engine draws new
+episodes at every CMA-ES iteration, so the best cost a search has seen is optimistic.
+:func:`eant2_jax.tuning.tune` therefore scores each tuned network once more on fresh
+episodes and reports that cost (``Tuned.search_costs`` keeps the search's).
+
+One evaluation is one network's cost (all of its ``episodes``), as the engine counts.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from ..kernels import network as kn
+from .base import map_networks
+
+__all__ = ["GymnaxTask", "NORMALIZE", "gymnax", "returns"]
+
+NORMALIZE = ("bounds", "none")
+_HUGE = 1e6  # bounds beyond this count as unbounded (gymnax writes finfo.max for "none")
+
+
+def _import_gymnax():
+    try:
+        import gymnax as gx
+    except ImportError as e:
+        raise ValueError(
+            f"gymnax tasks need the gymnax package ({e}): pip install 'eant2-jax[gymnax]'"
+        ) from None
+    return gx
+
+
+@functools.cache
+def _environment(name: str) -> tuple[Any, Any]:
+    """``gymnax.make(name)``, once per process: one environment object per name, so that
+    two tasks of one environment share their compiled programs (gymnax jits its methods
+    with the environment as a static argument)."""
+    gx = _import_gymnax()
+    known = list(gx.registered_envs)
+    if name not in known:
+        raise ValueError(f"unknown gymnax environment {name!r}; known: {', '.join(known)}")
+    return gx.make(name)
+
+
+@struct.dataclass
+class GymnaxTask:
+    """A gymnax environment as a task (module docstring). Build with :func:`gymnax`.
+
+    Attributes:
+      env_params: the environment's parameters (a pytree of traced numbers).
+      obs_offset, obs_scale: ``[n_inputs]`` inputs are ``(obs - obs_offset) * obs_scale``.
+      act_low, act_high: ``[n_outputs]`` bounds of a continuous action (unused if discrete).
+      env_name: the gymnax environment id (static).
+      n_inputs, n_outputs: network inputs (flattened observation) and outputs (static).
+      discrete: argmax over outputs (True) or a continuous action (static).
+      action_shape: shape of one continuous action (static).
+      episodes: episodes per evaluation (static).
+      max_steps: steps per episode at most (static).
+      chunk: steps per block between the batch's early-exit checks (static).
+      hidden, output: activation names (static).
+      noisy: costs depend on the key (static; see :func:`eant2_jax.tuning.tune`).
+    """
+
+    env_params: Any
+    obs_offset: jax.Array
+    obs_scale: jax.Array
+    act_low: jax.Array
+    act_high: jax.Array
+    env_name: str = struct.field(pytree_node=False)
+    n_inputs: int = struct.field(pytree_node=False)
+    n_outputs: int = struct.field(pytree_node=False)
+    discrete: bool = struct.field(pytree_node=False)
+    action_shape: tuple[int, ...] = struct.field(pytree_node=False)
+    episodes: int = struct.field(pytree_node=False, default=1)
+    max_steps: int = struct.field(pytree_node=False, default=500)
+    chunk: int = struct.field(pytree_node=False, default=50)
+    hidden: str = struct.field(pytree_node=False, default="tanh")
+    output: str = struct.field(pytree_node=False, default="identity")
+    noisy: bool = struct.field(pytree_node=False, default=True)
+
+    @property
+    def env(self):
+        return _environment(self.env_name)[0]
+
+    def inputs(self, obs: jax.Array) -> jax.Array:
+        """Network inputs ``[n_inputs]`` of one observation."""
+        return (jnp.ravel(obs).astype(jnp.float32) - self.obs_offset) * self.obs_scale
+
+    def action(self, y: jax.Array) -> jax.Array:
+        """The environment's action for network outputs ``y`` ``[n_outputs]``."""
+        if self.discrete:
+            return jnp.argmax(y).astype(jnp.int32)
+        a = self.act_low + (jnp.clip(y, -1.0, 1.0) + 1.0) * 0.5 * (self.act_high - self.act_low)
+        return a.reshape(self.action_shape)
+
+    def episode(self, net: kn.Network, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Return (sum of rewards) and length of ONE episode of ONE network."""
+        env, params = self.env, self.env_params
+        reset_key, step_key = jax.random.split(key)
+        obs, state = env.reset(reset_key, params)
+        h0 = jnp.zeros(net.bias.shape, jnp.float32)
+        carry0 = (obs, state, h0, jnp.float32(0.0), jnp.bool_(True), jnp.int32(0))
+
+        def one(carry, _):
+            obs, state, h, ret, alive, t = carry
+            y, h = kn.step(net, self.inputs(obs), h, hidden=self.hidden, output=self.output)
+            out = env.step(jax.random.fold_in(step_key, t), state, self.action(y), params)
+            if len(out) == 6:  # gymnax >= 0.0.9: obs, state, reward, terminated, truncated, info
+                obs, state, reward, terminated, truncated, _ = out
+                done = jnp.logical_or(terminated, truncated)
+            else:  # older gymnax: obs, state, reward, done, info
+                obs, state, reward, done, _ = out
+            live = alive & (t < self.max_steps)
+            ret = ret + jnp.where(live, jnp.asarray(reward, jnp.float32), 0.0)
+            # A non-finite return (absurd weights) ends the episode as a failure.
+            alive = live & ~done & jnp.isfinite(ret)
+            return (obs, state, h, ret, alive, t + live.astype(jnp.int32)), None
+
+        def block(carry):
+            return jax.lax.scan(one, carry, None, length=min(self.chunk, self.max_steps))[0]
+
+        def going(carry):
+            return carry[4] & (carry[5] < self.max_steps)
+
+        _, _, _, ret, _, t = jax.lax.while_loop(going, block, carry0)
+        return ret, t
+
+    def cost(self, key: jax.Array, nets: kn.Network) -> jax.Array:
+        """``-mean return`` ``[*batch]`` over ``episodes`` episodes drawn from ``key``."""
+        keys = jax.random.split(key, self.episodes)
+
+        def one(net):
+            ret, _ = jax.vmap(self.episode, in_axes=(None, 0))(net, keys)
+            ret = jnp.where(jnp.isfinite(ret), ret, -jnp.inf)
+            return -jnp.mean(ret)
+
+        return map_networks(one, nets)
+
+
+def _bounds(space: Any, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The finite ``(low, high)`` of a space, broadcast to ``shape`` and flattened."""
+    if hasattr(space, "low") and hasattr(space, "high"):
+        low, high = np.asarray(space.low, np.float64), np.asarray(space.high, np.float64)
+    elif hasattr(space, "n"):  # a discrete observation: 0 .. n-1
+        low, high = np.zeros(()), np.asarray(space.n - 1, np.float64)
+    else:
+        return None
+    low = np.broadcast_to(low, shape).ravel()
+    high = np.broadcast_to(high, shape).ravel()
+    return low, high
+
+
+def gymnax(
+    name: str,
+    *,
+    episodes: int = 1,
+    max_steps: int | None = None,
+    normalize: str = "bounds",
+    params: dict | None = None,
+    chunk: int = 50,
+    hidden: str = "tanh",
+    output: str | None = None,
+) -> GymnaxTask:
+    """A gymnax environment as a task (``tasks.make("gymnax:NAME", ...)``).
+
+    Args:
+      name: the gymnax environment id, e.g. ``CartPole-v1``, ``Pendulum-v1``.
+      episodes: episodes per evaluation (the cost is minus their mean return).
+      max_steps: steps per episode at most (default: the environment's
+        ``max_steps_in_episode``; a smaller value also becomes the environment's limit).
+      normalize: ``"bounds"`` (finite observation bounds mapped to [-1, 1]) or ``"none"``.
+      params: values replacing fields of the environment's default parameters.
+      chunk: steps per block of the episode loop (its early exit is checked per block).
+      hidden: activation of hidden neurons.
+      output: activation of output neurons (default: ``identity`` for a discrete action
+        space, ``tanh`` for a continuous one).
+
+    Returns:
+      The :class:`GymnaxTask`.
+    """
+    env, env_params = _environment(name)
+    if params:
+        unknown = sorted(set(params) - set(vars(env_params)))
+        if unknown:
+            raise ValueError(
+                f"gymnax:{name}: unknown params {', '.join(unknown)}; "
+                f"known: {', '.join(sorted(vars(env_params)))}"
+            )
+        env_params = env_params.replace(**params)
+    if int(episodes) < 1 or int(chunk) < 1:
+        raise ValueError(f"gymnax:{name}: episodes and chunk must be >= 1")
+    limit = getattr(env_params, "max_steps_in_episode", None)
+    if max_steps is None:
+        if limit is None:
+            raise ValueError(f"gymnax:{name} has no episode limit: pass max_steps")
+        max_steps = int(limit)
+    elif int(max_steps) < 1:
+        raise ValueError(f"gymnax:{name}: max_steps must be >= 1, got {max_steps}")
+    elif limit is not None:
+        env_params = env_params.replace(max_steps_in_episode=min(int(limit), int(max_steps)))
+    if normalize not in NORMALIZE:
+        raise ValueError(f"gymnax:{name}: normalize must be one of {', '.join(NORMALIZE)}")
+    obs_shape = jax.eval_shape(env.reset, jax.random.key(0), env_params)[0].shape
+    n_inputs = math.prod(obs_shape)
+    offset, scale = np.zeros(n_inputs), np.ones(n_inputs)
+    bounds = _bounds(env.observation_space(env_params), obs_shape)
+    if normalize == "bounds" and bounds is not None:
+        low, high = bounds
+        finite = (np.abs(low) < _HUGE) & (np.abs(high) < _HUGE) & (high > low)
+        offset = np.where(finite, (high + low) / 2, 0.0)
+        scale = np.where(finite, 2 / np.where(finite, high - low, 1.0), 1.0)
+    space = env.action_space(env_params)
+    discrete = hasattr(space, "n") and not hasattr(space, "low")
+    if discrete:
+        n_outputs, action_shape = int(space.n), ()
+        low = high = np.zeros(n_outputs)
+    else:
+        action_shape = tuple(int(s) for s in space.shape)
+        n_outputs = max(1, math.prod(action_shape))
+        low, high = _bounds(space, action_shape)
+    output = output or ("identity" if discrete else "tanh")
+    kn.activation(hidden), kn.activation(output)
+    return GymnaxTask(
+        env_params=env_params,
+        obs_offset=jnp.asarray(offset, jnp.float32),
+        obs_scale=jnp.asarray(scale, jnp.float32),
+        act_low=jnp.asarray(low, jnp.float32),
+        act_high=jnp.asarray(high, jnp.float32),
+        env_name=name,
+        n_inputs=n_inputs,
+        n_outputs=n_outputs,
+        discrete=discrete,
+        action_shape=action_shape,
+        episodes=int(episodes),
+        max_steps=int(max_steps),
+        chunk=int(chunk),
+        hidden=hidden,
+        output=output,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("episodes",))
+def _returns(task: GymnaxTask, nets: kn.Network, key: jax.Array, episodes: int):
+    keys = jax.random.split(key, episodes)
+    return map_networks(lambda net: jax.vmap(task.episode, in_axes=(None, 0))(net, keys)[0], nets)
+
+
+def returns(task: GymnaxTask, nets: kn.Network, *, key: jax.Array, episodes: int) -> np.ndarray:
+    """Returns ``[*batch, episodes]`` of networks on ``episodes`` new episodes (host side;
+    for checking a result on episodes it never saw: not counted as evaluations)."""
+    return np.asarray(_returns(task, nets, key, int(episodes)))

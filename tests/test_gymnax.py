@@ -1,0 +1,108 @@
+"""The gymnax adapter on real gymnax environments (skipped when gymnax is not installed).
+
+* a hand-made linear controller balances CartPole-v1 for the full 500 steps on every new
+  episode, and a constant action falls within a few dozen steps (the adapter's inputs,
+  action mapping, done-masking and return are right, not just shaped right);
+* a batch of networks gets one cost each, discrete and continuous action spaces alike, and
+  a second task built alike compiles nothing new;
+* options are checked with one line; an EANT2 run of a short CartPole resumes from the
+  command line.
+"""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+from compiles import count_compiles
+
+pytest.importorskip("gymnax")
+
+import eant2_jax  # noqa: E402
+from eant2_jax import tasks  # noqa: E402
+from eant2_jax.compiler import networks  # noqa: E402
+from eant2_jax.exploration import initial_genome  # noqa: E402
+from eant2_jax.tasks.gymnax_task import returns  # noqa: E402
+
+# Output 1 (push right) = theta + theta_dot (normalised): the textbook linear controller.
+BALANCE = "N0/1*1 I0*0 N1/2*1 I2*1 I3*1"
+ALWAYS_LEFT = "N0/1*1 I0*0 N1/1*0 I0*0"
+
+
+def _nets(task, *genomes):
+    return networks([eant2_jax.Genome.parse(g) for g in genomes], task.n_inputs)
+
+
+def test_cartpole_controllers_get_the_returns_they_should():
+    task = tasks.make("gymnax:CartPole-v1")
+    assert (task.n_inputs, task.n_outputs, task.max_steps, task.discrete) == (4, 2, 500, True)
+    r = returns(task, _nets(task, BALANCE, ALWAYS_LEFT), key=jax.random.key(7), episodes=8)
+    assert r.shape == (2, 8)
+    np.testing.assert_array_equal(r[0], 500.0)
+    assert np.all((r[1] >= 5) & (r[1] <= 30)), r[1]  # falls over quickly
+    # cost = -mean return over the task's episodes, drawn from the key.
+    cost = eant2_jax.cost([BALANCE, ALWAYS_LEFT], task, key=jax.random.key(1))
+    assert cost[0] == -500.0 and -30 <= cost[1] <= -5
+
+
+_cost = jax.jit(lambda task, key, nets: task.cost(key, nets))
+
+
+@pytest.mark.parametrize(
+    "name,options,n_in,n_out",
+    [
+        ("CartPole-v1", {"max_steps": 20, "episodes": 2}, 4, 2),
+        ("Pendulum-v1", {"max_steps": 20}, 3, 1),
+    ],
+)
+def test_a_batch_of_networks_gets_one_cost_each(name, options, n_in, n_out):
+    task = tasks.make(f"gymnax:{name}", **options)
+    assert (task.n_inputs, task.n_outputs) == (n_in, n_out)
+    rng = np.random.default_rng(0)
+    genomes = [initial_genome(rng, n_in, n_out, weight_scale=0.5) for _ in range(6)]
+    nets = jax.tree.map(lambda a: a.reshape(2, 3, *a.shape[1:]), networks(genomes, n_in))
+    cost = np.asarray(_cost(task, jax.random.key(0), nets))
+    assert cost.shape == (2, 3) and np.all(np.isfinite(cost))
+    again = tasks.make(f"gymnax:{name}", **options)
+    with count_compiles() as c:
+        _cost(again, jax.random.key(1), nets)
+    assert c.count == 0
+    if name == "Pendulum-v1":  # bounded observations normalised, the action mapped
+        np.testing.assert_allclose(task.obs_scale, [1.0, 1.0, 1 / 8])
+        np.testing.assert_allclose([task.act_low[0], task.act_high[0]], [-2.0, 2.0])
+
+
+@pytest.mark.parametrize(
+    "spec,options,phrase",
+    [
+        ("gymnax:Nope-v0", {}, "unknown gymnax environment 'Nope-v0'"),
+        ("gymnax:CartPole-v1", {"normalize": "running"}, "normalize must be one of"),
+        ("gymnax:CartPole-v1", {"params": {"gravty": 1}}, "unknown params gravty"),
+        ("gymnax:CartPole-v1", {"episodes": 0}, "episodes and chunk must be >= 1"),
+        ("gymnax:CartPole-v1", {"bogus": 1}, "bad options"),
+    ],
+)
+def test_bad_gymnax_options_are_one_line(spec, options, phrase):
+    with pytest.raises(ValueError) as e:
+        tasks.make(spec, **options)
+    assert phrase in str(e.value) and "\n" not in str(e.value)
+
+
+@pytest.mark.slow
+def test_cli_runs_and_resumes_a_gymnax_task(tmp_path, capsys, monkeypatch):
+    from eant2_jax.app.cli import main
+
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")
+    out = tmp_path / "cp"
+    argv = ["run", "gymnax:CartPole-v1", "--task-option", "max_steps=50", "--generations", "0"]
+    argv += ["--population", "3", "--max-iters", "10", "--no-prune", "--out", str(out)]
+    assert main(argv) == 0
+    meta = json.loads((out / "config.json").read_text())
+    assert (meta["task"], meta["task_options"]) == ("gymnax:CartPole-v1", {"max_steps": 50})
+    assert main(["resume", str(out), "--generations", "1"]) == 0
+    lines = (out / "generations.jsonl").read_text().splitlines()
+    assert [json.loads(x)["generation"] for x in lines] == [0, 1]
+    assert json.loads(lines[-1])["best_cost"] >= -50  # at most 50 steps of reward 1
+    capsys.readouterr()

@@ -23,6 +23,7 @@ from .genome import Gene as Gene
 from .genome import GeneKind as GeneKind
 from .genome import Genome as Genome
 from .genome import GenomeError as GenomeError
+from .kernels.activations import register as register_activation
 from .reference import interpret as interpret
 
 __version__ = "0.1.0"

@@ -75,7 +75,9 @@ def evaluate(
         number of outputs.
       inputs: ``[T, M, n_in]``: T time steps of M independent streams, each stream with its
         own recurrent state (all zeros before the first step).
-      hidden: activation of hidden neurons (tanh, sigmoid, relu, identity).
+      hidden: activation of hidden neurons: a name of ``eant2_jax.kernels.activations``
+        (tanh, sigmoid, relu, identity, sin, gauss, ... or one registered with
+        ``eant2_jax.register_activation``).
       output: activation of root (output) neurons.
 
     Returns:

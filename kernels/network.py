@@ -33,8 +33,9 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from . import activations
+
 __all__ = [
-    "ACTIVATIONS",
     "Layout",
     "Network",
     "activation",
@@ -49,22 +50,12 @@ __all__ = [
 # products are tiny, so the cost is nil.
 _PRECISION = jax.lax.Precision.HIGHEST
 
-ACTIVATIONS: dict[str, Callable[[jax.Array], jax.Array]] = {
-    "identity": lambda a: a,
-    "tanh": jnp.tanh,
-    "sigmoid": jax.nn.sigmoid,
-    "relu": jax.nn.relu,
-}
 
 
 def activation(name: str) -> Callable[[jax.Array], jax.Array]:
-    """The activation function called ``name``; ValueError listing the known ones."""
-    try:
-        return ACTIVATIONS[name]
-    except KeyError:
-        raise ValueError(
-            f"unknown activation {name!r}; known: {', '.join(sorted(ACTIVATIONS))}"
-        ) from None
+    """The JAX activation function called ``name`` (built in or registered, see
+    :mod:`eant2_jax.kernels.activations`); ValueError listing the known ones."""
+    return activations.get(name).jax
 
 
 def buffer_size(n_neurons: int, n_inputs: int, n_outputs: int) -> int:

@@ -23,11 +23,15 @@ from .genome import Gene as Gene
 from .genome import GeneKind as GeneKind
 from .genome import Genome as Genome
 from .genome import GenomeError as GenomeError
-from .kernels.activations import register as register_activation
+from .genomefile import GenomeFile as GenomeFile
+from .genomefile import LoadedNetwork as LoadedNetwork
+from .genomefile import load as load
+from .kernels import activations as _activations
 from .reference import interpret as interpret
 
 __version__ = "0.1.0"
 from . import distributed as distributed
+from . import export as export
 from . import tasks as tasks
 from .config import enable_x64 as enable_x64
 from .exploitation import ExploitConfig as ExploitConfig
@@ -43,3 +47,5 @@ from .tuning import OptimizeResult as OptimizeResult
 from .tuning import cost as cost
 from .tuning import optimize as optimize
 from .tuning import tune as tune
+
+register_activation = _activations.register

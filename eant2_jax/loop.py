@@ -33,6 +33,7 @@ from . import distributed
 from .config import EANT2Config
 from .exploration import OPERATORS, initial_genome, mutate, select
 from .genome import Genome
+from .genomefile import GenomeFile
 from .pruning import PruneAttempt
 from .rundir import RunDir, RunDirError
 from .tasks.base import Task
@@ -345,7 +346,8 @@ def run(
                 "config": config.to_dict(),
             },
         )
-    return _loop(task, None, _key_from_data(_key_data(key)), config, generations, rundir, callback)
+    key = _key_from_data(_key_data(key))
+    return _loop(task, None, key, config, generations, rundir, callback, meta or {})
 
 
 def resume(
@@ -380,7 +382,7 @@ def resume(
         key = _key_from_meta(meta, rundir)
     else:
         key = _key_from_data(state.key)
-    return _loop(task, state, key, config, total, rundir, callback)
+    return _loop(task, state, key, config, total, rundir, callback, meta)
 
 
 def _key_from_meta(meta: dict, rundir: RunDir) -> jax.Array:
@@ -389,7 +391,7 @@ def _key_from_meta(meta: dict, rundir: RunDir) -> jax.Array:
     return _key_from_data(meta["key"])
 
 
-def _loop(task, state, key, config, generations, rundir, callback) -> RunResult:
+def _loop(task, state, key, config, generations, rundir, callback, meta) -> RunResult:
     gen_records = (
         [] if rundir is None else [GenerationRecord.from_json(r) for r in rundir.generations()]
     )
@@ -403,10 +405,17 @@ def _loop(task, state, key, config, generations, rundir, callback) -> RunResult:
         gen_records.append(record)
         prune_records.extend(prune)
         if rundir is not None:
+            # best.genome carries what is needed to run it: activations, sizes, the task.
+            best = GenomeFile.from_task(
+                state.best().genome,
+                task,
+                name=meta.get("task"),
+                options=meta.get("task_options"),
+            )
             rundir.commit(
                 [record.to_json()],
                 [r.to_json() for r in prune],
-                str(state.best().genome),
+                best.to_text().rstrip("\n"),  # commit adds the newline
                 state.to_json(),
             )
         if callback is not None:

@@ -51,7 +51,6 @@ __all__ = [
 _PRECISION = jax.lax.Precision.HIGHEST
 
 
-
 def activation(name: str) -> Callable[[jax.Array], jax.Array]:
     """The JAX activation function called ``name`` (built in or registered, see
     :mod:`eant2_jax.kernels.activations`); ValueError listing the known ones."""

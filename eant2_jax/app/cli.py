@@ -192,22 +192,27 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _show(args: argparse.Namespace) -> int:
-    import eant2_jax
     from eant2_jax.app.report import draw_genome, genome_stats
+    from eant2_jax.genomefile import GenomeFile
 
     src = Path(args.genome_file)
-    try:
-        text = src.read_text(encoding="utf-8")
-    except OSError as e:
-        raise ValueError(f"cannot read {src}: {e.strerror}") from None
-    genome = eant2_jax.Genome.parse(text)
+    spec = GenomeFile.read(src)
+    genome = spec.genome
     out = Path(args.out) if args.out else src.with_suffix(src.suffix + ".png")
     if out.exists() and not args.force:
         raise ValueError(f"{out} exists; not overwriting (use --out or --force)")
     print(genome)
+    if spec.has_header:
+        task = spec.task or "?"
+        if spec.task_options:
+            task += " " + json.dumps(spec.task_options)
+        print(f"{'activations':>14}: hidden {spec.hidden}, output {spec.output}")
+        print(f"{'task':>14}: {task} ({spec.n_inputs} inputs, {spec.n_outputs} outputs)")
+    else:
+        print(f"{'activations':>14}: not recorded (a file without a header)")
     for k, v in genome_stats(genome).items():
         print(f"{k:>14}: {v}")
-    draw_genome(genome, out, title=src.name)
+    draw_genome(genome, out, title=src.name, n_inputs=spec.n_inputs)
     print(f"drawing: {out}")
     return 0
 

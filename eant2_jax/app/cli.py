@@ -186,7 +186,7 @@ def _report(args: argparse.Namespace) -> int:
     from eant2_jax.app.report import report
 
     out = Path(args.out) if args.out else Path(args.dirs[0]).parent / "report"
-    path = report(args.dirs, out)
+    path = report(args.dirs, out, allow_mixed=args.allow_mixed, reference=args.reference)
     print(f"report: {path}")
     return 0
 
@@ -424,6 +424,17 @@ def _parser() -> argparse.ArgumentParser:
     report = sub.add_parser("report", help="report.md and figures from run directories")
     report.add_argument("dirs", nargs="+", help="run directories")
     report.add_argument("--out", default=None, help="output folder (default: DIR/../report)")
+    report.add_argument(
+        "--allow-mixed",
+        action="store_true",
+        help="report runs of different tasks or configurations together (refused otherwise)",
+    )
+    report.add_argument(
+        "--reference",
+        default=None,
+        metavar="ARM",
+        help="the arm p-values are computed against (default: none, the arm without pruning)",
+    )
     report.set_defaults(func=_report)
 
     show = sub.add_parser("show", help="print a genome file's statistics and draw it")

@@ -1,16 +1,16 @@
 """eant2_jax: EANT2 neuro-evolution with covariance-based pruning, in JAX.
 
-The pipeline, one module per stage: :mod:`~eant2_jax.genome` (the linear genome),
-:mod:`~eant2_jax.compiler` (genomes -> padded dense layouts), :mod:`~eant2_jax.evaluate`
-(the batched forward pass), :mod:`~eant2_jax.reference` (the plain NumPy interpreter every
-fast path is tested against), :mod:`~eant2_jax.exploitation` (the batched CMA-ES engine),
-:mod:`~eant2_jax.pruning` (the pruning stage), :mod:`~eant2_jax.tuning` (the host/device
-handover: "tune these genomes on this task"), :mod:`~eant2_jax.exploration` (mutation and
-selection), :mod:`~eant2_jax.loop` (the EANT2 loop), :mod:`~eant2_jax.multirun` (many runs
-over devices), :mod:`~eant2_jax.rundir` (crash-safe run directories). The applications
+The pipeline, one module per stage: `genome` (the linear genome),
+`compiler` (genomes -> padded dense layouts), `evaluate`
+(the batched forward pass), `reference` (the plain NumPy interpreter every
+fast path is tested against), `exploitation` (the batched CMA-ES engine),
+`pruning` (the pruning stage), `tuning` (the host/device
+handover: "tune these genomes on this task"), `exploration` (mutation and
+selection), `loop` (the EANT2 loop), `multirun` (many runs
+over devices), `rundir` (crash-safe run directories). The applications
 built on the library (the ``eant2`` command line, the paper's experiments, reports) live
-apart, in :mod:`eant2_jax.app`. Kernels other JAX code may import live in
-:mod:`eant2_jax.kernels`.
+apart, in `eant2_jax.app`. Kernels other JAX code may import live in
+`eant2_jax.kernels`.
 """
 
 from . import kernels as kernels

@@ -1,16 +1,16 @@
 """Exports of a network beyond the text genome: JSON, a standalone JAX function, a formula.
 
-Each takes a :class:`~eant2_jax.genomefile.GenomeFile` with its activations (a file with a
+Each takes a `GenomeFile` with its activations (a file with a
 header, or one given them with ``with_activations``):
 
-* :func:`to_json` — genes, weights, activations, sizes and the dense float32 tensors;
-  :func:`from_json` reads it back.
-* :func:`to_jax_source` — a Python module that needs only ``jax``: the dense tensors as
+* `to_json` — genes, weights, activations, sizes and the dense float32 tensors;
+  `from_json` reads it back.
+* `to_jax_source` — a Python module that needs only ``jax``: the dense tensors as
   literals and ``network(xs)`` (``[T, M, n_in] -> [T, M, n_out]``) plus ``step(x, h)``;
-  :func:`to_jax` runs that source and returns its ``network``.
-* :func:`formula` — for small feed-forward networks, one line of Python per neuron.
+  `to_jax` runs that source and returns its ``network``.
+* `formula` — for small feed-forward networks, one line of Python per neuron.
 
-The dense tensors are those of :mod:`eant2_jax.kernels.network` for this genome alone,
+The dense tensors are those of `eant2_jax.kernels.network` for this genome alone,
 without padding: neuron slots in topological order (descending gene index), so ``w_ff`` is
 strictly lower-triangular and ``depth`` sweeps compute a step exactly.
 """
@@ -87,7 +87,7 @@ def to_json(spec: GenomeFile) -> dict:
 
 
 def from_json(d: dict) -> GenomeFile:
-    """The :class:`GenomeFile` of a :func:`to_json` document (its ``genome`` text rules)."""
+    """The `GenomeFile` of a `to_json` document (its ``genome`` text rules)."""
     if not isinstance(d, dict) or d.get("format") != FORMAT or "genome" not in d:
         raise GenomeFileError(f"not an eant2 network document of format {FORMAT}")
     return GenomeFile(
@@ -120,7 +120,7 @@ def to_jax_source(spec: GenomeFile) -> str:
     """A standalone Python module (it imports only jax) computing the network.
 
     The module defines ``network(xs)``, jitted, ``[T, M, n_in] -> [T, M, n_out]`` with the
-    recurrent state zero before the first step (as :func:`eant2_jax.evaluate`), and
+    recurrent state zero before the first step (as `eant2_jax.evaluate`), and
     ``step(x, h) -> (y, h)`` for ONE example (``x [n_in]``, ``h [H]``, zeros at first).
     """
     _need_activations(spec)
@@ -187,7 +187,7 @@ def to_jax_source(spec: GenomeFile) -> str:
 
 
 def to_jax(spec: GenomeFile) -> Callable[[jax.Array], jax.Array]:
-    """The ``network`` function of :func:`to_jax_source`: it closes over constant arrays
+    """The ``network`` function of `to_jax_source`: it closes over constant arrays
     and calls nothing of eant2_jax."""
     namespace: dict = {}
     exec(compile(to_jax_source(spec), "<eant2_jax export>", "exec"), namespace)  # noqa: S102

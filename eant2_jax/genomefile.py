@@ -1,6 +1,6 @@
 """Genome files: a genome in text form, with a header that says how to run it.
 
-A genome file is the genome's text form (:mod:`eant2_jax.genome`) preceded by one header
+A genome file is the genome's text form (`eant2_jax.genome`) preceded by one header
 line, a ``#`` comment holding a JSON object (written here over several lines, in the file on
 one)::
 
@@ -15,7 +15,7 @@ else null). ``Genome.parse`` skips comments, so every reader of the bare text fo
 these files too; a file without the header (as written before the header existed) is still
 a genome file, whose activations the caller must then name.
 
-:func:`load` returns a :class:`LoadedNetwork`: the network, callable on inputs, evaluated
+`load` returns a `LoadedNetwork`: the network, callable on inputs, evaluated
 by the same kernels as the run that wrote it. Host side, except the call itself.
 """
 
@@ -221,9 +221,9 @@ class LoadedNetwork:
     * ``net(x)`` with ``x`` of shape ``[n_in]`` is one step from the zero state (``[n_out]``);
       ``[M, n_in]``: M independent examples, one step each (``[M, n_out]``);
       ``[T, M, n_in]``: M streams of T steps, the recurrent state carried along each stream
-      and zero before the first step, as :func:`eant2_jax.evaluate` (``[T, M, n_out]``).
+      and zero before the first step, as `eant2_jax.evaluate` (``[T, M, n_out]``).
     * ``net.step(x, state)`` for closed-loop use: ``x`` ``[n_in]`` or ``[M, n_in]``, ``state``
-      from :meth:`initial_state`; returns ``(y, state)``.
+      from `initial_state`; returns ``(y, state)``.
     """
 
     def __init__(self, spec: GenomeFile):
@@ -318,10 +318,11 @@ def load(
 
     Args:
       path: a genome file (a run directory's ``best.genome``, or any file of the format).
-      hidden, output: activation names; needed only for a file without a header (one written
-        before genome files had one), and must agree with the header otherwise.
+      hidden: activation name of hidden neurons; needed only for a file without a header
+        (one written before genome files had one), and must agree with the header otherwise.
+      output: activation name of root (output) neurons; likewise.
 
     Returns:
-      The :class:`LoadedNetwork`.
+      The `LoadedNetwork`.
     """
     return LoadedNetwork(GenomeFile.read(path).with_activations(hidden, output))

@@ -9,10 +9,10 @@
            exploit      batched CMA-ES of the offspring (+ parents if ``reexploit``)
            select       rank-based greedy with the diversity rules, exploration.select
 
-Everything a run does flows from one PRNG key and an :class:`EANT2Config`: generation ``g``
+Everything a run does flows from one PRNG key and an `EANT2Config`: generation ``g``
 uses ``fold_in(key, g)``, split into a mutation key (seeding a NumPy generator for the host
 side) and an exploitation key. The whole state after a generation is a small JSON document
-(:meth:`RunState.to_json`), so a run resumes from its last complete generation and, on CPU,
+(`RunState.to_json`), so a run resumes from its last complete generation and, on CPU,
 ends with exactly the result of an uninterrupted run.
 
 The library never prints: progress goes to ``callback(event: dict)``.
@@ -136,13 +136,13 @@ class GenerationRecord:
 
 
 class RunResult(NamedTuple):
-    """What :func:`run` returns.
+    """What `run` returns.
 
     Attributes:
       population: the final population, best first.
       best: the best genome.
-      generations: one :class:`GenerationRecord` per generation.
-      pruning: one :class:`~eant2_jax.pruning.PruneAttempt` per pruning attempt.
+      generations: one `GenerationRecord` per generation.
+      pruning: one `PruneAttempt` per pruning attempt.
     """
 
     population: list[Individual]
@@ -318,19 +318,19 @@ def run(
     """Run EANT2 on a task.
 
     Args:
-      task: the task (see :mod:`eant2_jax.tasks`).
+      task: the task (see `eant2_jax.tasks`).
       key: the run's PRNG key; the same key and config give the same run.
-      config: :class:`EANT2Config` (default: its defaults, covariance pruning on).
+      config: `EANT2Config` (default: its defaults, covariance pruning on).
       generations: generations after the initial one (generation 0 exploits the minimal
         networks; the result has ``generations + 1`` generation records).
       out: optional run directory to create (must not exist or be empty); a run written
-        there continues with :func:`resume` after a crash or a kill.
+        there continues with `resume` after a crash or a kill.
       callback: receives progress events (dicts with ``event`` = ``generation`` or
         ``exploit``).
       meta: extra JSON fields for ``config.json`` (the CLI stores the task name there).
 
     Returns:
-      :class:`RunResult`.
+      `RunResult`.
     """
     config = EANT2Config() if config is None else config
     if generations < 0:
@@ -363,7 +363,7 @@ def resume(
       out: the run directory.
       task: the task it was run on (the CLI rebuilds it from ``config.json``).
       generations: new total number of generations (default: the one in ``config.json``).
-      callback: progress events, as for :func:`run`.
+      callback: progress events, as for `run`.
     """
     rundir = RunDir.open(out)
     meta = rundir.config()

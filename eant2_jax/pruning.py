@@ -1,16 +1,16 @@
 """Pruning (paper section IV, figure 5): one stage, on device and on the host.
 
-* Device: :func:`attempt` is the pruning attempt of a batch of CMA-ES runs — candidate
+* Device: `attempt` is the pruning attempt of a batch of CMA-ES runs — candidate
   (eqs. 5-8, with the sign erratum), shift, acceptance (IV.B.3) and the conditioned
   covariance of the reduced structure — for whichever structures the engine triggered. It
   takes the cost function as an argument and imports nothing from the CMA-ES engine
-  (:mod:`eant2_jax.exploitation`), which decides when to call it; the maths lives in
-  :mod:`eant2_jax.kernels.pruning`.
-* Host: :func:`tables_for`, the genome structure the device pruner reads; a removed
+  (`eant2_jax.exploitation`), which decides when to call it; the maths lives in
+  `eant2_jax.kernels.pruning`.
+* Host: `tables_for`, the genome structure the device pruner reads; a removed
   connection is switched off in the CMA-ES mask, so the gene slots of a structure never move
-  during a run. After the run, :func:`prune_genome` drops the removed genes from the genome and
-  fixes the neurons' input counts, and :func:`attempt_records` turns the device records into
-  one :class:`PruneAttempt` per attempt.
+  during a run. After the run, `prune_genome` drops the removed genes from the genome and
+  fixes the neurons' input counts, and `attempt_records` turns the device records into
+  one `PruneAttempt` per attempt.
 """
 
 from __future__ import annotations
@@ -132,7 +132,7 @@ def attempt(
         the current iteration, so the shifted means are ranked on the same draw as ``e``).
       cma: batched CMA-ES state ``[S]``; params: its hyper-parameters ``[S]``.
       trigger: ``[S]`` bool, the structures that attempt now (the engine's trigger).
-      tables: batched pruner tables ``[S, P]`` (:func:`tables_for`).
+      tables: batched pruner tables ``[S, P]`` (`tables_for`).
       keys: ``[S]`` PRNG keys of the re-fit's samples (unused without a re-fit).
       pruner: ``covariance``, ``magnitude``, ``obd``, ``obs`` or ``snr`` (static).
       candidates: k, the k best-scored parameters are shifted and evaluated in one batch
@@ -149,7 +149,7 @@ def attempt(
 
     Returns:
       ``(cma, params, record)``: the state and hyper-parameters with accepted removals
-      applied (others unchanged), and the :class:`AttemptRecord`. A structure attempts only
+      applied (others unchanged), and the `AttemptRecord`. A structure attempts only
       if it has a removable parameter; ``record.attempted`` says which did, and each costs
       ``1 + k + min(refit, refit_limit) * popsize`` evaluations.
     """
@@ -437,7 +437,7 @@ def attempt_records(
     """One record per pruning attempt from an exploitation history.
 
     Args:
-      history: the engine history's pruning part, :class:`AttemptRecord` of
+      history: the engine history's pruning part, `AttemptRecord` of
         ``[iterations, S]`` arrays (None without a pruner).
       genomes: the structures, in batch order (to name the kind of the gene).
       pruner: the pruner's name.

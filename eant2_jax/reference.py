@@ -1,7 +1,7 @@
 """A plain NumPy interpreter of the linear genome: clear, slow, obviously right.
 
 It walks the genes from last to first with a stack, exactly as the semantics in
-:mod:`eant2_jax.genome` say, once per time step. Every fast path of the package is tested
+`eant2_jax.genome` say, once per time step. Every fast path of the package is tested
 against it. Only the M independent streams are vectorised (each stack entry is an ``[M]``
 array); the walk itself is the textbook one.
 """

@@ -1,17 +1,17 @@
 """The handover between host and device: "tune these genomes on this task", in one place.
 
-Every caller that tunes genomes — :func:`optimize`, the EANT2 loop, the benchmarks, the
-tests — goes through :func:`tune`, which does the whole round trip once:
+Every caller that tunes genomes — `optimize`, the EANT2 loop, the benchmarks, the
+tests — goes through `tune`, which does the whole round trip once:
 
-1. compile the genomes into one padded batch (:func:`eant2_jax.compiler.compile_genomes`);
-2. choose the population size with ONE rule (:func:`popsize_for`);
-3. start the engine (:func:`eant2_jax.exploitation.init`) with one key per structure;
-4. build the pruner's tables (:func:`eant2_jax.pruning.tables_for`);
-5. run the engine (:func:`eant2_jax.exploitation.run`), optionally over a device mesh;
+1. compile the genomes into one padded batch (`eant2_jax.compiler.compile_genomes`);
+2. choose the population size with ONE rule (`popsize_for`);
+3. start the engine (`eant2_jax.exploitation.init`) with one key per structure;
+4. build the pruner's tables (`eant2_jax.pruning.tables_for`);
+5. run the engine (`eant2_jax.exploitation.run`), optionally over a device mesh;
 6. gather the result to the host and turn each structure back into a genome, with the
-   pruned genes dropped (:func:`eant2_jax.pruning.prune_genome`).
+   pruned genes dropped (`eant2_jax.pruning.prune_genome`).
 
-:func:`cost` is the other host entry point: the task's cost of genomes as they stand.
+`cost` is the other host entry point: the task's cost of genomes as they stand.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ __all__ = [
 
 def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch) -> int:
     """The population size of a batch: ``config.popsize``, else the CMA-ES default
-    (:func:`eant2_jax.exploitation.default_popsize`) of the batch's padded gene count.
+    (`eant2_jax.exploitation.default_popsize`) of the batch's padded gene count.
 
     The rule follows the gene bucket rather than each structure's own size so that every
     batch of one bucket shares one compiled program; within a bucket the padded count
@@ -72,7 +72,7 @@ def check_task(task: Task, genomes: Sequence[Genome]) -> None:
 
 
 class Prepared(NamedTuple):
-    """Steps 1-4 of :func:`tune`: everything the engine needs, nothing run yet."""
+    """Steps 1-4 of `tune`: everything the engine needs, nothing run yet."""
 
     batch: CompiledBatch
     state: ex.ExploitState
@@ -94,7 +94,7 @@ def prepare(
 ) -> Prepared:
     """Compile, choose the popsize, build the tables and start the engine (no iteration).
 
-    Args: as for :func:`tune`; ``multiple_of`` rounds the rows up for a device mesh.
+    Args: as for `tune`; ``multiple_of`` rounds the rows up for a device mesh.
     """
     batch = compile_genomes(
         genomes,
@@ -119,7 +119,7 @@ def prepare(
 
 @dataclasses.dataclass(frozen=True)
 class Tuned:
-    """What :func:`tune` returns.
+    """What `tune` returns.
 
     Attributes:
       genomes: the tuned genomes (best weights, pruned genes dropped), in input order; a
@@ -127,9 +127,9 @@ class Tuned:
       costs: each one's best cost (inf where none was finite).
       evaluations: each one's cost evaluations (pruning trials included).
       stop_reasons: why each one stopped (see ``exploitation.STOP_REASONS``).
-      history: the engine's :class:`~eant2_jax.exploitation.StepRecord` of
+      history: the engine's `StepRecord` of
         ``[iterations, rows]`` arrays (padding rows included).
-      pruning: one :class:`~eant2_jax.pruning.PruneAttempt` per attempt; ``structure``
+      pruning: one `PruneAttempt` per attempt; ``structure``
         is the index in ``genomes``.
       state: the engine's final state (on device).
     """
@@ -168,11 +168,11 @@ def tune(
       bucket: pad to these sizes (default: the smallest that fits, ``compiler.bucket_for``).
       min_rows: pad the batch to at least this many structures (one program per bucket).
       pad_count: round the rows up the bucket series (see ``compile_genomes``).
-      on_chunk: progress callback (see :func:`eant2_jax.exploitation.run`).
-      mesh: split the structures over these devices (see :mod:`eant2_jax.distributed`).
+      on_chunk: progress callback (see `eant2_jax.exploitation.run`).
+      mesh: split the structures over these devices (see `eant2_jax.distributed`).
 
     Returns:
-      :class:`Tuned`.
+      `Tuned`.
     """
     genomes = list(genomes)
     check_task(task, genomes)
@@ -224,16 +224,16 @@ def tune(
 
 
 class OptimizeResult(NamedTuple):
-    """What :func:`optimize` returns.
+    """What `optimize` returns.
 
     Attributes:
       genome: the genome with its best weights.
       cost: the best cost found (of ``genome``'s weights).
-      history: :class:`~eant2_jax.exploitation.StepRecord` of ``[iterations]`` arrays
+      history: `StepRecord` of ``[iterations]`` arrays
         (``sigma``, ``sigma_bar``, ``cond``, ``cond_bounded``, ``best_cost``,
         ``evaluations``, ``nonfinite``, ``running``; ``prune`` with a pruner).
       stop_reason: why the run stopped (see ``STOP_REASONS``).
-      pruning: one :class:`~eant2_jax.pruning.PruneAttempt` per pruning attempt; empty
+      pruning: one `PruneAttempt` per pruning attempt; empty
         without a pruner.
     """
 
@@ -249,13 +249,13 @@ def optimize(genome: Genome | str, task: Task, *, key: jax.Array, **options: Any
 
     Args:
       genome: the structure (and its initial weights).
-      task: a task (see :mod:`eant2_jax.tasks`).
+      task: a task (see `eant2_jax.tasks`).
       key: PRNG key.
-      **options: fields of :class:`~eant2_jax.exploitation.ExploitConfig` (popsize, sigma0,
+      **options: fields of `ExploitConfig` (popsize, sigma0,
         max_iters, pruner, ...).
 
     Returns:
-      :class:`OptimizeResult`.
+      `OptimizeResult`.
     """
     (genome,) = as_genomes(genome)
     config = ex.ExploitConfig.from_options(options)

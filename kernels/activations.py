@@ -6,7 +6,7 @@ is what genome files, exports and formulas record. Every entry holds
 
 * ``jax``: the function the kernels apply, elementwise on a float32 array;
 * ``numpy``: its plain reference, elementwise on a float64 array (what
-  :func:`eant2_jax.reference.interpret` applies);
+  `eant2_jax.reference.interpret` applies);
 * ``source``: the same function as a ``jax.numpy`` expression in ``a`` (for exports that
   must run without eant2_jax), or None where there is none;
 * ``doc``: its definition in one line.
@@ -18,7 +18,7 @@ neat-python's own input scaling and clamping: ``sin(5a)``, ``exp(-5a^2)`` and
 ``0.2 softplus(5a)``. neat-python's ``inv`` (1/a) is left out: its pole makes float32 and
 float64 disagree without bound near a = 0.
 
-Add your own with :func:`register` (``eant2_jax.register_activation``). This module imports
+Add your own with `register` (``eant2_jax.register_activation``). This module imports
 nothing from the rest of eant2_jax.
 """
 
@@ -178,7 +178,7 @@ def register(
       jax_fn: elementwise JAX function of one array.
       numpy_fn: the same function in NumPy (the reference interpreter's).
       source: optional ``jax.numpy`` expression in ``a`` (e.g. ``"jnp.tanh(2.0 * a)"``) for
-        :func:`eant2_jax.export.to_jax_source`; without it the activation cannot be exported
+        `eant2_jax.export.to_jax_source`; without it the activation cannot be exported
         as source.
       doc: its definition in one line (default: the source, or the name).
       overwrite: replace an existing user activation (built-ins cannot be replaced). Compiled
@@ -186,7 +186,7 @@ def register(
         static in compiled programs, so a stale one would otherwise run the old function.
 
     Returns:
-      The :class:`Activation`.
+      The `Activation`.
     """
     if not isinstance(name, str) or not name.isidentifier():
         raise ValueError(f"activation name must be a Python identifier, got {name!r}")

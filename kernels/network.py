@@ -53,7 +53,7 @@ _PRECISION = jax.lax.Precision.HIGHEST
 
 def activation(name: str) -> Callable[[jax.Array], jax.Array]:
     """The JAX activation function called ``name`` (built in or registered, see
-    :mod:`eant2_jax.kernels.activations`); ValueError listing the known ones."""
+    `eant2_jax.kernels.activations`); ValueError listing the known ones."""
     return activations.get(name).jax
 
 
@@ -96,7 +96,7 @@ class Network:
       w_ff: ``[H, H]`` current-step weights, ``w_ff[i, j]``: neuron j into neuron i (j < i).
       w_rec: ``[H, H]`` previous-step weights (recurrent jumpers).
       w_out: ``[n_out, H]`` output selection: root r's own weight at its neuron's slot.
-      is_root, neuron_mask: ``bool[H]`` as in :class:`Layout`.
+      is_root, neuron_mask: ``bool[H]`` as in `Layout`.
       sweeps: static number of dense sweeps per step (>= depth).
     """
 
@@ -118,7 +118,7 @@ def network(layout: Layout, params: jax.Array) -> Network:
       params: ``[P]`` one weight per gene slot, in gene order (padding entries are ignored).
 
     Returns:
-      The :class:`Network`. Differentiable in ``params``; jit/vmap friendly.
+      The `Network`. Differentiable in ``params``; jit/vmap friendly.
     """
     h = layout.is_root.shape[-1]
     n_in, n_out = layout.n_inputs, layout.n_outputs

@@ -14,7 +14,7 @@ arms by their pruner, and writes ``report.md`` with
 
 Runs are only compared when they ran the same task with the same options and the same
 configuration, pruning apart (the arms differ in it): anything else raises
-:class:`MixedRunsError` naming the difference, unless ``allow_mixed``.
+`MixedRunsError` naming the difference, unless ``allow_mixed``.
 """
 
 from __future__ import annotations
@@ -113,7 +113,7 @@ def genome_figure(
     title: str | None = None,
     n_inputs: int | None = None,
 ):
-    """The figure :func:`draw_genome` saves (arguments as there)."""
+    """The figure `draw_genome` saves (arguments as there)."""
     plt = _pyplot()
     from matplotlib.lines import Line2D
 
@@ -247,7 +247,7 @@ class LoadedRun:
       dir: its path; arm: its arm label (the pruner unless the run names one); task: the
       task's name (None if not recorded); seed: the seed (None if not recorded).
       generations: its `GenerationRecord`s; pruning: its `PruneAttempt`s.
-      setting: what must agree between runs that are compared (:func:`setting`).
+      setting: what must agree between runs that are compared (`setting`).
       budget: generations asked for (None if not recorded); target_cost: the run's stop
       target (None if none).
     """
@@ -375,7 +375,7 @@ def reference_arm(arms: Sequence[str], reference: str | None = None) -> str | No
 
 def summarise(runs: list[LoadedRun], *, reference: str | None = None) -> dict[str, dict]:
     """Per arm: final fitness/size mean and sd, size reduction, time to 99%, p-values
-    against the :func:`reference_arm`."""
+    against the `reference_arm`."""
     from scipy import stats
 
     arms: dict[str, list[LoadedRun]] = {}
@@ -509,7 +509,7 @@ def report(
       condition: optional V.A experiment result: ``{"before": [cond...], "after": [...],
         "size_before": n, "size_after": m}``.
       allow_mixed: report runs of different tasks or configurations together (the report
-        says how they differ); otherwise they raise :class:`MixedRunsError`.
+        says how they differ); otherwise they raise `MixedRunsError`.
       reference: the arm p-values are computed against (default ``none`` if present).
 
     Returns:

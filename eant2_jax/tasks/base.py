@@ -48,7 +48,7 @@ class Task(Protocol):
 class ReportingTask(Task, Protocol):
     """A task that can also report on its own terms (optional; the servo task does).
 
-    ``eant2 reproduce`` and :func:`eant2_jax.app.experiments.reproduce` add both to their
+    ``eant2 reproduce`` and `eant2_jax.app.experiments.reproduce` add both to their
     report when the task has them.
     """
 

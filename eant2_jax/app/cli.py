@@ -217,6 +217,38 @@ def _show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tasks(args: argparse.Namespace) -> int:
+    import inspect
+
+    from eant2_jax import tasks
+
+    for name in tasks.names():
+        doc = (inspect.getdoc(tasks.factory(name)) or "").split("\n\n")[0].replace("\n", " ")
+        print(f"{name}: {doc}" if doc else name)
+        opts = [
+            f"{k}={'(required)' if v is inspect.Parameter.empty else json.dumps(v)}"
+            for k, v in tasks.options(name).items()
+        ]
+        print("    options: " + (", ".join(opts) if opts else "none"))
+    from eant2_jax.kernels import activations
+
+    print("\nSet an option with --task-option KEY=VALUE (VALUE is JSON or a string).")
+    print(f"Activations (hidden=, output=): {', '.join(activations.names())}.")
+    return 0
+
+
+def _version() -> str:
+    import platform
+
+    import jax
+
+    import eant2_jax
+
+    return (
+        f"eant2 {eant2_jax.__version__} (jax {jax.__version__}, Python {platform.python_version()})"
+    )
+
+
 def _reproduce(args: argparse.Namespace) -> int:
     import eant2_jax
     from eant2_jax.app.experiments import reproduce
@@ -293,6 +325,7 @@ def _parser() -> argparse.ArgumentParser:
     from eant2_jax.kernels.pruning import PRUNERS
 
     p = argparse.ArgumentParser(prog="eant2", description="EANT2 neuro-evolution in JAX.")
+    p.add_argument("--version", action="version", version=_version())
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     demo = sub.add_parser(
         "demo", help="evaluate a small recurrent genome, then tune a network on XOR with CMA-ES"
@@ -442,6 +475,9 @@ def _parser() -> argparse.ArgumentParser:
     show.add_argument("--out", default=None, help="PNG to write (default: GENOME_FILE.png)")
     show.add_argument("--force", action="store_true", help="replace an existing PNG")
     show.set_defaults(func=_show)
+
+    tasks = sub.add_parser("tasks", help="list the registered tasks and their options")
+    tasks.set_defaults(func=_tasks)
 
     resume = sub.add_parser("resume", help="continue a run directory from its last generation")
     resume.add_argument("dir", help="the run directory")

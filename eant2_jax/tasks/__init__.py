@@ -29,6 +29,25 @@ def names() -> list[str]:
     return sorted(_REGISTRY)
 
 
+def factory(name: str) -> Callable[..., Task]:
+    """The factory registered as ``name`` (a lazily imported one is imported now)."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown task {name!r}; known tasks: {', '.join(names())}")
+    f = _REGISTRY[name]
+    return getattr(f, "resolve", lambda: f)()
+
+
+def options(name: str) -> dict[str, object]:
+    """The options of task ``name``: its factory's keyword arguments and their defaults
+    (``inspect.Parameter.empty`` for a required one)."""
+    import inspect
+
+    params = inspect.signature(factory(name)).parameters.values()
+    return {
+        p.name: p.default for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
+    }
+
+
 def make(name: str, **options) -> Task:
     """Build the registered task ``name`` with its options.
 
@@ -48,15 +67,19 @@ def make(name: str, **options) -> Task:
 register("xor", xor)
 
 
-def _lazy(module: str, factory: str) -> Callable[..., Task]:
-    """A factory that imports its module on first use (MJX is slow to import)."""
+def _lazy(module: str, attr: str) -> Callable[..., Task]:
+    """A factory that imports its module on first use (MJX is slow to import); ``resolve()``
+    returns the real factory (for its signature and docstring)."""
+    import importlib
+
+    def resolve() -> Callable[..., Task]:
+        return getattr(importlib.import_module(f"{__name__}.{module}"), attr)
 
     def make_task(**options) -> Task:
-        import importlib
+        return resolve()(**options)
 
-        return getattr(importlib.import_module(f"{__name__}.{module}"), factory)(**options)
-
-    make_task.__name__ = factory
+    make_task.__name__ = attr
+    make_task.resolve = resolve
     return make_task
 
 

@@ -55,9 +55,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from mujoco import mjx
 
 from ..kernels import network as kn
+from .mjx_quiet import mjx
 
 __all__ = [
     "ARM_XML",

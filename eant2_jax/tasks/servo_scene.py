@@ -16,7 +16,8 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
+
+from .mjx_quiet import mjx
 
 ARM_XML = Path(__file__).with_name("arm.xml")
 

@@ -52,3 +52,22 @@ def test_mjx_import_prints_nothing_when_warp_is_absent():
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout == "imported\n"
     assert "warp" not in proc.stderr
+
+
+def test_show_prints_the_header(tmp_path, capsys, monkeypatch):
+    from eant2_jax.genome import Genome
+    from eant2_jax.genomefile import GenomeFile
+
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")
+    genome = Genome.parse("N0/3*1.5 N1/2*-3 I0*2 I1*2 I0*1.2 B*-0.4")
+    with_header = GenomeFile(genome, "sigmoid", "identity", 3, "xor", {"hidden": "sigmoid"})
+    path = with_header.write(tmp_path / "best.genome")
+    assert main(["show", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "   activations: hidden sigmoid, output identity\n" in out
+    assert '          task: xor {"hidden": "sigmoid"} (3 inputs, 1 outputs)\n' in out
+    assert (tmp_path / "best.genome.png").read_bytes()[:4] == b"\x89PNG"
+    old = tmp_path / "old.genome"
+    old.write_text(str(genome) + "\n")
+    assert main(["show", str(old)]) == 0
+    assert "activations: not recorded (a file without a header)" in capsys.readouterr().out

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import builtins
 import json
+import re
+from pathlib import Path
 from unittest import mock
 
 import jax
@@ -28,6 +30,7 @@ from eant2_jax.genomefile import GenomeFile, GenomeFileError, load
 from eant2_jax.kernels import activations
 from eant2_jax.reference import interpret
 
+ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = "N0/3*1.0 F2*0.3 N1/2*0.5 I0*1 I1*-2 R0*0.7 N2/2*-1.2 B*0.1 I2*0.4"
 XOR = np.array([[0.0, 0.0], [0.0, 1.0], [1.0, 0.0], [1.0, 1.0]])
 ACTS = st.sampled_from(sorted(activations.BUILTIN))
@@ -214,14 +217,22 @@ def test_formula_matches_reference(g, hidden, output):
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
 
 
-def test_formula_of_the_xor_net_and_its_refusals():
-    spec = _spec("N0/3*1.5 N1/2*-3 I0*2 I1*2 I0*1.2 B*-0.4", output="identity", n_inputs=2)
-    assert export.formula(spec) == (
+def test_formula_of_the_docs_example_and_its_refusals():
+    """docs/genome.md's example file and the formula printed for it, as the code gives them."""
+    blocks = re.findall(r"```[a-z]*\n(.*?)```", (ROOT / "docs" / "genome.md").read_text(), re.S)
+    (file_text,) = [b for b in blocks if b.startswith("# eant2-genome")]
+    spec = GenomeFile.parse(file_text)
+    assert spec == _spec("N0/3*1.5 N1/2*-3 I0*2 I1*2 I0*1.2 B*-0.4", output="identity",
+                         n_inputs=2, task="xor", task_options={"hidden": "sigmoid"})  # fmt: skip
+    assert spec.to_text() == file_text  # the header is written exactly so
+    text = export.formula(spec)
+    assert text == (
         "# sigmoid(a) = 1 / (1 + exp(-a))\n"
         "h1 = sigmoid(2.0 * x0 + 2.0 * x1)\n"
         "h0 = -3.0 * h1 + 1.2 * x0 - 0.4\n"
         "y0 = 1.5 * h0\n"
     )
+    assert text in blocks
     with pytest.raises(GenomeFileError, match="recurrent"):
         export.formula(_spec())
     with pytest.raises(GenomeFileError, match="3 neurons, more than max_neurons=2"):

@@ -36,11 +36,18 @@ __all__ = [
     "MixedRunsError",
     "check_comparable",
     "draw_genome",
+    "fitness_figure",
+    "genome_figure",
     "genome_stats",
     "load_runs",
+    "reference_arm",
     "report",
+    "setting",
     "summarise",
 ]
+
+# Node faces of network drawings (nodes and legend).
+_FACE = {"input": "#e8f0ff", "bias": "#f0f0f0", "hidden": "#fff8e6", "output": "#ffe9c7"}
 
 
 class MixedRunsError(ValueError):
@@ -201,24 +208,24 @@ def genome_figure(
     roots = {genome[r].ref for r in genome.roots}
     for (kind, ident), (x, y) in pos.items():
         if kind == "in":
-            label, face = f"x{ident}", "#e8f0ff"
+            label, face = f"x{ident}", _FACE["input"]
         elif kind == "bias":
-            label, face = "1", "#f0f0f0"
+            label, face = "1", _FACE["bias"]
         else:
-            label, face = f"N{ident}", "#ffe9c7" if ident in roots else "#fff8e6"
+            label, face = f"N{ident}", _FACE["output" if ident in roots else "hidden"]
         ax.scatter([x], [y], s=520, c=face, edgecolors="black", zorder=3)
         ax.text(x, y, label, ha="center", va="center", fontsize=8, zorder=4)
     ax.set_axis_off()
     kinds = {g.kind for g in genome}
-    legend = [
-        Line2D([], [], ls="", marker="o", ms=10, mfc="#e8f0ff", mec="black", label="network input"),
-        Line2D([], [], ls="", marker="o", ms=10, mfc="#fff8e6", mec="black", label="hidden neuron"),
-        Line2D([], [], ls="", marker="o", ms=10, mfc="#ffe9c7", mec="black", label="output neuron"),
-        Line2D([], [], color="black", lw=1.2, label="input of a neuron"),
-    ]  # fmt: skip
+
+    def node(face: str, label: str):
+        return Line2D([], [], ls="", marker="o", ms=10, mfc=_FACE[face], mec="black", label=label)
+
+    legend = [node("input", "network input")]
     if ("bias", 0) in pos:
-        legend.insert(1, Line2D([], [], ls="", marker="o", ms=10, mfc="#f0f0f0", mec="black",
-                                label="bias (1)"))  # fmt: skip
+        legend.append(node("bias", "bias (1)"))
+    legend += [node("hidden", "hidden neuron"), node("output", "output neuron")]
+    legend.append(Line2D([], [], color="black", lw=1.2, label="input of a neuron"))
     if GeneKind.FORWARD in kinds:
         legend.append(Line2D([], [], color="tab:blue", lw=1.2, label="forward jumper"))
     if GeneKind.RECURRENT in kinds:

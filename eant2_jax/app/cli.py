@@ -221,6 +221,7 @@ def _tasks(args: argparse.Namespace) -> int:
     import inspect
 
     from eant2_jax import tasks
+    from eant2_jax.kernels import activations
 
     for name in tasks.names():
         doc = (inspect.getdoc(tasks.factory(name)) or "").split("\n\n")[0].replace("\n", " ")
@@ -230,8 +231,6 @@ def _tasks(args: argparse.Namespace) -> int:
             for k, v in tasks.options(name).items()
         ]
         print("    options: " + (", ".join(opts) if opts else "none"))
-    from eant2_jax.kernels import activations
-
     print("\nSet an option with --task-option KEY=VALUE (VALUE is JSON or a string).")
     print(f"Activations (hidden=, output=): {', '.join(activations.names())}.")
     return 0

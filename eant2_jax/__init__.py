@@ -1,17 +1,17 @@
 """eant2_jax: EANT2 neuro-evolution with covariance-based pruning, in JAX.
 
-The pipeline, one module per stage: :mod:`~eant2_jax.genome` (the linear genome),
-:mod:`~eant2_jax.compiler` (genomes -> padded dense layouts), :mod:`~eant2_jax.evaluate`
-(the batched forward pass), :mod:`~eant2_jax.reference` (the plain NumPy interpreter every
-fast path is tested against), :mod:`~eant2_jax.exploitation` (the batched CMA-ES engine),
-:mod:`~eant2_jax.pruning` (the pruning stage), :mod:`~eant2_jax.tuning` (the host/device
-handover: "tune these genomes on this task"), :mod:`~eant2_jax.exploration` (mutation and
-selection), :mod:`~eant2_jax.loop` (the EANT2 loop), :mod:`~eant2_jax.multirun` (many runs
-over devices), :mod:`~eant2_jax.rundir` (crash-safe run directories), :mod:`~eant2_jax.progress`
+The pipeline, one module per stage: `genome` (the linear genome),
+`compiler` (genomes -> padded dense layouts), `evaluate`
+(the batched forward pass), `reference` (the plain NumPy interpreter every
+fast path is tested against), `exploitation` (the batched CMA-ES engine),
+`pruning` (the pruning stage), `tuning` (the host/device
+handover: "tune these genomes on this task"), `exploration` (mutation and
+selection), `loop` (the EANT2 loop), `multirun` (many runs
+over devices), `rundir` (crash-safe run directories), `progress`
 (a ready progress reporter). The applications
 built on the library (the ``eant2`` command line, the paper's experiments, reports) live
-apart, in :mod:`eant2_jax.app`. Kernels other JAX code may import live in
-:mod:`eant2_jax.kernels`.
+apart, in `eant2_jax.app`. Kernels other JAX code may import live in
+`eant2_jax.kernels`.
 """
 
 from . import kernels as kernels
@@ -24,10 +24,15 @@ from .genome import Gene as Gene
 from .genome import GeneKind as GeneKind
 from .genome import Genome as Genome
 from .genome import GenomeError as GenomeError
+from .genomefile import GenomeFile as GenomeFile
+from .genomefile import LoadedNetwork as LoadedNetwork
+from .genomefile import load as load
+from .kernels import activations as _activations
 from .reference import interpret as interpret
 
 __version__ = "0.1.0"
 from . import distributed as distributed
+from . import export as export
 from . import tasks as tasks
 from .config import enable_x64 as enable_x64
 from .exploitation import ExploitConfig as ExploitConfig
@@ -44,3 +49,5 @@ from .tuning import OptimizeResult as OptimizeResult
 from .tuning import cost as cost
 from .tuning import optimize as optimize
 from .tuning import tune as tune
+
+register_activation = _activations.register

@@ -6,7 +6,7 @@ Host side (NumPy). For each genome:
   source of every forward jumper, lies to its right in the genome, so this order is
   topological: ``w_ff`` is strictly lower-triangular.
 * gene slots: gene ``g`` adds its weight into one entry of the flat parameter buffer of
-  :mod:`eant2_jax.kernels.network`, according to its kind and the neuron that reads it
+  `eant2_jax.kernels.network`, according to its kind and the neuron that reads it
   (its parent):
 
   ===================  =====================================================
@@ -98,7 +98,7 @@ class CompiledBatch:
     """A batch of genomes compiled into one bucket.
 
     Attributes:
-      layout: batched :class:`~eant2_jax.kernels.network.Layout`, leading dim ``G`` (padded).
+      layout: batched `Layout`, leading dim ``G`` (padded).
       weights: ``float32[G, P]`` each genome's own weights in gene order, 0 on padding.
       count: number of real genomes (the first ``count`` rows); static.
       bucket: the padded sizes; static.
@@ -158,7 +158,7 @@ def compile_genomes(
     Args:
       genomes: networks with the same number of outputs.
       n_inputs: width of the input vector the networks will read (>= each genome's inputs).
-      bucket: padded sizes to use; default the smallest that fits (:func:`bucket_for`).
+      bucket: padded sizes to use; default the smallest that fits (`bucket_for`).
       pad_count: pad the number of genomes up its bucket series too, so that batches of
         similar counts share a program (padding rows are empty networks).
       min_rows: pad to at least this many rows (a caller that knows its usual batch size
@@ -166,7 +166,7 @@ def compile_genomes(
       multiple_of: round the rows up to a multiple of this (the devices they split over).
 
     Returns:
-      The :class:`CompiledBatch`.
+      The `CompiledBatch`.
     """
     genomes = list(genomes)
     if not genomes:
@@ -230,8 +230,8 @@ def network_batch(layout: Layout, weights: jax.Array) -> Network:
     """The networks ``[G]`` of a compiled batch: ``network`` of each row (traceable).
 
     Args:
-      layout: batched layout ``[G]`` (:attr:`CompiledBatch.layout`).
-      weights: ``[G, P]`` weights in gene order (:attr:`CompiledBatch.weights`, or tuned ones).
+      layout: batched layout ``[G]`` (`CompiledBatch.layout`).
+      weights: ``[G, P]`` weights in gene order (`CompiledBatch.weights`, or tuned ones).
     """
     return jax.vmap(network)(layout, weights)
 
@@ -247,7 +247,7 @@ def networks(genomes: Sequence[Genome], n_inputs: int) -> Network:
       n_inputs: width of the input vector they will read.
 
     Returns:
-      A :class:`~eant2_jax.kernels.network.Network` with leading dimension ``len(genomes)``
+      A `Network` with leading dimension ``len(genomes)``
       (no padding rows), ready for a task's ``cost`` or the kernels' ``rollout``.
     """
     batch = compile_genomes(genomes, n_inputs, pad_count=False)

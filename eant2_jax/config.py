@@ -1,10 +1,10 @@
 """The configuration types: what a run is asked to do, as frozen values.
 
-* :class:`ExploitConfig` — the exploitation engine's (CMA-ES and pruning). A
+* `ExploitConfig` — the exploitation engine's (CMA-ES and pruning). A
   ``flax.struct`` pytree passed INTO the compiled program: fields that shape the program are
   static (part of the pytree's structure), every number is a traced leaf, so changing a
   number never compiles again and no hand-kept list says which is which.
-* :class:`EANT2Config` — the EANT2 loop's (host side only), holding an ``ExploitConfig``.
+* `EANT2Config` — the EANT2 loop's (host side only), holding an ``ExploitConfig``.
 
 Both validate on construction and name the field and the reason in one line.
 """
@@ -59,8 +59,8 @@ class ExploitConfig:
 
     Attributes:
       popsize: *static*. Candidates per CMA-ES iteration, shared by the batch; None takes
-        :func:`default_popsize` of the batch's padded gene count (the handover's one rule,
-        :func:`eant2_jax.tuning.popsize_for`).
+        `default_popsize` of the batch's padded gene count (the handover's one rule,
+        `eant2_jax.tuning.popsize_for`).
       sigma0: initial step size.
       max_iters: iteration budget per structure.
       chunk: *static*. Iterations per compiled call (the host checks for early exit between
@@ -75,13 +75,13 @@ class ExploitConfig:
         float32 can resolve), 1e14 for float64.
       dtype: *static*. ``"float32"`` (default) or ``"float64"``, the dtype of the CMA-ES
         state (networks are still evaluated in float32). float64 needs JAX's x64 mode
-        (:func:`eant2_jax.enable_x64`), for experiments with large condition numbers.
+        (`eant2_jax.enable_x64`), for experiments with large condition numbers.
       sigma_up: stop when ``sigma * max(D)`` exceeds ``sigma_up * sigma0`` ("sigma
         growth": the search is diverging, as it does along an exactly flat direction once
         the cost reaches the float resolution); the result is the best point seen before.
       bound_patience: stop when cond(C) has sat at ``max_condition`` for this many
         consecutive iterations ("condition bound").
-      smoothing: g of sigma_bar (eq. 5); None uses :func:`smoothing_for` of each structure.
+      smoothing: g of sigma_bar (eq. 5); None uses `smoothing_for` of each structure.
       target_cost: stop a structure once its best cost is at or below this (pycma's
         ``ftarget``); None never stops for it (held as ``-inf``, which no cost is below).
       pruner: *static*. ``covariance`` (the paper's), ``magnitude``, ``obd``, ``obs``,
@@ -91,12 +91,12 @@ class ExploitConfig:
       prune_tolerance: accept a removal iff the cost rises by less than this fraction
         (0.001: the paper's ``e~ < 1.001 e``).
       prune_candidates: *static*. k, the best k candidates are evaluated in one batch (1 =
-        the paper); see :func:`eant2_jax.pruning.attempt`.
+        the paper); see `eant2_jax.pruning.attempt`.
       prune_refit: *static*. CMA-ES iterations of the reduced structure after the shift,
         before the acceptance test (0: none, the paper's literal rule); at most
         ``max_iters``.
       prune_refit_scale: the re-fit's initial step size, as a fraction of the shift's RMS
-        length per kept coordinate (see :func:`eant2_jax.pruning.attempt`).
+        length per kept coordinate (see `eant2_jax.pruning.attempt`).
       prune_reference: *static*. What the shifted (and re-fitted) cost is compared with:
         ``"best"``, the best cost seen before the attempt (default), or ``"mean"``, the cost
         of the current mean (the paper's literal rule).
@@ -106,7 +106,7 @@ class ExploitConfig:
         stopped for any reason but the budget run on.
 
     The defaults prune tentatively (re-fit, acceptance against the best cost, an attempt at
-    every stop); :meth:`literal` gives the paper's rule as written. docs/pruning.md says why.
+    every stop); `literal` gives the paper's rule as written. docs/pruning.md says why.
     """
 
     popsize: int | None = _static(None)
@@ -314,7 +314,7 @@ class EANT2Config:
 
     @classmethod
     def from_dict(cls, d: dict) -> EANT2Config:
-        """Inverse of :meth:`to_dict`; unknown keys are a ValueError naming them."""
+        """Inverse of `to_dict`; unknown keys are a ValueError naming them."""
         d = dict(d)
         exploit = d.pop("exploit", {})
         _check_keys(cls, d, "EANT2Config")

@@ -8,7 +8,7 @@ cross-device traffic in an iteration is the one boolean "does any structure try 
 Results are identical to a single-device run with the same key: a structure's random
 numbers depend on its own key and index only, and no reduction runs across structures.
 
-Several processes (hosts) join with :func:`initialize`; every process then runs the same
+Several processes (hosts) join with `initialize`; every process then runs the same
 host-side EANT2 loop (same key, same decisions) and the mesh spans all processes' devices.
 """
 

@@ -18,7 +18,7 @@ __all__ = ["as_genomes", "evaluate", "rollout_batch"]
 
 
 def as_genomes(genomes: Genome | str | Sequence[Genome | str]) -> list[Genome]:
-    """Accept one genome or a sequence of them, as :class:`Genome` or text."""
+    """Accept one genome or a sequence of them, as `Genome` or text."""
     if isinstance(genomes, Genome | str):
         genomes = [genomes]
     out = []
@@ -66,16 +66,18 @@ def evaluate(
 ) -> jax.Array:
     """Evaluate genomes on input sequences.
 
-    Genomes of different sizes are padded into one bucket (see :mod:`eant2_jax.compiler`),
+    Genomes of different sizes are padded into one bucket (see `eant2_jax.compiler`),
     so a later call whose genomes fall in the same bucket, with inputs of the same shape,
     reuses the compiled program.
 
     Args:
-      genomes: a :class:`Genome` (or its text) or a sequence of them, all with the same
+      genomes: a `Genome` (or its text) or a sequence of them, all with the same
         number of outputs.
       inputs: ``[T, M, n_in]``: T time steps of M independent streams, each stream with its
         own recurrent state (all zeros before the first step).
-      hidden: activation of hidden neurons (tanh, sigmoid, relu, identity).
+      hidden: activation of hidden neurons: a name of ``eant2_jax.kernels.activations``
+        (tanh, sigmoid, relu, identity, sin, gauss, ... or one registered with
+        ``eant2_jax.register_activation``).
       output: activation of root (output) neurons.
 
     Returns:

@@ -13,14 +13,14 @@ Mutation operators make new structures from a parent genome:
 The gene that joins new material to the network starts at weight 0 (the new neuron's own
 gene, or the new connection gene), while the new neuron's inner weights are random: a new
 structure first computes exactly what its parent did. Every offspring is a valid
-:class:`Genome` by construction (it is validated on creation anyway); an operator that has
+`Genome` by construction (it is validated on creation anyway); an operator that has
 nothing to act on (e.g. no hidden neuron to remove) reports ``None``.
 
 Neuron ids are unique across a whole run (a run-level counter numbers new neurons), so two
 genomes have "the same set of neurons" exactly when one was derived from the other — or both
 from a common ancestor — by changing connections only. Selection uses that:
 
-* **identical**: equal structure (:meth:`Genome.structure_key`: the genes without weights);
+* **identical**: equal structure (`Genome.structure_key`: the genes without weights);
 * **similar**: the same set of neuron ids.
 
 Selection (rank-based and greedy on cost) keeps at most one copy of an identical structure

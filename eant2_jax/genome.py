@@ -3,7 +3,8 @@
 Paper section III.A, figure 2. Each gene carries exactly one weight, so the genome's length is
 its number of parameters and its weight vector is in gene order.
 
-Text form (tokens separated by whitespace):
+Text form (tokens separated by whitespace; ``#`` starts a comment that runs to the end of its
+line, which is where genome files keep their header, see `eant2_jax.genomefile`):
 
 * ``N<id>/<k>*<w>`` neuron ``id`` (non-negative, unique) with ``k >= 1`` inputs, weight ``w``
 * ``I<j>*<w>``      network input ``j`` (0-based)
@@ -138,7 +139,7 @@ def _parse_token(token: str, position: int) -> Gene:
 class Genome:
     """An immutable, validated EANT2 linear genome.
 
-    Construct with :meth:`parse` (text form) or from a sequence of :class:`Gene`. Validation
+    Construct with `parse` (text form) or from a sequence of `Gene`. Validation
     runs on construction, so every ``Genome`` in existence is evaluable.
 
     Derived structure (all in gene order, computed once at construction):
@@ -161,10 +162,13 @@ class Genome:
     # ----------------------------------------------------------------------------- text form
     @classmethod
     def parse(cls, text: str) -> Genome:
-        """Parse the text form; raises :class:`GenomeError` naming the token and the reason."""
+        """Parse the text form; raises `GenomeError` naming the token and the reason.
+
+        ``#`` starts a comment that runs to the end of its line (a genome file's header).
+        """
         if not isinstance(text, str):
             raise TypeError(f"Genome.parse expects a str, got {type(text).__name__}")
-        tokens = text.split()
+        tokens = [t for line in text.splitlines() for t in line.split("#", 1)[0].split()]
         if not tokens:
             raise GenomeError("empty genome")
         return cls(_parse_token(t, i) for i, t in enumerate(tokens))

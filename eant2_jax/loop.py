@@ -9,10 +9,10 @@
            exploit      batched CMA-ES of the offspring (+ parents if ``reexploit``)
            select       rank-based greedy with the diversity rules, exploration.select
 
-Everything a run does flows from one PRNG key and an :class:`EANT2Config`: generation ``g``
+Everything a run does flows from one PRNG key and an `EANT2Config`: generation ``g``
 uses ``fold_in(key, g)``, split into a mutation key (seeding a NumPy generator for the host
 side) and an exploitation key. The whole state after a generation is a small JSON document
-(:meth:`RunState.to_json`), so a run resumes from its last complete generation and, on CPU,
+(`RunState.to_json`), so a run resumes from its last complete generation and, on CPU,
 ends with exactly the result of an uninterrupted run.
 
 The library never prints: progress goes to ``callback(event: dict)``.
@@ -33,6 +33,7 @@ from . import distributed
 from .config import EANT2Config
 from .exploration import OPERATORS, initial_genome, mutate, select
 from .genome import Genome
+from .genomefile import GenomeFile
 from .pruning import PruneAttempt
 from .rundir import RunDir, RunDirError
 from .tasks import check_task, spec_of
@@ -137,13 +138,13 @@ class GenerationRecord:
 
 
 class RunResult(NamedTuple):
-    """What :func:`run` returns.
+    """What `run` returns.
 
     Attributes:
       population: the final population, best first.
       best: the best genome.
-      generations: one :class:`GenerationRecord` per generation.
-      pruning: one :class:`~eant2_jax.pruning.PruneAttempt` per pruning attempt.
+      generations: one `GenerationRecord` per generation.
+      pruning: one `PruneAttempt` per pruning attempt.
     """
 
     population: list[Individual]
@@ -324,23 +325,23 @@ def run(
     """Run EANT2 on a task.
 
     Args:
-      task: the task (see :mod:`eant2_jax.tasks`).
+      task: the task (see `eant2_jax.tasks`).
       key: the run's PRNG key; the same key and config give the same run.
-      config: :class:`EANT2Config` (default: its defaults, covariance pruning on).
+      config: `EANT2Config` (default: its defaults, covariance pruning on).
       generations: generations after the initial one (generation 0 exploits the minimal
         networks; the result has ``generations + 1`` generation records).
       out: optional run directory to create (must not exist or be empty); a run written
-        there continues with :func:`resume` after a crash or a kill.
+        there continues with `resume` after a crash or a kill.
       callback: receives progress events: dicts with ``event`` = ``generation`` (a
-        :class:`GenerationRecord`'s fields), ``exploit`` (after each chunk of CMA-ES
+        `GenerationRecord`'s fields), ``exploit`` (after each chunk of CMA-ES
         iterations) or ``compiling`` (before a program is first compiled).
-        :class:`eant2_jax.progress.ProgressReporter` prints them.
+        `eant2_jax.progress.ProgressReporter` prints them.
       meta: extra JSON fields for ``config.json``. A task built by
-        :func:`eant2_jax.tasks.make` records its spec and options there by itself, so that
-        :func:`resume` can rebuild it.
+        `eant2_jax.tasks.make` records its spec and options there by itself, so that
+        `resume` can rebuild it.
 
     Returns:
-      :class:`RunResult`.
+      `RunResult`.
     """
     config = EANT2Config() if config is None else config
     if generations < 0:
@@ -359,7 +360,8 @@ def run(
                 "config": config.to_dict(),
             },
         )
-    return _loop(task, None, _key_from_data(_key_data(key)), config, generations, rundir, callback)
+    key = _key_from_data(_key_data(key))
+    return _loop(task, None, key, config, generations, rundir, callback, meta or {})
 
 
 def resume(
@@ -374,10 +376,10 @@ def resume(
     Args:
       out: the run directory.
       task: the task it was run on; None rebuilds it from the spec in ``config.json``
-        (recorded when the task came from :func:`eant2_jax.tasks.make`: a registered name,
+        (recorded when the task came from `eant2_jax.tasks.make`: a registered name,
         ``module:factory`` or ``file.py:factory``).
       generations: new total number of generations (default: the one in ``config.json``).
-      callback: progress events, as for :func:`run`.
+      callback: progress events, as for `run`.
 
     Raises:
       RunDirError: not a run directory, a corrupt one, or no task given and none recorded.
@@ -402,7 +404,7 @@ def resume(
         key = _key_from_meta(meta, rundir)
     else:
         key = _key_from_data(state.key)
-    return _loop(task, state, key, config, total, rundir, callback)
+    return _loop(task, state, key, config, total, rundir, callback, meta)
 
 
 def _task_from_meta(meta: dict, rundir: RunDir) -> Task:
@@ -426,7 +428,7 @@ def _key_from_meta(meta: dict, rundir: RunDir) -> jax.Array:
     return _key_from_data(meta["key"])
 
 
-def _loop(task, state, key, config, generations, rundir, callback) -> RunResult:
+def _loop(task, state, key, config, generations, rundir, callback, meta) -> RunResult:
     gen_records = (
         [] if rundir is None else [GenerationRecord.from_json(r) for r in rundir.generations()]
     )
@@ -440,10 +442,17 @@ def _loop(task, state, key, config, generations, rundir, callback) -> RunResult:
         gen_records.append(record)
         prune_records.extend(prune)
         if rundir is not None:
+            # best.genome carries what is needed to run it: activations, sizes, the task.
+            best = GenomeFile.from_task(
+                state.best().genome,
+                task,
+                name=meta.get("task"),
+                options=meta.get("task_options"),
+            )
             rundir.commit(
                 [record.to_json()],
                 [r.to_json() for r in prune],
-                str(state.best().genome),
+                best.to_text().rstrip("\n"),  # commit adds the newline
                 state.to_json(),
             )
         if callback is not None:

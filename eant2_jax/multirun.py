@@ -2,7 +2,7 @@
 
 One worker thread per device (or several, to overlap one run's host-side work with another's
 device work) takes runs from a queue; each run is pinned to its device with
-``jax.default_device`` and is exactly the run :func:`eant2_jax.loop.run` would make there.
+``jax.default_device`` and is exactly the run `eant2_jax.loop.run` would make there.
 """
 
 from __future__ import annotations
@@ -34,13 +34,13 @@ def run_many(
     """Independent runs (seeds, or arms with different configs) spread over devices.
 
     One worker thread per device takes runs from a queue; a run is pinned to its device
-    with ``jax.default_device`` and is exactly the run :func:`run` would make there.
+    with ``jax.default_device`` and is exactly the run `run` would make there.
 
     Args:
       task: the task, shared by all runs.
       keys: one PRNG key per run.
       config: one config for all runs, or one per run (their ``devices`` must be None).
-      generations: as for :func:`run`.
+      generations: as for `run`.
       outs: optional run directory per run (None entries write nothing).
       devices: ``"all"`` (this process's devices), a count, or explicit devices.
       workers_per_device: runs in flight per device (>1 overlaps one run's host-side work

@@ -1,5 +1,5 @@
-"""A ready-made progress reporter for :func:`eant2_jax.run`, :func:`eant2_jax.resume` and
-:func:`eant2_jax.run_many` (opt-in: the library itself never prints).
+"""A ready-made progress reporter for `eant2_jax.run`, `eant2_jax.resume` and
+`eant2_jax.run_many` (opt-in: the library itself never prints).
 
 ::
 
@@ -29,7 +29,7 @@ __all__ = ["ProgressReporter"]
 class ProgressReporter:
     """Renders the loop's progress events (``callback=ProgressReporter(...)``).
 
-    Events (dicts; see :func:`eant2_jax.run`): ``compiling`` (before a program is first
+    Events (dicts; see `eant2_jax.run`): ``compiling`` (before a program is first
     compiled), ``exploit`` (after each chunk of CMA-ES iterations; shown only on a
     terminal), ``generation`` (a completed generation). Others are ignored.
 

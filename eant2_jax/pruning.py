@@ -1,18 +1,18 @@
 """Pruning (paper section IV, figure 5): one stage, on device and on the host.
 
 * Device: the pruning attempt of a batch of CMA-ES runs, as stages that the engine
-  (:mod:`eant2_jax.exploitation`) drives with its own iterations: :func:`propose` (the
+  (`eant2_jax.exploitation`) drives with its own iterations: `propose` (the
   candidate of eqs. 5-8 with the sign erratum, or a baseline's, and the shift onto
-  ``p_i = 0``), :func:`trial_points` (what the next evaluation is), :func:`judge`
+  ``p_i = 0``), `trial_points` (what the next evaluation is), `judge`
   (acceptance, IV.B.3, and the conditioned covariance of the reduced structure) and, after a
-  re-fit, :func:`conclude`. The stages never call the task: the engine evaluates the points
+  re-fit, `conclude`. The stages never call the task: the engine evaluates the points
   they ask for with the same cost call as its CMA-ES iterations. The maths lives in
-  :mod:`eant2_jax.kernels.pruning`.
-* Host: :func:`tables_for`, the genome structure the device pruner reads; a removed
+  `eant2_jax.kernels.pruning`.
+* Host: `tables_for`, the genome structure the device pruner reads; a removed
   connection is switched off in the CMA-ES mask, so the gene slots of a structure never move
-  during a run. After the run, :func:`prune_genome` drops the removed genes from the genome and
-  fixes the neurons' input counts, and :func:`attempt_records` turns the device records into
-  one :class:`PruneAttempt` per attempt.
+  during a run. After the run, `prune_genome` drops the removed genes from the genome and
+  fixes the neurons' input counts, and `attempt_records` turns the device records into
+  one `PruneAttempt` per attempt.
 """
 
 from __future__ import annotations
@@ -247,7 +247,7 @@ def judge(
     reference: str,
 ) -> tuple[Attempt, cmaes.State, cmaes.Params, AttemptRecord, jax.Array]:
     """The ``TRIAL`` phase of the ``active`` structures, given the costs of
-    :func:`trial_points` (IV.B.3).
+    `trial_points` (IV.B.3).
 
     Without a re-fit (the paper): accept iff the lowest shifted cost that passes rises by
     less than ``tolerance`` over the reference (the mean's cost ``e``, or the best cost
@@ -255,7 +255,7 @@ def judge(
     lowest shifted cost goes on to ``min(refit, refit_limit)`` CMA-ES iterations of the
     reduced structure (phase ``REFIT``; its step size is ``max(sigma, refit_scale *
     |shift| / sqrt(n))``, since the straight-line shift is exact only on a quadratic), and
-    :func:`conclude` decides.
+    `conclude` decides.
 
     Returns:
       ``(attempt, cma, params, record, decided)``: ``record`` holds the attempts decided now
@@ -390,7 +390,7 @@ def conclude(
 
 
 def _cast_record(record: AttemptRecord) -> AttemptRecord:
-    """The record in the dtypes of :meth:`AttemptRecord.skipped` (one structure per branch)."""
+    """The record in the dtypes of `AttemptRecord.skipped` (one structure per branch)."""
     skipped = AttemptRecord.skipped(record.attempted.shape[0])
     return jax.tree.map(lambda a, b: a.astype(b.dtype), record, skipped)
 
@@ -546,7 +546,7 @@ def attempt_records(
     """One record per pruning attempt from an exploitation history.
 
     Args:
-      history: the engine history's pruning part, :class:`AttemptRecord` of
+      history: the engine history's pruning part, `AttemptRecord` of
         ``[iterations, S]`` arrays (None without a pruner).
       genomes: the structures, in batch order (to name the kind of the gene).
       pruner: the pruner's name.

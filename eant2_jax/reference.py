@@ -1,7 +1,7 @@
 """A plain NumPy interpreter of the linear genome: clear, slow, obviously right.
 
 It walks the genes from last to first with a stack, exactly as the semantics in
-:mod:`eant2_jax.genome` say, once per time step. Every fast path of the package is tested
+`eant2_jax.genome` say, once per time step. Every fast path of the package is tested
 against it. Only the M independent streams are vectorised (each stack entry is an ``[M]``
 array); the walk itself is the textbook one.
 """
@@ -11,15 +11,9 @@ from __future__ import annotations
 import numpy as np
 
 from .genome import GeneKind, Genome
+from .kernels import activations
 
-__all__ = ["ACTIVATIONS_NP", "interpret"]
-
-ACTIVATIONS_NP = {
-    "identity": lambda a: a,
-    "tanh": np.tanh,
-    "sigmoid": lambda a: 1.0 / (1.0 + np.exp(-a)),
-    "relu": lambda a: np.maximum(a, 0.0),
-}
+__all__ = ["interpret"]
 
 
 def interpret(
@@ -49,7 +43,8 @@ def interpret(
     if x.shape[2] < genome.n_inputs:
         raise ValueError(f"genome reads {genome.n_inputs} inputs, data has {x.shape[2]}")
     w = genome.weights if weights is None else np.asarray(weights, dtype=np.float64)
-    act_hidden, act_out = ACTIVATIONS_NP[hidden], ACTIVATIONS_NP[output]
+    # Each activation's NumPy reference sits beside its JAX form in one table.
+    act_hidden, act_out = activations.get(hidden).numpy, activations.get(output).numpy
     roots = set(genome.roots)
     T, M, _ = x.shape
     prev = {nid: np.zeros(M) for nid in genome.neuron_ids}  # outputs at step t-1

@@ -1,19 +1,19 @@
 """The handover between host and device: "tune these genomes on this task", in one place.
 
-Every caller that tunes genomes — :func:`optimize`, the EANT2 loop, the benchmarks, the
-tests — goes through :func:`tune`, which does the whole round trip once:
+Every caller that tunes genomes — `optimize`, the EANT2 loop, the benchmarks, the
+tests — goes through `tune`, which does the whole round trip once:
 
-1. compile the genomes into one padded batch (:func:`eant2_jax.compiler.compile_genomes`);
-2. choose the population size with ONE rule (:func:`popsize_for`);
-3. start the engine (:func:`eant2_jax.exploitation.init`) with one key per structure;
-4. build the pruner's tables (:func:`eant2_jax.pruning.tables_for`);
-5. run the engine (:func:`eant2_jax.exploitation.run`), optionally over a device mesh;
+1. compile the genomes into one padded batch (`eant2_jax.compiler.compile_genomes`);
+2. choose the population size with ONE rule (`popsize_for`);
+3. start the engine (`eant2_jax.exploitation.init`) with one key per structure;
+4. build the pruner's tables (`eant2_jax.pruning.tables_for`);
+5. run the engine (`eant2_jax.exploitation.run`), optionally over a device mesh;
 6. gather the result to the host and turn each structure back into a genome, with the
-   pruned genes dropped (:func:`eant2_jax.pruning.prune_genome`);
+   pruned genes dropped (`eant2_jax.pruning.prune_genome`);
 7. on a noisy task (``task.noisy``), score each tuned genome again on fresh episodes: the
    best cost seen during a search is the best of many draws, an optimistic estimate.
 
-:func:`cost` is the other host entry point: the task's cost of genomes as they stand.
+`cost` is the other host entry point: the task's cost of genomes as they stand.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ __all__ = [
 
 def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch) -> int:
     """The population size of a batch: ``config.popsize``, else the CMA-ES default
-    (:func:`eant2_jax.exploitation.default_popsize`) of the batch's padded gene count.
+    (`eant2_jax.exploitation.default_popsize`) of the batch's padded gene count.
 
     The rule follows the gene bucket rather than each structure's own size so that every
     batch of one bucket shares one compiled program; within a bucket the padded count
@@ -59,7 +59,7 @@ def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch) -> int:
 
 
 class Prepared(NamedTuple):
-    """Steps 1-4 of :func:`tune`: everything the engine needs, nothing run yet."""
+    """Steps 1-4 of `tune`: everything the engine needs, nothing run yet."""
 
     batch: CompiledBatch
     state: ex.ExploitState
@@ -81,7 +81,7 @@ def prepare(
 ) -> Prepared:
     """Compile, choose the popsize, build the tables and start the engine (no iteration).
 
-    Args: as for :func:`tune`; ``multiple_of`` rounds the rows up for a device mesh.
+    Args: as for `tune`; ``multiple_of`` rounds the rows up for a device mesh.
     """
     batch = compile_genomes(
         genomes,
@@ -106,19 +106,19 @@ def prepare(
 
 @dataclasses.dataclass(frozen=True)
 class Tuned:
-    """What :func:`tune` returns.
+    """What `tune` returns.
 
     Attributes:
       genomes: the tuned genomes (best weights, pruned genes dropped), in input order; a
         structure that never saw a finite cost is returned unchanged.
       costs: each one's cost (inf where none was finite): the best cost of its search, or
-        on a noisy task its cost on fresh episodes (:func:`tune`, step 7).
+        on a noisy task its cost on fresh episodes (`tune`, step 7).
       evaluations: each one's cost evaluations (pruning trials and the re-evaluation on a
         noisy task included).
       stop_reasons: why each one stopped (see ``exploitation.STOP_REASONS``).
-      history: the engine's :class:`~eant2_jax.exploitation.StepRecord` of
+      history: the engine's `StepRecord` of
         ``[ticks, rows]`` arrays (padding rows included).
-      pruning: one :class:`~eant2_jax.pruning.PruneAttempt` per attempt; ``structure``
+      pruning: one `PruneAttempt` per attempt; ``structure``
         is the index in ``genomes``.
       state: the engine's final state (on device).
       search_costs: the best cost each search saw (equal to ``costs`` on a task that is
@@ -161,13 +161,13 @@ def tune(
       bucket: pad to these sizes (default: the smallest that fits, ``compiler.bucket_for``).
       min_rows: pad the batch to at least this many structures (one program per bucket).
       pad_count: round the rows up the bucket series (see ``compile_genomes``).
-      on_chunk: progress callback (see :func:`eant2_jax.exploitation.run`).
-      mesh: split the structures over these devices (see :mod:`eant2_jax.distributed`).
+      on_chunk: progress callback (see `eant2_jax.exploitation.run`).
+      mesh: split the structures over these devices (see `eant2_jax.distributed`).
       on_compile: called before a program is compiled (see
-        :func:`eant2_jax.exploitation.run`).
+        `eant2_jax.exploitation.run`).
 
     Returns:
-      :class:`Tuned`.
+      `Tuned`.
     """
     genomes = list(genomes)
     check_task(task, genomes)
@@ -239,18 +239,18 @@ def tune(
 
 
 class OptimizeResult(NamedTuple):
-    """What :func:`optimize` returns.
+    """What `optimize` returns.
 
     Attributes:
       genome: the genome with its best weights.
       cost: the best cost found (of ``genome``'s weights); on a noisy task (``task.noisy``)
         its cost on fresh episodes, which the search never saw.
-      history: :class:`~eant2_jax.exploitation.StepRecord` of ``[ticks]`` arrays, one per
+      history: `StepRecord` of ``[ticks]`` arrays, one per
         engine iteration it ran (``sigma``, ``sigma_bar``, ``cond``, ``cond_bounded``,
         ``best_cost``, ``evaluations``, ``nonfinite``, ``running``, ``phase``: a pruning
         attempt's iterations have ``phase`` > 0; ``prune`` with a pruner).
       stop_reason: why the run stopped (see ``STOP_REASONS``).
-      pruning: one :class:`~eant2_jax.pruning.PruneAttempt` per pruning attempt; empty
+      pruning: one `PruneAttempt` per pruning attempt; empty
         without a pruner.
     """
 
@@ -266,13 +266,13 @@ def optimize(genome: Genome | str, task: Task, *, key: jax.Array, **options: Any
 
     Args:
       genome: the structure (and its initial weights).
-      task: a task (see :mod:`eant2_jax.tasks`).
+      task: a task (see `eant2_jax.tasks`).
       key: PRNG key.
-      **options: fields of :class:`~eant2_jax.exploitation.ExploitConfig` (popsize, sigma0,
+      **options: fields of `ExploitConfig` (popsize, sigma0,
         max_iters, pruner, ...).
 
     Returns:
-      :class:`OptimizeResult`.
+      `OptimizeResult`.
     """
     (genome,) = as_genomes(genome)
     config = ex.ExploitConfig.from_options(options)

@@ -33,8 +33,9 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from . import activations
+
 __all__ = [
-    "ACTIVATIONS",
     "Layout",
     "Network",
     "activation",
@@ -49,22 +50,11 @@ __all__ = [
 # products are tiny, so the cost is nil.
 _PRECISION = jax.lax.Precision.HIGHEST
 
-ACTIVATIONS: dict[str, Callable[[jax.Array], jax.Array]] = {
-    "identity": lambda a: a,
-    "tanh": jnp.tanh,
-    "sigmoid": jax.nn.sigmoid,
-    "relu": jax.nn.relu,
-}
-
 
 def activation(name: str) -> Callable[[jax.Array], jax.Array]:
-    """The activation function called ``name``; ValueError listing the known ones."""
-    try:
-        return ACTIVATIONS[name]
-    except KeyError:
-        raise ValueError(
-            f"unknown activation {name!r}; known: {', '.join(sorted(ACTIVATIONS))}"
-        ) from None
+    """The JAX activation function called ``name`` (built in or registered, see
+    `eant2_jax.kernels.activations`); ValueError listing the known ones."""
+    return activations.get(name).jax
 
 
 def buffer_size(n_neurons: int, n_inputs: int, n_outputs: int) -> int:
@@ -106,7 +96,7 @@ class Network:
       w_ff: ``[H, H]`` current-step weights, ``w_ff[i, j]``: neuron j into neuron i (j < i).
       w_rec: ``[H, H]`` previous-step weights (recurrent jumpers).
       w_out: ``[n_out, H]`` output selection: root r's own weight at its neuron's slot.
-      is_root, neuron_mask: ``bool[H]`` as in :class:`Layout`.
+      is_root, neuron_mask: ``bool[H]`` as in `Layout`.
       sweeps: static number of dense sweeps per step (>= depth).
     """
 
@@ -128,7 +118,7 @@ def network(layout: Layout, params: jax.Array) -> Network:
       params: ``[P]`` one weight per gene slot, in gene order (padding entries are ignored).
 
     Returns:
-      The :class:`Network`. Differentiable in ``params``; jit/vmap friendly.
+      The `Network`. Differentiable in ``params``; jit/vmap friendly.
     """
     h = layout.is_root.shape[-1]
     n_in, n_out = layout.n_inputs, layout.n_outputs

@@ -3,11 +3,11 @@
 Everything here is for ONE structure of ``P`` padded parameters; batch with ``jax.vmap``.
 It imports nothing from the rest of eant2_jax.
 
-* :func:`removable`: which parameters may go alone (structural rules, below).
-* :func:`scores`: each pruner's score for every parameter (smaller = prune first) and the
+* `removable`: which parameters may go alone (structural rules, below).
+* `scores`: each pruner's score for every parameter (smaller = prune first) and the
   shifted mean that would put that parameter at 0.
-* :func:`accept`: the acceptance rule, eq. ``e~ < 1.001 e``.
-* :func:`condition`: the covariance after a removal, conditioned on the removed
+* `accept`: the acceptance rule, eq. ``e~ < 1.001 e``.
+* `condition`: the covariance after a removal, conditioned on the removed
   coordinates (Schur complement).
 
 The covariance pruner (IV.B.2): with ``C = B D^2 B^T`` and principal axes

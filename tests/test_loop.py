@@ -29,6 +29,7 @@ import pytest
 import eant2_jax
 from eant2_jax import EANT2Config, ExploitConfig, tasks
 from eant2_jax.app.cli import main
+from eant2_jax.genomefile import GenomeFile
 from eant2_jax.rundir import CHECKPOINT, GENERATIONS, PRUNING, RunDirError
 
 RECORD_FIELDS = (
@@ -211,7 +212,8 @@ def test_resume_after_crash_inside_a_commit(xor_run, tmp_path):
     assert [r["generation"] for r in on_disk] == list(range(GENERATIONS_API + 1))
     assert _without_wall(on_disk) == _without_wall(_json(reference.generations))
     assert _jsonl(run_dir, PRUNING) == json.loads(json.dumps(_json(reference.pruning)))
-    assert (run_dir / "best.genome").read_text() == str(reference.best) + "\n"
+    best = GenomeFile.read(run_dir / "best.genome")
+    assert best.genome == reference.best and best.has_header
     assert not list(run_dir.glob(".*.tmp")), "resume leaves the dead commit's temporary files"
     state = json.loads((run_dir / CHECKPOINT).read_text())["state"]
     assert state["generation"] == GENERATIONS_API
@@ -334,7 +336,7 @@ def test_cli_kill_and_resume_is_exact(cli_reference, cli_cache, tmp_path, capsys
     rc, _, stdout = _run_main(["resume", str(out)], capsys, monkeypatch)
     assert rc == 0
     assert _snapshot(out) == before
-    assert (out / "best.genome").read_text().strip() in stdout
+    assert str(GenomeFile.read(out / "best.genome").genome) in stdout
 
 
 @pytest.mark.slow

@@ -169,30 +169,66 @@ def _report(args: argparse.Namespace) -> int:
     from eant2_jax.app.report import report
 
     out = Path(args.out) if args.out else Path(args.dirs[0]).parent / "report"
-    path = report(args.dirs, out)
+    path = report(args.dirs, out, allow_mixed=args.allow_mixed, reference=args.reference)
     print(f"report: {path}")
     return 0
 
 
 def _show(args: argparse.Namespace) -> int:
-    import eant2_jax
     from eant2_jax.app.report import draw_genome, genome_stats
+    from eant2_jax.genomefile import GenomeFile
 
     src = Path(args.genome_file)
-    try:
-        text = src.read_text(encoding="utf-8")
-    except OSError as e:
-        raise ValueError(f"cannot read {src}: {e.strerror}") from None
-    genome = eant2_jax.Genome.parse(text)
+    spec = GenomeFile.read(src)
+    genome = spec.genome
     out = Path(args.out) if args.out else src.with_suffix(src.suffix + ".png")
     if out.exists() and not args.force:
         raise ValueError(f"{out} exists; not overwriting (use --out or --force)")
     print(genome)
+    if spec.has_header:
+        task = spec.task or "?"
+        if spec.task_options:
+            task += " " + json.dumps(spec.task_options)
+        print(f"{'activations':>14}: hidden {spec.hidden}, output {spec.output}")
+        print(f"{'task':>14}: {task} ({spec.n_inputs} inputs, {spec.n_outputs} outputs)")
+    else:
+        print(f"{'activations':>14}: not recorded (a file without a header)")
     for k, v in genome_stats(genome).items():
         print(f"{k:>14}: {v}")
-    draw_genome(genome, out, title=src.name)
+    draw_genome(genome, out, title=src.name, n_inputs=spec.n_inputs)
     print(f"drawing: {out}")
     return 0
+
+
+def _tasks(args: argparse.Namespace) -> int:
+    import inspect
+
+    from eant2_jax import tasks
+    from eant2_jax.kernels import activations
+
+    for name in tasks.names():
+        doc = (inspect.getdoc(tasks.factory(name)) or "").split("\n\n")[0].replace("\n", " ")
+        print(f"{name}: {doc}" if doc else name)
+        opts = [
+            f"{k}={'(required)' if v is inspect.Parameter.empty else json.dumps(v)}"
+            for k, v in tasks.options(name).items()
+        ]
+        print("    options: " + (", ".join(opts) if opts else "none"))
+    print("\nSet an option with --task-option KEY=VALUE (VALUE is JSON or a string).")
+    print(f"Activations (hidden=, output=): {', '.join(activations.names())}.")
+    return 0
+
+
+def _version() -> str:
+    import platform
+
+    import jax
+
+    import eant2_jax
+
+    return (
+        f"eant2 {eant2_jax.__version__} (jax {jax.__version__}, Python {platform.python_version()})"
+    )
 
 
 def _reproduce(args: argparse.Namespace) -> int:
@@ -271,6 +307,7 @@ def _parser() -> argparse.ArgumentParser:
     from eant2_jax.kernels.pruning import PRUNERS
 
     p = argparse.ArgumentParser(prog="eant2", description="EANT2 neuro-evolution in JAX.")
+    p.add_argument("--version", action="version", version=_version())
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     demo = sub.add_parser(
         "demo", help="evaluate a small recurrent genome, then tune a network on XOR with CMA-ES"
@@ -414,6 +451,17 @@ def _parser() -> argparse.ArgumentParser:
     report = sub.add_parser("report", help="report.md and figures from run directories")
     report.add_argument("dirs", nargs="+", help="run directories")
     report.add_argument("--out", default=None, help="output folder (default: DIR/../report)")
+    report.add_argument(
+        "--allow-mixed",
+        action="store_true",
+        help="report runs of different tasks or configurations together (refused otherwise)",
+    )
+    report.add_argument(
+        "--reference",
+        default=None,
+        metavar="ARM",
+        help="the arm p-values are computed against (default: none, the arm without pruning)",
+    )
     report.set_defaults(func=_report)
 
     show = sub.add_parser("show", help="print a genome file's statistics and draw it")
@@ -421,6 +469,9 @@ def _parser() -> argparse.ArgumentParser:
     show.add_argument("--out", default=None, help="PNG to write (default: GENOME_FILE.png)")
     show.add_argument("--force", action="store_true", help="replace an existing PNG")
     show.set_defaults(func=_show)
+
+    tasks = sub.add_parser("tasks", help="list the registered tasks and their options")
+    tasks.set_defaults(func=_tasks)
 
     resume = sub.add_parser("resume", help="continue a run directory from its last generation")
     resume.add_argument("dir", help="the run directory")

@@ -1,9 +1,9 @@
 """The paper's experiments (section V), reproducible with one call.
 
-* :func:`reproduce`: EANT2 runs with and without pruning (V.B, figure 8), several seeds per
+* `reproduce`: EANT2 runs with and without pruning (V.B, figure 8), several seeds per
   arm, spread over the devices; then the condition experiment (V.A, figure 7) on the best
   unpruned network; then the report.
-* :func:`condition_experiment`: prune an evolved network, re-initialise it and its pruned
+* `condition_experiment`: prune an evolved network, re-initialise it and its pruned
   version with random weights, and record cond(C) of a CMA-ES run on each (no pruning).
 """
 
@@ -140,7 +140,7 @@ def condition_experiment(
 
 
 def _kept_genes(original: Genome, pruned: Genome) -> np.ndarray:
-    """:func:`eant2_jax.pruning.kept_genes`, refusing a genome that is not a pruned copy."""
+    """`eant2_jax.pruning.kept_genes`, refusing a genome that is not a pruned copy."""
     kept = kept_genes(original, pruned)
     if len(kept) != len(pruned):
         raise ValueError("the pruned genome is not a sub-sequence of the original")
@@ -148,9 +148,9 @@ def _kept_genes(original: Genome, pruned: Genome) -> np.ndarray:
 
 
 def arm_config(base: EANT2Config, arm: str) -> EANT2Config:
-    """The configuration of one arm of :func:`reproduce`: a pruner's name (``none``,
+    """The configuration of one arm of `reproduce`: a pruner's name (``none``,
     ``covariance``, ``obs``, ...) with the default tentative attempt, or ``NAME-literal``
-    for that pruner under the paper's rule as written (:meth:`ExploitConfig.literal`)."""
+    for that pruner under the paper's rule as written (`ExploitConfig.literal`)."""
     name, _, variant = arm.partition("-")
     if name not in PRUNERS or variant not in ("", "literal") or (name == "none" and variant):
         known = ", ".join(p for p in PRUNERS) + " (and NAME-literal)"
@@ -191,7 +191,7 @@ def reproduce(
       pruners: the pruning arms; an arm without pruning (``none``) is always added.
       config: base EANT2 configuration (its pruner is set per arm).
       seed: first seed.
-      devices: devices to spread the runs over (see :func:`eant2_jax.run_many`).
+      devices: devices to spread the runs over (see `eant2_jax.run_many`).
       workers_per_device: concurrent runs per device (overlaps one run's host work with
         another's device work).
       condition: also run the V.A condition experiment.

@@ -1,6 +1,6 @@
 """Reports of runs: figures, statistics and network drawings (host side, matplotlib).
 
-``report(dirs, out)`` reads run directories (see :mod:`eant2_jax.rundir`), groups them into
+``report(dirs, out)`` reads run directories (see `eant2_jax.rundir`), groups them into
 arms by their pruner, and writes ``report.md`` with
 
 * fitness (= -cost) and size of the best individual against generation, every run a thin
@@ -9,7 +9,12 @@ arms by their pruner, and writes ``report.md`` with
   directory holds the V.A experiment's ``condition.json`` (figure 7);
 * the best network drawn as a graph (figure 6);
 * a table per arm: final fitness and size (mean +- sd), size reduction, generations and
-  evaluations to reach 99% of the final fitness, and Welch t-test p-values between arms.
+  evaluations to reach 99% of the final fitness, and Welch t-test p-values against the
+  reference arm (``none``, the arm without pruning, unless another is named).
+
+Runs are only compared when they ran the same task with the same options and the same
+configuration, pruning apart (the arms differ in it): anything else raises
+`MixedRunsError` naming the difference, unless ``allow_mixed``.
 """
 
 from __future__ import annotations
@@ -26,7 +31,27 @@ from ..genome import GeneKind, Genome
 from ..loop import GenerationRecord
 from ..pruning import PruneAttempt, kept_genes
 
-__all__ = ["LoadedRun", "draw_genome", "genome_stats", "load_runs", "report", "summarise"]
+__all__ = [
+    "LoadedRun",
+    "MixedRunsError",
+    "check_comparable",
+    "draw_genome",
+    "fitness_figure",
+    "genome_figure",
+    "genome_stats",
+    "load_runs",
+    "reference_arm",
+    "report",
+    "setting",
+    "summarise",
+]
+
+# Node faces of network drawings (nodes and legend).
+_FACE = {"input": "#e8f0ff", "bias": "#f0f0f0", "hidden": "#fff8e6", "output": "#ffe9c7"}
+
+
+class MixedRunsError(ValueError):
+    """Run directories that differ in their task or configuration (beyond pruning)."""
 
 
 def _pyplot():
@@ -62,11 +87,12 @@ def draw_genome(
     title: str | None = None,
     n_inputs: int | None = None,
 ) -> Path:
-    """Draw a network as a graph (inputs bottom, outputs top) into a PNG.
+    """Draw a network as a graph (inputs bottom, outputs top) into a PNG, with a legend.
 
     Solid black: a neuron's own inputs (inputs, biases, sub-neurons); solid blue: forward
     jumpers; dashed red: recurrent jumpers. With ``pruned`` (the same network after
-    pruning), connections that pruning removed are drawn dashed grey.
+    pruning), connections that pruning removed are drawn dotted grey. The bias node is drawn
+    only when a gene reads it.
 
     Args:
       genome: the network to draw (the unpruned one when ``pruned`` is given).
@@ -80,6 +106,24 @@ def draw_genome(
     """
     plt = _pyplot()
     path = Path(path)
+    fig = genome_figure(genome, pruned=pruned, title=title, n_inputs=n_inputs)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def genome_figure(
+    genome: Genome,
+    *,
+    pruned: Genome | None = None,
+    title: str | None = None,
+    n_inputs: int | None = None,
+):
+    """The figure `draw_genome` saves (arguments as there)."""
+    plt = _pyplot()
+    from matplotlib.lines import Line2D
+
     n_in = max(n_inputs or 0, genome.n_inputs)
     removed = _removed_genes(genome, pruned) if pruned is not None else set()
     # Levels: inputs at 0, each neuron one above its deepest current-step source.
@@ -100,7 +144,8 @@ def draw_genome(
     pos: dict[tuple[str, int], tuple[float, float]] = {}
     for j in range(n_in):
         pos[("in", j)] = (j - (n_in - 1) / 2, 0.0)
-    pos[("bias", 0)] = (n_in / 2 + 0.8, 0.0)
+    if any(g.kind == GeneKind.BIAS for g in genome):
+        pos[("bias", 0)] = (n_in / 2 + 0.8, 0.0)
     rows: dict[int, list[int]] = {}
     for nid in genome.neuron_ids:
         rows.setdefault(level[nid], []).append(nid)
@@ -163,22 +208,37 @@ def draw_genome(
     roots = {genome[r].ref for r in genome.roots}
     for (kind, ident), (x, y) in pos.items():
         if kind == "in":
-            label, face = f"x{ident}", "#e8f0ff"
+            label, face = f"x{ident}", _FACE["input"]
         elif kind == "bias":
-            label, face = "1", "#f0f0f0"
+            label, face = "1", _FACE["bias"]
         else:
-            label, face = f"N{ident}", "#ffe9c7" if ident in roots else "#fff8e6"
+            label, face = f"N{ident}", _FACE["output" if ident in roots else "hidden"]
         ax.scatter([x], [y], s=520, c=face, edgecolors="black", zorder=3)
         ax.text(x, y, label, ha="center", va="center", fontsize=8, zorder=4)
     ax.set_axis_off()
+    kinds = {g.kind for g in genome}
+
+    def node(face: str, label: str):
+        return Line2D([], [], ls="", marker="o", ms=10, mfc=_FACE[face], mec="black", label=label)
+
+    legend = [node("input", "network input")]
+    if ("bias", 0) in pos:
+        legend.append(node("bias", "bias (1)"))
+    legend += [node("hidden", "hidden neuron"), node("output", "output neuron")]
+    legend.append(Line2D([], [], color="black", lw=1.2, label="input of a neuron"))
+    if GeneKind.FORWARD in kinds:
+        legend.append(Line2D([], [], color="tab:blue", lw=1.2, label="forward jumper"))
+    if GeneKind.RECURRENT in kinds:
+        legend.append(Line2D([], [], color="tab:red", lw=1.0, ls="--", label="recurrent jumper"))
+    if removed:
+        legend.append(Line2D([], [], color="0.6", lw=1.0, ls=":", label="removed by pruning"))
+    ax.legend(handles=legend, loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8,
+              frameon=False)  # fmt: skip
     stats = f"{genome.n_params} parameters, {genome.n_neurons} neurons"
     if pruned is not None:
         stats += f"; pruned: {pruned.n_params} parameters (dotted grey: removed)"
     ax.set_title((title + "\n" if title else "") + stats, fontsize=9)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return fig
 
 
 def _removed_genes(genome: Genome, pruned: Genome) -> set[int]:
@@ -192,17 +252,69 @@ class LoadedRun:
 
     Attributes:
       dir: its path; arm: its arm label (the pruner unless the run names one); task: the
-      task's name; seed: the seed (None if not recorded).
-      generations: its :class:`~eant2_jax.loop.GenerationRecord` s; pruning: its
-      :class:`~eant2_jax.pruning.PruneAttempt` s.
+      task's name (None if not recorded); seed: the seed (None if not recorded).
+      generations: its `GenerationRecord`s; pruning: its `PruneAttempt`s.
+      setting: what must agree between runs that are compared (`setting`).
+      budget: generations asked for (None if not recorded); target_cost: the run's stop
+      target (None if none).
     """
 
     dir: str
     arm: str
-    task: str
+    task: str | None
     seed: int | None
     generations: list[GenerationRecord]
     pruning: list[PruneAttempt]
+    setting: dict = dataclasses.field(default_factory=dict)
+    budget: int | None = None
+    target_cost: float | None = None
+
+
+# Fields of config.json that may differ between compared runs: the arms differ in pruning,
+# runs in their seed, and devices are placement only (the results are identical).
+_FREE = {"format", "seed", "key", "arm", "devices"}
+
+
+def setting(meta: dict) -> dict:
+    """What a run's ``config.json`` says that runs compared in one report must share: the task,
+    its options, the generations asked for and the configuration, pruning fields, seed and
+    devices left out. Flat ``{"config.exploit.max_iters": 1000, ...}``."""
+    flat: dict = {}
+
+    def walk(prefix: str, value) -> None:
+        if isinstance(value, dict) and prefix != "task_options":
+            for k, v in value.items():
+                walk(f"{prefix}.{k}" if prefix else k, v)
+        else:
+            flat[prefix] = value
+
+    walk("", {k: v for k, v in meta.items() if k not in _FREE})
+    flat.setdefault("task", None)
+    flat.setdefault("task_options", {})
+    flat.pop("config.devices", None)
+    for k in [k for k in flat if k.startswith("config.exploit.") and "prune" in k]:
+        del flat[k]  # pruner, prune_window, ...: what the arms compare
+    return flat
+
+
+def check_comparable(runs: Sequence[LoadedRun]) -> list[str]:
+    """The fields in which ``runs`` differ (empty: they may be compared)."""
+    fields = sorted({k for r in runs for k in r.setting}, key=lambda k: (k != "task", k))
+    return [f for f in fields if len({json.dumps(r.setting.get(f)) for r in runs}) > 1]
+
+
+def _mixed_message(runs: Sequence[LoadedRun], fields: list[str]) -> str:
+    first = fields[0]
+    a = runs[0]
+    b = next(
+        r for r in runs if json.dumps(r.setting.get(first)) != json.dumps(a.setting.get(first))
+    )
+    more = f" (and {len(fields) - 1} more: {', '.join(fields[1:4])})" if len(fields) > 1 else ""
+    name = first.removeprefix("config.").removeprefix("exploit.")
+    return (
+        f"runs differ in {name}: {a.dir} has {json.dumps(a.setting.get(first))}, {b.dir} has "
+        f"{json.dumps(b.setting.get(first))}{more}; pass --allow-mixed to report them together"
+    )
 
 
 def _peaks(condition: dict, which: str) -> list[float]:
@@ -228,15 +340,21 @@ def load_runs(dirs: Sequence[str | Path]) -> list[LoadedRun]:
         gens = [GenerationRecord.from_json(g) for g in rd.generations()]
         if not gens:
             raise ValueError(f"{d}: no completed generation to report")
-        pruner = meta.get("config", {}).get("exploit", {}).get("pruner", "none")
+        config = meta.get("config", {})
+        pruner = config.get("exploit", {}).get("pruner", "none")
+        budget = meta.get("generations")
+        target = config.get("target_cost")
         runs.append(
             LoadedRun(
                 dir=str(d),
                 arm=meta.get("arm", pruner),
-                task=meta.get("task", "?"),
+                task=meta.get("task"),
                 seed=meta.get("seed"),
                 generations=gens,
                 pruning=[PruneAttempt.from_json(p) for p in rd.pruning()],
+                setting=setting(meta),
+                budget=budget if isinstance(budget, int) else None,
+                target_cost=target if isinstance(target, int | float) else None,
             )
         )
     return runs
@@ -252,8 +370,19 @@ def _to_target(gens: list[GenerationRecord]) -> tuple[int, int]:
     return gens[-1].generation, gens[-1].evaluations
 
 
-def summarise(runs: list[LoadedRun]) -> dict[str, dict]:
-    """Per arm: final fitness/size mean and sd, size reduction, time to 99%, p-values."""
+def reference_arm(arms: Sequence[str], reference: str | None = None) -> str | None:
+    """The arm p-values and size reductions are computed against: ``reference`` if given
+    (ValueError if no arm has that name), else ``none`` (no pruning) if there is one."""
+    if reference is not None:
+        if reference not in arms:
+            raise ValueError(f"no arm {reference!r} to compare against; arms: {', '.join(arms)}")
+        return reference
+    return "none" if "none" in arms else None
+
+
+def summarise(runs: list[LoadedRun], *, reference: str | None = None) -> dict[str, dict]:
+    """Per arm: final fitness/size mean and sd, size reduction, time to 99%, p-values
+    against the `reference_arm`."""
     from scipy import stats
 
     arms: dict[str, list[LoadedRun]] = {}
@@ -277,7 +406,7 @@ def summarise(runs: list[LoadedRun]) -> dict[str, dict]:
             "prune_accepted": int(sum(sum(x.accepted for x in r.pruning) for r in rs)),
             "prune_attempts": int(sum(len(r.pruning) for r in rs)),
         }
-    reference = "none" if "none" in out else None
+    reference = reference_arm(list(out), reference)
     for arm, s in out.items():
         if reference is None or arm == reference:
             s["size_reduction_pct"] = None
@@ -308,12 +437,72 @@ def _fmt(x, digits: int = 4) -> str:
     return f"{x:.{digits}g}" if isinstance(x, float) else str(x)
 
 
+_STYLES = ["-", "--", "-.", ":"]
+_MARKERS = ["o", "s", "^", "D", "v", "P", "X", "*"]
+
+
+def fitness_figure(runs: Sequence[LoadedRun], arms: Sequence[str]):
+    """Fitness and size of the best against generation: every run a thin line, each arm's
+    mean a thick one with its own line style and marker (arms that overlap stay apart),
+    integer generation ticks, and the caps that apply marked: the target fitness (``-``
+    the runs' ``target_cost``) and the generation budget when a run stopped before it.
+
+    Returns:
+      The matplotlib figure (two axes).
+    """
+    plt = _pyplot()
+    from matplotlib.ticker import MaxNLocator
+
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for k, arm in enumerate(arms):
+        rs = [r for r in runs if r.arm == arm]
+        style = {
+            "color": colours[k % len(colours)],
+            "ls": _STYLES[k % len(_STYLES)],
+            "marker": _MARKERS[k % len(_MARKERS)],
+        }
+        for r in rs:
+            gens = [g.generation for g in r.generations]
+            axes[0].plot(gens, [-g.best_cost for g in r.generations], lw=0.7, alpha=0.4,
+                         color=style["color"], ls=style["ls"])  # fmt: skip
+            axes[1].plot(gens, [g.best_size for g in r.generations], lw=0.7, alpha=0.4,
+                         color=style["color"], ls=style["ls"])  # fmt: skip
+        # The mean over the generations every run of the arm reached.
+        n = min(len(r.generations) for r in rs)
+        gens = np.arange(n)
+        fit = np.array([[-g.best_cost for g in r.generations[:n]] for r in rs]).mean(0)
+        size = np.array([[g.best_size for g in r.generations[:n]] for r in rs]).mean(0)
+        every = max(1, n // 12)
+        label = f"{arm} (mean of {len(rs)})"
+        for ax, y in ((axes[0], fit), (axes[1], size)):
+            ax.plot(gens, y, lw=2.2, markevery=every, ms=5, label=label, **style)
+    targets = {r.target_cost for r in runs}
+    if len(targets) == 1 and None not in targets:
+        axes[0].axhline(-targets.pop(), color="0.3", lw=1, ls=(0, (6, 3)), label="target")
+    budgets = {r.budget for r in runs if r.budget is not None}
+    if budgets and any(len(r.generations) < (r.budget or 0) + 1 for r in runs):
+        for ax in axes:
+            for b in sorted(budgets):
+                ax.axvline(b, color="0.5", lw=1, ls=":", label=f"budget ({b} generations)")
+    axes[0].set(xlabel="generation", ylabel="fitness = -cost", title="fitness of the best")
+    axes[1].set(xlabel="generation", ylabel="parameters", title="size of the best")
+    for a in axes:
+        a.xaxis.set_major_locator(MaxNLocator(integer=True))
+        a.grid(alpha=0.3)
+        a.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
 def report(
     dirs: Sequence[str | Path],
     out: str | Path,
     *,
     extra: dict | None = None,
     condition: dict | None = None,
+    allow_mixed: bool = False,
+    reference: str | None = None,
 ) -> Path:
     """Write ``report.md`` and its figures for the given run directories.
 
@@ -321,41 +510,30 @@ def report(
       dirs: run directories (arms are told apart by their pruner, or an ``arm`` field in
         their ``config.json``).
       out: folder for ``report.md`` and the PNGs (created; existing files of the same names
-        are replaced, nothing else is touched).
+        are replaced, nothing else is touched). Nothing is written when the runs are refused.
       extra: optional sections: ``baselines`` (dict name -> cost), ``generalisation`` (dict
         arm -> list of held-out costs), ``wall_s``, ``device``, ``notes`` (markdown).
       condition: optional V.A experiment result: ``{"before": [cond...], "after": [...],
         "size_before": n, "size_after": m}``.
+      allow_mixed: report runs of different tasks or configurations together (the report
+        says how they differ); otherwise they raise `MixedRunsError`.
+      reference: the arm p-values are computed against (default ``none`` if present).
 
     Returns:
       The path of ``report.md``.
     """
     plt = _pyplot()
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     runs = load_runs(dirs)
-    summary = summarise(runs)
+    mixed = check_comparable(runs)
+    if mixed and not allow_mixed:
+        raise MixedRunsError(_mixed_message(runs, mixed))
+    summary = summarise(runs, reference=reference)
+    reference = reference_arm(list(summary), reference)
     extra = extra or {}
-    colours = dict(zip(summary, plt.rcParams["axes.prop_cycle"].by_key()["color"], strict=False))
+    out.mkdir(parents=True, exist_ok=True)
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for arm in summary:
-        rs = [r for r in runs if r.arm == arm]
-        n = min(len(r.generations) for r in rs)
-        fit = np.array([[-g.best_cost for g in r.generations[:n]] for r in rs])
-        size = np.array([[g.best_size for g in r.generations[:n]] for r in rs])
-        gens = np.arange(n)
-        for f, s in zip(fit, size, strict=True):
-            axes[0].plot(gens, f, color=colours[arm], lw=0.7, alpha=0.5)
-            axes[1].plot(gens, s, color=colours[arm], lw=0.7, alpha=0.5)
-        axes[0].plot(gens, fit.mean(0), color=colours[arm], lw=2.5, label=f"{arm} (mean)")
-        axes[1].plot(gens, size.mean(0), color=colours[arm], lw=2.5, label=f"{arm} (mean)")
-    axes[0].set(xlabel="generation", ylabel="fitness = -cost", title="fitness of the best")
-    axes[1].set(xlabel="generation", ylabel="parameters", title="size of the best")
-    for a in axes:
-        a.grid(alpha=0.3)
-        a.legend(fontsize=8)
-    fig.tight_layout()
+    fig = fitness_figure(runs, list(summary))
     fig.savefig(out / "fitness_size.png", dpi=110)
     plt.close(fig)
 
@@ -393,8 +571,13 @@ def report(
         figures.append("pruned_network.png")
 
     lines = ["# EANT2 report", ""]
-    tasks = sorted({r.task for r in runs})
+    tasks = sorted({r.task or "(not recorded)" for r in runs})
     lines.append(f"Task: {', '.join(tasks)}; {len(runs)} runs in {len(summary)} arms.")
+    if mixed:
+        lines.append(
+            f"**Mixed runs** (reported together on request): they differ in {', '.join(mixed)}. "
+            "Each arm's mean covers the generations all its runs reached."
+        )
     if "device" in extra:
         lines.append(f"Device: {extra['device']}.")
     if "wall_s" in extra:
@@ -415,7 +598,18 @@ def report(
             f"{s['prune_accepted']}/{s['prune_attempts']} | {_fmt(s['p_fitness'], 3)} | "
             f"{_fmt(s['p_size'], 3)} |"
         )
-    lines += ["", "p-values: Welch's t-test against the arm without pruning.", ""]
+    if reference is None:
+        note = (
+            "No p-values or size reductions: there is no reference arm (no arm without "
+            "pruning; name one with --reference)."
+        )
+    else:
+        what = " (no pruning)" if reference == "none" else ""
+        note = (
+            f"Reference arm: `{reference}`{what}. p-values: Welch's t-test of each arm "
+            "against it; size reduction relative to it."
+        )
+    lines += ["", note, ""]
     if "baselines" in extra:
         lines += [
             "Baselines (same cost): "

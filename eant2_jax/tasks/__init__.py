@@ -2,18 +2,18 @@
 
 ``make(spec, **options)`` builds a task from a spec, which is one of
 
-* a registered name (``xor``, ``servo``, ``dpv``, ``dpnv``; :func:`names`);
+* a registered name (``xor``, ``servo``, ``dpv``, ``dpnv``; `names`);
 * ``NAMESPACE:NAME`` for a registered family of tasks (``gymnax:CartPole-v1``;
-  :func:`namespaces`);
+  `namespaces`);
 * ``module.path:factory``, a factory in an importable module;
 * ``path/to/file.py:factory`` (or ``path/to/file.py``, factory ``make_task``), a factory in
   a Python file.
 
 ``register(name, factory)`` and ``register_namespace(prefix, factory)`` add to the registry.
-A task built by :func:`make` remembers its spec and options (:func:`spec_of`), so a run
-directory records how to rebuild it and :func:`eant2_jax.resume` needs no task.
-The protocol a task must follow is :class:`Task` (``docs/tasks-custom.md``);
-:func:`check_task` checks it with one clear line per mistake.
+A task built by `make` remembers its spec and options (`spec_of`), so a run
+directory records how to rebuild it and `eant2_jax.resume` needs no task.
+The protocol a task must follow is `Task` (``docs/tasks-custom.md``);
+`check_task` checks it with one clear line per mistake.
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ _SPECS: dict[int, tuple[weakref.ref, str, dict]] = {}
 
 
 def spec_of(task: Task) -> dict | None:
-    """``{"task": spec, "task_options": options}`` of a task built by :func:`make`, else
+    """``{"task": spec, "task_options": options}`` of a task built by `make`, else
     None. The spec is canonical (a file spec holds the file's absolute path), so
     ``make(d["task"], **d["task_options"])`` rebuilds the task from anywhere."""
     entry = _SPECS.get(id(task))
@@ -175,13 +175,32 @@ def _options_signature(family: Callable[..., Task]) -> inspect.Signature | None:
     return inspect.Signature(params)
 
 
+def factory(name: str) -> Callable[..., Task]:
+    """The factory registered as ``name`` (a lazily imported one is imported now)."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown task {name!r}; known tasks: {', '.join(names())}")
+    f = _REGISTRY[name]
+    return getattr(f, "resolve", lambda: f)()
+
+
+def options(name: str) -> dict[str, object]:
+    """The options of task ``name``: its factory's keyword arguments and their defaults
+    (``inspect.Parameter.empty`` for a required one)."""
+    import inspect
+
+    params = inspect.signature(factory(name)).parameters.values()
+    return {
+        p.name: p.default for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
+    }
+
+
 def make(spec: str, **options) -> Task:
     """Build a task from its spec (module docstring) and options.
 
     Raises:
       ValueError: unknown name (the message lists the known ones), a module or file that
         cannot be found, a bad option, or a factory that returns something that is not a
-        task (:class:`TaskError`, naming what is missing).
+        task (`TaskError`, naming what is missing).
     """
     factory, canonical = _resolve(spec)
     try:
@@ -202,13 +221,18 @@ def make(spec: str, **options) -> Task:
 register("xor", xor)
 
 
-def _lazy(module: str, factory: str) -> Callable[..., Task]:
-    """A factory that imports its module on first use (MJX, gymnax are slow to import)."""
+def _lazy(module: str, attr: str) -> Callable[..., Task]:
+    """A factory that imports its module on first use (MJX, gymnax are slow to import);
+    ``resolve()`` returns the real factory (for its signature and docstring)."""
+
+    def resolve() -> Callable[..., Task]:
+        return getattr(importlib.import_module(f"{__name__}.{module}"), attr)
 
     def make_task(*args, **options) -> Task:
-        return getattr(importlib.import_module(f"{__name__}.{module}"), factory)(*args, **options)
+        return resolve()(*args, **options)
 
-    make_task.__name__ = factory
+    make_task.__name__ = attr
+    make_task.resolve = resolve
     return make_task
 
 

@@ -6,8 +6,8 @@ costs (lower is better), as a pure JAX function. Tasks are frozen pytrees, so th
 INTO jit-compiled functions as arguments: two tasks of the same kind and shapes share one
 compiled program, and a task's data is never baked into a program as a constant.
 
-:func:`check_task` checks the protocol before anything runs, and :func:`check_costs` checks
-what ``cost`` returns while it is traced; each mistake is one :class:`TaskError` line.
+`check_task` checks the protocol before anything runs, and `check_costs` checks
+what ``cost`` returns while it is traced; each mistake is one `TaskError` line.
 ``docs/tasks-custom.md`` walks through writing a task.
 """
 
@@ -65,7 +65,7 @@ class Task(Protocol):
 class ReportingTask(Task, Protocol):
     """A task that can also report on its own terms (optional; the servo task does).
 
-    ``eant2 reproduce`` and :func:`eant2_jax.app.experiments.reproduce` add both to their
+    ``eant2 reproduce`` and `eant2_jax.app.experiments.reproduce` add both to their
     report when the task has them.
     """
 
@@ -107,7 +107,7 @@ def _name(task: Any) -> str:
 
 
 def check_task(task: Any, genomes: Sequence[Any] = (), *, what: str | None = None) -> None:
-    """Check that ``task`` follows the :class:`Task` protocol (and fits ``genomes``).
+    """Check that ``task`` follows the `Task` protocol (and fits ``genomes``).
 
     Args:
       task: the object to check.

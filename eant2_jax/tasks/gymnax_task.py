@@ -18,7 +18,7 @@ A network controls the environment for one episode at a time:
   output per action dimension, clipped to ``[-1, 1]`` and mapped linearly onto
   ``[low, high]`` (output activation ``tanh``).
 * **recurrent state**: the network's neuron outputs are carried from step to step
-  (:func:`eant2_jax.kernels.network.step`), so recurrent jumpers see the previous step;
+  (`eant2_jax.kernels.network.step`), so recurrent jumpers see the previous step;
   they start at zero in every episode.
 * **episode**: at most ``max_steps`` steps (the environment's own limit by default, 500 for
   CartPole-v1); steps after the episode ends (terminated or truncated) are masked out, so
@@ -30,7 +30,7 @@ A network controls the environment for one episode at a time:
 
 The task is ``noisy``: costs depend on the key, and the exploitation engine draws new
 episodes at every CMA-ES iteration, so the best cost a search has seen is optimistic.
-:func:`eant2_jax.tuning.tune` therefore scores each tuned network once more on fresh
+`eant2_jax.tuning.tune` therefore scores each tuned network once more on fresh
 episodes and reports that cost (``Tuned.search_costs`` keeps the search's).
 
 One evaluation is one network's cost (all of its ``episodes``), as the engine counts.
@@ -80,7 +80,7 @@ def _environment(name: str) -> tuple[Any, Any]:
 
 @struct.dataclass
 class GymnaxTask:
-    """A gymnax environment as a task (module docstring). Build with :func:`gymnax`.
+    """A gymnax environment as a task (module docstring). Build with `gymnax`.
 
     Attributes:
       env_params: the environment's parameters (a pytree of traced numbers).
@@ -94,7 +94,7 @@ class GymnaxTask:
       max_steps: steps per episode at most (static).
       chunk: steps per block between the batch's early-exit checks (static).
       hidden, output: activation names (static).
-      noisy: costs depend on the key (static; see :func:`eant2_jax.tuning.tune`).
+      noisy: costs depend on the key (static; see `eant2_jax.tuning.tune`).
     """
 
     env_params: Any
@@ -212,7 +212,7 @@ def gymnax(
         space, ``tanh`` for a continuous one).
 
     Returns:
-      The :class:`GymnaxTask`.
+      The `GymnaxTask`.
     """
     env, env_params = _environment(name)
     if params:

@@ -5,7 +5,7 @@ Miikkulainen 1999), NEAT (Stanley & Miikkulainen 2002) and CoSyNE (Gomez et al. 
 on a 4.8 m track carries two poles hinged side by side, a long one (half-length 0.5 m) and a
 short one (half-length 0.05 m); a network pushes the cart with a force in [-10, 10] N and must
 keep both poles up and the cart on the track. Everything below is written for ONE network and
-ONE start state and batched with ``jax.vmap`` by the caller (:func:`map_networks`).
+ONE start state and batched with ``jax.vmap`` by the caller (`map_networks`).
 
 Equations of motion (Wieland 1991; printed in Gomez & Miikkulainen 1999, appendix, and
 coded as ``CartPole::step`` in ESP's and NEAT's C++):
@@ -53,12 +53,12 @@ deterministic):
   AND penalises the oscillation a controller without velocities can use to infer them.
 
 A trial ends at the first failure; the whole batch exits early once every trial in it has
-ended (a ``lax.while_loop`` over ``chunk``-step ``lax.scan`` blocks; see :class:`PoleTask`).
+ended (a ``lax.while_loop`` over ``chunk``-step ``lax.scan`` blocks; see `PoleTask`).
 
 Counting evaluations (as NEAT's, ESP's and CoSyNE's papers count them): one evaluation = one
 network run by the task's cost during evolution (each CMA-ES candidate, each pruning trial).
-The solution check of :func:`solved` (100,000 steps, then the 625-start generalisation test)
-is a test and is NOT counted. :mod:`eant2_jax.exploitation` counts exactly the former
+The solution check of `solved` (100,000 steps, then the 625-start generalisation test)
+is a test and is NOT counted. `eant2_jax.exploitation` counts exactly the former
 (``evaluations`` in its history).
 
 References:
@@ -138,10 +138,10 @@ class Trial(NamedTuple):
 
 @struct.dataclass
 class PoleTask:
-    """Double pole balancing (module docstring). Build with :func:`dpv` or :func:`dpnv`.
+    """Double pole balancing (module docstring). Build with `dpv` or `dpnv`.
 
     Attributes:
-      physics: the constants (:class:`Physics`).
+      physics: the constants (`Physics`).
       start: ``[6]`` the start state of the cost's trial.
       velocities: dpv (6 inputs) if True, dpnv (3 inputs) if False (static).
       fitness: ``steps`` or ``damping`` (static; see the module docstring).
@@ -300,7 +300,7 @@ def dpnv(
     """Double pole balancing WITHOUT velocities (non-Markovian: needs recurrence): 3 inputs.
 
     Fitness: Gruau et al.'s damping fitness over ``max_steps = 1000`` actions (as ESP and
-    NEAT); ``cost = -fitness``. A solution must pass :func:`solved`.
+    NEAT); ``cost = -fitness``. A solution must pass `solved`.
     """
     return _make(
         velocities=False,
@@ -358,7 +358,7 @@ def solved(
     evaluations).
 
     1. Balance ``long_steps`` (100,000) actions from the task's start state.
-    2. Generalisation (Gruau et al. 1996): from each of the 625 :func:`grid_starts`, balance
+    2. Generalisation (Gruau et al. 1996): from each of the 625 `grid_starts`, balance
        ``test_steps`` (1,000) actions; at least ``required`` (200) must succeed.
 
     Both parts are always measured (the 625 trials run as one batch). Whether part 2 is part
@@ -367,8 +367,8 @@ def solved(
     100,000 steps).
 
     Args:
-      task: a :class:`PoleTask` (its inputs, activations and physics are used).
-      net: a :class:`Network` with any leading batch shape (for a genome:
+      task: a `PoleTask` (its inputs, activations and physics are used).
+      net: a `Network` with any leading batch shape (for a genome:
         ``eant2_jax.compiler.networks([genome], task.n_inputs)``).
       long_steps, test_steps, required: the protocol's numbers.
       generalisation: require part 2 (None: True for dpnv, False for dpv).

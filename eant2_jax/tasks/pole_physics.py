@@ -1,5 +1,5 @@
 """Double pole physics (Wieland 1991), the inputs a network sees, and the damping fitness:
-the pieces of :mod:`eant2_jax.tasks.pole` that know nothing of networks. The equations and
+the pieces of `eant2_jax.tasks.pole` that know nothing of networks. The equations and
 constants are documented there; everything is for ONE state, batched by the caller.
 """
 
@@ -80,7 +80,7 @@ class Physics:
 
 
 def physics(**overrides: float) -> Physics:
-    """The standard constants (see :class:`Physics`), any of them overridden by keyword."""
+    """The standard constants (see `Physics`), any of them overridden by keyword."""
     values = {
         "gravity": -9.8,
         "mass_cart": 1.0,
@@ -167,7 +167,7 @@ def damping_fitness(steps: jax.Array, jiggle_sum: jax.Array) -> jax.Array:
 
     Args:
       steps: ``t``, the number of balanced actions.
-      jiggle_sum: ``J``, the sum of :func:`jiggle` over the last 100 balanced states.
+      jiggle_sum: ``J``, the sum of `jiggle` over the last 100 balanced states.
 
     Returns:
       The fitness (higher is better). ``J`` is floored at 1e-12 so a (physically unreachable)
@@ -184,7 +184,7 @@ def grid_starts() -> np.ndarray:
     """The 625 start states ``float32[625, 6]`` of the generalisation test.
 
     ``x = 4.32 v - 2.16``, ``x' = 2.70 v - 1.35``, ``th1 = 0.12566304 v - 0.06283152``,
-    ``th1' = 0.30019504 v - 0.15009752`` for v in :data:`GRID_VALUES`, ``th2 = th2' = 0``;
+    ``th1' = 0.30019504 v - 0.15009752`` for v in `GRID_VALUES`, ``th2 = th2' = 0``;
     x varies slowest (the loop order of ESP's ``generalizationTest``).
     """
     v = np.asarray(GRID_VALUES, np.float64)

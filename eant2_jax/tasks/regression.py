@@ -66,7 +66,7 @@ def regression(
       output: activation name of output neurons.
 
     Returns:
-      The :class:`Regression` task.
+      The `Regression` task.
     """
     kn.activation(hidden), kn.activation(output)
     x = np.asarray(inputs, dtype=np.float32)

@@ -34,7 +34,7 @@ Every constant is documented here and in ``docs/tasks.md``:
 * **Modes**: ``kinematic`` (default): the new joint angles are the clipped targets, the camera
   pose comes from ``mjx.kinematics``. ``dynamic``: the position servos track the target for
   ``substeps = 60`` ``mjx.step`` calls of 5 ms (0.3 s) from the arm's current state, and the
-  pose reached is measured. Both modes use :func:`stripped_model` (``arm.xml`` without its
+  pose reached is measured. Both modes use `stripped_model` (``arm.xml`` without its
   visual-only parts). Its joint limit *constraints* are off: targets are clamped to the ranges
   and the servos are critically damped, so a joint passes a limit by at most about 1 mrad
   (0.7 seen, < 2 tested), while the constraint solver would make a step 3x slower (H200).
@@ -42,7 +42,7 @@ Every constant is documented here and in ``docs/tasks.md``:
   measurements, carrying its recurrent state (and the arm its velocity), and the start's cost
   is the mean over its moves. Default 1, as in the paper.
 
-The cost is deterministic: the PRNG key of :meth:`Servo.cost` is unused.
+The cost is deterministic: the PRNG key of `Servo.cost` is unused.
 """
 
 from __future__ import annotations
@@ -55,9 +55,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from mujoco import mjx
 
 from ..kernels import network as kn
+from .mjx_quiet import mjx
 
 __all__ = [
     "ARM_XML",
@@ -129,7 +129,7 @@ class Servo:
     object holding JAX arrays is not.
 
     Attributes:
-      model: the MJX arm, :func:`stripped_model` (no geoms, no limit constraints).
+      model: the MJX arm, `stripped_model` (no geoms, no limit constraints).
       q_start: ``[N, 3]`` start joint angles (rad).
       x_start: ``[N, 10]`` the 10 normalised image measurements at each start.
       q_test, x_test: the same for the disjoint held-out start poses.
@@ -330,7 +330,7 @@ class Servo:
         """``[N]`` cost of one hand-written controller from each start pose.
 
         Args:
-          policy: ``(state, q, x) -> (dq, state)`` as in :meth:`episode`.
+          policy: ``(state, q, x) -> (dq, state)`` as in `episode`.
           state0: its state before the first move (the same at every start).
         """
         return jax.vmap(functools.partial(self.episode, policy, state0))(self.q_start, self.x_start)
@@ -341,7 +341,7 @@ class Servo:
         Returns:
           ``zero``: no move (the mean initial error, the start poses being penalty free);
           ``ibvs``: image-based visual servoing with the best gain of ``IBVS_GAINS`` (see
-          :meth:`ibvs_gain`); ``ibvs_gain1``: the same with gain 1 (one Gauss-Newton step).
+          `ibvs_gain`); ``ibvs_gain1``: the same with gain 1 (one Gauss-Newton step).
         """
         gains, costs = self.ibvs_sweep()
         return {
@@ -426,7 +426,7 @@ def servo(
         ``identity`` by default: the task itself bounds the increments with ``tanh``.
 
     Returns:
-      The :class:`Servo` task.
+      The `Servo` task.
 
     Raises:
       ValueError: an unknown mode or activation, or a count that is not a positive integer.

@@ -1,6 +1,6 @@
 """The servo task's scene: camera, arm, markers, start poses and the MuJoCo/MJX models.
 
-Everything here is fixed data or host-side set-up; :mod:`eant2_jax.tasks.servo` builds the
+Everything here is fixed data or host-side set-up; `eant2_jax.tasks.servo` builds the
 batched task on it. Every constant is documented in that module's docstring and in
 ``docs/tasks.md``.
 """
@@ -16,7 +16,8 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
+
+from .mjx_quiet import mjx
 
 ARM_XML = Path(__file__).with_name("arm.xml")
 

@@ -1,0 +1,146 @@
+"""Reports: runs of different tasks or configurations are refused unless allowed, the
+reference arm is named, and the figures carry legends, integer axes and caps.
+
+The run directories are written by hand (RunDir and GenerationRecord, as the loop writes
+them), so no test here runs EANT2.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eant2_jax.app import report as rp
+from eant2_jax.app.cli import main
+from eant2_jax.config import EANT2Config, ExploitConfig
+from eant2_jax.genome import Genome
+from eant2_jax.loop import GenerationRecord
+from eant2_jax.rundir import RunDir
+
+GENOME = "N0/3*1.0 N1/2*0.5 I0*1 I1*-2 B*0.1 I2*0.3"
+
+
+def make_run(
+    path: Path,
+    *,
+    task: str = "xor",
+    pruner: str = "covariance",
+    population: int = 20,
+    generations: int = 3,
+    done: int | None = None,
+    seed: int = 0,
+    target_cost: float | None = None,
+    options: dict | None = None,
+) -> str:
+    """A run directory with ``done`` (default: all) generations of made-up records."""
+    config = EANT2Config(
+        population=population, target_cost=target_cost, exploit=ExploitConfig(pruner=pruner)
+    )
+    meta = {"task": task, "task_options": options or {}, "seed": seed}
+    rd = RunDir.create(path, {**meta, "generations": generations, "config": config.to_dict()})
+    rng = np.random.default_rng(seed + len(pruner))
+    cost = 1.0
+    for g in range(generations + 1 if done is None else done):
+        cost *= rng.uniform(0.5, 0.9)
+        rec = GenerationRecord(g, cost, 5, 5.0, 2, 100 * (g + 1), 1.0, 0, 0, population, 4, 1.0,
+                               GENOME)  # fmt: skip
+        rd.commit([rec.to_json()], [], GENOME, {})
+    return str(path)
+
+
+def _cli(argv, capsys, monkeypatch, tmp_path):
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")
+    monkeypatch.chdir(tmp_path)
+    rc = main(argv)
+    return rc, *capsys.readouterr()
+
+
+def test_report_of_two_tasks_exits_2_with_one_line(tmp_path, capsys, monkeypatch):
+    a = make_run(tmp_path / "a", task="xor")
+    b = make_run(tmp_path / "b", task="dpv", pruner="none")
+    out = tmp_path / "rep"
+    rc, stdout, stderr = _cli(["report", a, b, "--out", str(out)], capsys, monkeypatch, tmp_path)
+    assert rc == 2 and stdout == ""
+    assert stderr.count("\n") == 1 and stderr.startswith("eant2: error: runs differ in task:")
+    assert '"xor"' in stderr and '"dpv"' in stderr and "--allow-mixed" in stderr
+    assert not out.exists()  # a refused report writes nothing
+    rc, _, stderr = _cli(["report", a, b, "--out", str(out), "--allow-mixed"], capsys,
+                         monkeypatch, tmp_path)  # fmt: skip
+    assert rc == 0, stderr
+    text = (out / "report.md").read_text()
+    assert "Task: dpv, xor" in text and "**Mixed runs**" in text and "differ in task" in text
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"population": 6}, "population"),
+        ({"generations": 30}, "generations"),
+        ({"options": {"hidden": "sigmoid"}}, "task_options"),
+    ],
+)
+def test_different_configs_are_refused(tmp_path, change, field):
+    a = make_run(tmp_path / "a")
+    b = make_run(tmp_path / "b", pruner="none", **change)
+    with pytest.raises(rp.MixedRunsError, match=f"runs differ in {field}:"):
+        rp.report([a, b], tmp_path / "rep")
+    assert not (tmp_path / "rep").exists()
+
+
+def test_arms_differing_in_pruning_and_seed_only_are_compared(tmp_path):
+    dirs = [make_run(tmp_path / f"{p}-{s}", pruner=p, seed=s)
+            for p in ("covariance", "none") for s in (0, 1)]  # fmt: skip
+    text = rp.report(dirs, tmp_path / "rep").read_text()
+    assert "Reference arm: `none` (no pruning)" in text and "**Mixed" not in text
+    summary = json.loads((tmp_path / "rep" / "summary.json").read_text())
+    assert summary["covariance"]["p_fitness"] is not None
+
+
+def test_reference_arm_is_named_or_absent(tmp_path):
+    dirs = [make_run(tmp_path / f"{p}-{s}", pruner=p, seed=s)
+            for p in ("covariance", "obs") for s in (0, 1)]  # fmt: skip
+    text = rp.report(dirs, tmp_path / "r1").read_text()
+    assert "without pruning" not in text.replace("no arm without pruning", "")
+    assert "No p-values or size reductions: there is no reference arm" in text
+    text = rp.report(dirs, tmp_path / "r2", reference="obs").read_text()
+    assert "Reference arm: `obs`. p-values" in text
+    with pytest.raises(ValueError, match="no arm 'none' to compare against; arms: covariance"):
+        rp.report(dirs, tmp_path / "r3", reference="none")
+
+
+def test_fitness_figure_legend_axes_and_caps(tmp_path):
+    dirs = [
+        make_run(tmp_path / "a", pruner="covariance", generations=7, target_cost=0.05),
+        make_run(tmp_path / "b", pruner="none", generations=7, done=4, target_cost=0.05),
+    ]
+    runs = rp.load_runs(dirs)
+    fig = rp.fitness_figure(runs, ["covariance", "none"])
+    fit, size = fig.axes
+    labels = [t.get_text() for t in fit.get_legend().get_texts()]
+    assert labels == ["covariance (mean of 1)", "none (mean of 1)", "target",
+                      "budget (7 generations)"]  # fmt: skip
+    assert [t.get_text() for t in size.get_legend().get_texts()][-1] == "budget (7 generations)"
+    target = [line for line in fit.lines if line.get_label() == "target"][0]
+    assert target.get_ydata()[0] == -0.05
+    for ax in fig.axes:  # whole generations only
+        ticks = [t for t in ax.get_xticks() if ax.get_xlim()[0] <= t <= ax.get_xlim()[1]]
+        assert ticks and all(float(t).is_integer() for t in ticks)
+    means = [line for line in fit.lines if "mean" in line.get_label()]
+    styles = {(line.get_linestyle(), line.get_marker()) for line in means}
+    assert len(styles) == 2  # arms that overlap stay apart
+
+
+def test_network_drawing_has_a_legend_and_no_unused_bias(tmp_path):
+    def texts(fig):
+        ax = fig.axes[0]
+        return [t.get_text() for t in ax.texts], [t.get_text() for t in ax.get_legend().get_texts()]
+
+    nodes, legend = texts(rp.genome_figure(Genome.parse("N0/2*1 I0*1 R0*0.5")))
+    assert "1" not in nodes and "bias (1)" not in legend  # no B gene: no bias node
+    assert legend == ["network input", "hidden neuron", "output neuron", "input of a neuron",
+                      "recurrent jumper"]  # fmt: skip
+    nodes, legend = texts(rp.genome_figure(Genome.parse(GENOME), n_inputs=3))
+    assert "1" in nodes and "bias (1)" in legend and "x2" in nodes

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import distributed
+from .compiler import GENE_FLOOR, NEURON_FLOOR, Bucket, bucket_for, bucket_size
 from .config import EANT2Config
 from .exploration import OPERATORS, initial_genome, mutate, select
 from .genome import Genome
@@ -239,10 +240,39 @@ def _generation_record(
     )
 
 
+def grow_bucket(genomes: Sequence[Genome], current: Bucket | None) -> Bucket:
+    """The bucket a generation compiles into: ``current`` while the genomes fit, else one
+    with headroom, the smallest bucket for one more neuron, gene and sweep than they need
+    (at least two sweeps: a first hidden neuron adds one).
+
+    Each new bucket is a new program to compile (seconds on a CPU, more on a GPU), while the
+    padding costs little (a generation is latency-bound: docs/benchmarks.md). Results do not
+    depend on it: a structure's CMA-ES is independent of its padding."""
+    need = bucket_for(genomes)
+    if current is not None and (
+        need.neurons <= current.neurons
+        and need.genes <= current.genes
+        and need.sweeps <= current.sweeps
+    ):
+        return current
+    return Bucket(
+        neurons=bucket_size(max(g.n_neurons for g in genomes) + 1, NEURON_FLOOR),
+        genes=bucket_size(max(g.n_params for g in genomes) + 1, GENE_FLOOR),
+        sweeps=bucket_size(max(max(g.depth() for g in genomes) + 1, 2)),
+    )
+
+
 def _generation(
-    task: Task, state: RunState | None, key: jax.Array, config: EANT2Config, callback, mesh=None
-) -> tuple[RunState, GenerationRecord, list[PruneAttempt]]:
-    """One generation (generation 0 initialises); returns the new state and its records."""
+    task: Task,
+    state: RunState | None,
+    key: jax.Array,
+    config: EANT2Config,
+    callback,
+    mesh=None,
+    bucket: Bucket | None = None,
+) -> tuple[RunState, GenerationRecord, list[PruneAttempt], Bucket | None]:
+    """One generation (generation 0 initialises); returns the new state, its records and
+    the bucket it compiled into (:func:`grow_bucket` of ``bucket``)."""
     t0 = time.perf_counter()
     gen = 0 if state is None else state.generation + 1
     gkey = jax.random.fold_in(key, gen)
@@ -270,11 +300,13 @@ def _generation(
             new = parents + new
             parents = []
     if new:
+        bucket = grow_bucket([ind.genome for ind in new], bucket)
         res = tune(
             [ind.genome for ind in new],
             task,
             key=exp_key,
             config=config.exploit,
+            bucket=bucket,
             on_chunk=progress,
             on_compile=compiling,
             mesh=mesh,
@@ -309,7 +341,7 @@ def _generation(
         key=_key_data(key) if state is None else state.key,
         wall_s=(0.0 if state is None else state.wall_s) + dt,
     )
-    return state, _generation_record(state, len(new), prune, dt), prune
+    return state, _generation_record(state, len(new), prune, dt), prune, bucket
 
 
 def run(
@@ -348,20 +380,22 @@ def run(
         raise ValueError(f"generations must be >= 0, got {generations}")
     check_task(task)  # before anything is written
     rundir = None
+    # What config.json records of the task; best.genome's header reads it too, in this run
+    # and after a resume alike.
+    spec = spec_of(task) or {"task_type": f"{type(task).__module__}.{type(task).__qualname__}"}
+    meta = {**spec, **(meta or {})}
     if out is not None:
-        spec = spec_of(task) or {"task_type": f"{type(task).__module__}.{type(task).__qualname__}"}
         rundir = RunDir.create(
             out,
             {
-                **spec,
-                **(meta or {}),
+                **meta,
                 "generations": generations,
                 "key": list(_key_data(key)),
                 "config": config.to_dict(),
             },
         )
     key = _key_from_data(_key_data(key))
-    return _loop(task, None, key, config, generations, rundir, callback, meta or {})
+    return _loop(task, None, key, config, generations, rundir, callback, meta)
 
 
 def resume(
@@ -434,11 +468,12 @@ def _loop(task, state, key, config, generations, rundir, callback, meta) -> RunR
     )
     prune_records = [] if rundir is None else [PruneAttempt.from_json(r) for r in rundir.pruning()]
     mesh = distributed.make_mesh(config.devices)
+    bucket = None  # grows, never shrinks: one program for as long as the genomes fit
     while state is None or state.generation < generations:
         if state is not None and config.target_cost is not None:
             if state.best().cost <= config.target_cost:
                 break
-        state, record, prune = _generation(task, state, key, config, callback, mesh)
+        state, record, prune, bucket = _generation(task, state, key, config, callback, mesh, bucket)
         gen_records.append(record)
         prune_records.extend(prune)
         if rundir is not None:

@@ -29,6 +29,7 @@ import pytest
 import eant2_jax
 from eant2_jax import EANT2Config, ExploitConfig, tasks
 from eant2_jax.app.cli import main
+from eant2_jax.genome import Genome
 from eant2_jax.genomefile import GenomeFile
 from eant2_jax.rundir import CHECKPOINT, GENERATIONS, PRUNING, RunDirError
 
@@ -608,3 +609,18 @@ def test_cli_x64_run_records_float64_and_resumes(cli_cache, tmp_path):
     rc, _, err = _finish(_eant2("resume", str(out), "--generations", "2", cache=cli_cache))
     assert rc == 0, err
     assert len(_jsonl(out, GENERATIONS)) == 3
+
+
+def test_bucket_grows_with_headroom_and_is_kept_while_it_fits():
+    from eant2_jax.compiler import Bucket
+    from eant2_jax.loop import grow_bucket
+
+    small = Genome.parse("N0/2*1 I0*1 I1*1")  # 1 neuron, 3 genes, depth 1
+    first = grow_bucket([small], None)
+    assert first == Bucket(neurons=4, genes=8, sweeps=2)  # room for a hidden neuron
+    hidden = Genome.parse("N0/2*1 N1/2*1 I0*1 I1*1 I1*1")  # depth 2: fits the same bucket
+    assert grow_bucket([hidden], first) is first
+    assert grow_bucket([small], first) is first  # never shrinks
+    deep = Genome.parse("N0/1*1 N1/1*1 N2/1*1 I0*1")  # depth 3: a new, larger bucket
+    grown = grow_bucket([deep, small], first)
+    assert grown.sweeps == 4 and grown.neurons >= 4 and grown.genes >= 8

@@ -1,0 +1,110 @@
+"""Cold start: wall time of an ``eant2 run`` from process start, with an empty and a warm
+compilation cache.
+
+Each case starts ``eant2 run TASK`` in a fresh process (as a user does) and times, from just
+before the process starts, each generation's progress line and the process's exit. ``cold``
+runs with a new, empty cache directory (``EANT2_CACHE_DIR``), ``warm`` again with the cache
+the cold run left. ``--pythonpath`` runs another install of eant2_jax side by side (e.g. the
+previous version, to compare in one call on one device).
+
+Run: ``python -m bench coldstart [--task servo] [--population 5] [--generations 1]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from bench import harness
+from bench.common import Column, environment, markdown_table
+
+_GEN = re.compile(r"^gen (\d+)/\d+ \|")
+
+
+def _one(args, cache: str, pythonpath: str | None) -> dict[str, Any]:
+    """One ``eant2 run`` in a new process: seconds to each generation's line and to exit."""
+    env = dict(os.environ, EANT2_CACHE_DIR=cache)
+    if pythonpath:
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [pythonpath, env.get("PYTHONPATH")]))
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [
+            sys.executable, "-c", "import sys; from eant2_jax.app.cli import main; "
+            "sys.exit(main(sys.argv[1:]))", "run", args.task,
+            "--population", str(args.population), "--generations", str(args.generations),
+            "--seed", str(args.seed), "--out", str(Path(tmp) / "run"), *args.extra,
+        ]  # fmt: skip
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, stdout=subprocess.PIPE,
+                                text=True, cwd=tmp)  # fmt: skip
+        gens, compiling, lines = {}, 0, []
+        for line in proc.stderr:
+            lines.append(line)
+            m = _GEN.match(line)
+            if m:
+                gens[int(m.group(1))] = time.perf_counter() - t0
+            compiling += "compiling" in line
+        proc.wait()
+        total = time.perf_counter() - t0
+    if proc.returncode:
+        raise RuntimeError(f"eant2 run failed ({proc.returncode}): {''.join(lines[-20:])}")
+    return {"generations_s": [gens[g] for g in sorted(gens)], "total_s": total,
+            "compiling_events": compiling}  # fmt: skip
+
+
+def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
+    payload: dict[str, Any] = {"environment": environment(), "config": harness.settings(args),
+                               "rows": []}  # fmt: skip
+    installs = [("this", None)] + [(f"other:{p}", p) for p in args.pythonpath]
+    for label, path in installs:
+        with tempfile.TemporaryDirectory() as cache:
+            for case in ("cold", "warm"):
+                r = _one(args, cache, path)
+                payload["rows"].append({"install": label, "cache": case, **r})
+                save(payload)
+    return payload
+
+
+def _options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--task", default="servo")
+    p.add_argument("--population", type=int, default=5)
+    p.add_argument("--generations", type=int, default=1)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--pythonpath", nargs="*", default=[],
+                   help="other installs of eant2_jax to time side by side")  # fmt: skip
+    p.add_argument("--extra", nargs=argparse.REMAINDER, default=[],
+                   help="further arguments of eant2 run (last)")  # fmt: skip
+
+
+def _prepare(args: argparse.Namespace) -> None:
+    if args.quick:
+        args.task, args.population, args.generations = "xor", 2, 1
+
+
+COLUMNS = [
+    Column("install", "install"),
+    Column("cache", "cache"),
+    Column(
+        lambda r: " / ".join(f"{s:.1f}" for s in r["generations_s"]), "s to end of gen 0 / 1 / ..."
+    ),  # fmt: skip
+    Column("total_s", "s to exit", "{:.1f}"),
+    Column("compiling_events", '"compiling" events'),
+]
+
+SUITE = harness.Suite(
+    name="coldstart",
+    title="Cold start from process start",
+    description=__doc__,
+    options=_options,
+    run=run,
+    render=lambda payload: markdown_table(payload["rows"], COLUMNS),
+    prepare=_prepare,
+)
+
+main = SUITE.main

@@ -34,6 +34,7 @@ __version__ = "0.1.0"
 from . import distributed as distributed
 from . import export as export
 from . import tasks as tasks
+from .config import enable_compilation_cache as enable_compilation_cache
 from .config import enable_x64 as enable_x64
 from .exploitation import ExploitConfig as ExploitConfig
 from .loop import EANT2Config as EANT2Config

@@ -28,3 +28,26 @@ def test_counts_each_new_program_once_by_name():
     assert again.count == 0, again.names
     counted_program(np.ones(5, np.float32))  # outside every block: counted nowhere
     assert c.of("counted_program") == 2 and again.count == 0
+
+
+def test_compilation_cache_keeps_programs_between_processes(tmp_path):
+    # In fresh processes (the cache is a global JAX setting): the first compiles and writes
+    # every program, the second loads them (JAX counts cache hits through jax.monitoring).
+    import subprocess
+    import sys
+
+    code = (
+        "import jax, jax.numpy as jnp, eant2_jax\n"
+        "hits = []\n"
+        "jax.monitoring.register_event_listener("
+        "lambda e, **k: hits.append(e) if e == '/jax/compilation_cache/cache_hits' else None)\n"
+        f"assert eant2_jax.enable_compilation_cache({str(tmp_path / 'c')!r}) is not None\n"
+        "jax.jit(lambda x: jnp.sin(x) * 3)(jnp.ones(7)).block_until_ready()\n"
+        "print(len(hits))\n"
+    )
+    first = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert first.returncode == 0, first.stderr[-2000:]
+    assert first.stdout.strip() == "0" and any((tmp_path / "c").iterdir())
+    second = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert second.returncode == 0, second.stderr[-2000:]
+    assert int(second.stdout) >= 1

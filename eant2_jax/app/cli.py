@@ -487,16 +487,11 @@ def _parser() -> argparse.ArgumentParser:
 
 def _compilation_cache() -> None:
     """Keep compiled XLA programs between runs (the application's choice; the library never
-    touches global JAX settings). EANT2_CACHE_DIR overrides the place; an empty value
-    turns the cache off."""
-    import os
+    touches global JAX settings): `eant2_jax.enable_compilation_cache`. EANT2_CACHE_DIR
+    overrides the place; an empty value turns the cache off."""
+    from eant2_jax.config import enable_compilation_cache
 
-    import jax
-
-    path = os.environ.get("EANT2_CACHE_DIR", str(Path.home() / ".cache" / "eant2_jax" / "xla"))
-    if path:
-        jax.config.update("jax_compilation_cache_dir", path)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    enable_compilation_cache()
 
 
 DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"

@@ -31,6 +31,11 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-condition", type=float, default=1e17)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--prune-iters", type=int, default=2000)
+    p.add_argument(
+        "--evolved-warmup", type=int, default=0,
+        help="also continue from an evolved C: CMA-ES iterations of the original before the "
+        "branch (0: only the restart at C = I)",
+    )  # fmt: skip
     p.add_argument("--n-starts", type=int, default=None, help="servo start poses (default all)")
 
 
@@ -39,6 +44,7 @@ def _prepare(args: argparse.Namespace) -> None:
         raise BenchInputError(f"--genome-file {args.genome_file}: no such file")
     if args.quick:
         args.iters, args.inits, args.prune_iters, args.n_starts = 50, 2, 50, 16
+        args.evolved_warmup = min(args.evolved_warmup, 30)
 
 
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
@@ -58,6 +64,7 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
         inits=args.inits,
         prune_iters=args.prune_iters,
         max_condition=args.max_condition,
+        evolved_warmup=args.evolved_warmup,
     )
     wall = time.perf_counter() - t0
     rows = [
@@ -70,6 +77,19 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
         }
         for name, key in (("original", "before"), ("pruned", "after"))
     ]
+    if cond["evolved"] is not None:
+        ev = cond["evolved"]
+        rows += [
+            {
+                "network": f"{name}, from the evolved C",
+                "size": cond[f"size_{key}"],
+                "median_peak": float(np.median(ev[f"peak_{key}"])),
+                "peaks": ", ".join(f"{p:.3g}" for p in ev[f"peak_{key}"]),
+                "median_cost": float(np.median(ev[f"cost_{key}"])),
+            }
+            for name, key in (("original", "before"), ("pruned", "after"))
+        ]
+        cond["evolved"] = {k: v for k, v in ev.items() if k not in ("before", "after")}
     small = {k: v for k, v in cond.items() if k not in ("before", "after")}
     return {
         "environment": environment(),
@@ -77,6 +97,7 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
         "wall_s": wall,
         "rows": rows,
         "ratio": rows[0]["median_peak"] / rows[1]["median_peak"],
+        "ratio_evolved": rows[2]["median_peak"] / rows[3]["median_peak"] if len(rows) > 2 else None,
         "condition": small,
     }
 
@@ -93,7 +114,13 @@ COLUMNS = [
 def render(payload: dict[str, Any]) -> str:
     return (
         markdown_table(payload["rows"], COLUMNS)
-        + f"\nRatio of the medians: {payload['ratio']:.3g}x; wall {payload['wall_s']:.0f} s.\n"
+        + f"\nRatio of the medians: {payload['ratio']:.3g}x"
+        + (
+            f" (from the evolved C: {payload['ratio_evolved']:.3g}x)"
+            if payload.get("ratio_evolved")
+            else ""
+        )  # fmt: skip
+        + f"; wall {payload['wall_s']:.0f} s.\n"
     )
 
 

@@ -44,6 +44,7 @@ __all__ = [
     "conclude",
     "judge",
     "propose",
+    "reduce",
     "trial_count",
     "trial_points",
     "inert_tables",
@@ -278,32 +279,9 @@ def judge(
     remove = att.removed[s_idx, pick]
     mean = att.trial[s_idx, pick]
     e_new = e_trial[s_idx, pick]
-    keep = cma.mask & ~remove
-    conditioned = jax.vmap(kp.condition)(cma.C, keep, remove)
-    C, B, D, valid_axes, cond, bounded = jax.vmap(cmaes.eigen)(
-        conditioned, keep, params.max_condition
-    )
-    n = jnp.sum(keep, axis=-1, dtype=jnp.int32)
-    popsize = params.weights.shape[-1]
-    new_params = jax.vmap(lambda n, bound: cmaes.default_params(n, popsize, max_condition=bound))(
-        jnp.maximum(n, 1), params.max_condition
-    )
-    new_params = jax.tree.map(lambda a, b: a.astype(b.dtype), new_params, params)
-    pruned = cma.replace(
-        mean=jnp.where(keep, mean, 0),
-        p_sigma=jnp.where(keep, cma.p_sigma, 0),
-        p_c=jnp.where(keep, cma.p_c, 0),
-        C=C,
-        B=B,
-        D=D,
-        mask=keep,
-        valid_axes=valid_axes,
-        n=n,
-        cond=cond,
-        cond_bounded=bounded,
-        best_x=jnp.where(keep, mean, 0),
-        best_cost=e_new.astype(cma.best_cost.dtype),
-    )
+    pruned, new_params = reduce(cma, params, remove, mean, e_new)
+    keep = pruned.mask
+    n = pruned.n
     nan = jnp.nan
     gene = att.gene[s_idx, pick]
     record = AttemptRecord(
@@ -357,6 +335,46 @@ def judge(
         record,
         active,
     )
+
+
+def reduce(
+    cma: cmaes.State,
+    params: cmaes.Params,
+    remove: jax.Array,
+    mean: jax.Array,
+    best_cost: jax.Array,
+) -> tuple[cmaes.State, cmaes.Params]:
+    """The CMA-ES states ``[S]`` with the coordinates ``remove`` ``[S, P]`` removed (paper
+    IV.B.3): masked out, the covariance conditioned on them (Schur complement) and decomposed
+    again, the paths cleared on them, the hyper-parameters of the new dimension, and the
+    mean and best set to ``mean`` (0 on the removed coordinates) and ``best_cost``."""
+    keep = cma.mask & ~remove
+    conditioned = jax.vmap(kp.condition)(cma.C, keep, remove)
+    C, B, D, valid_axes, cond, bounded = jax.vmap(cmaes.eigen)(
+        conditioned, keep, params.max_condition
+    )
+    n = jnp.sum(keep, axis=-1, dtype=jnp.int32)
+    popsize = params.weights.shape[-1]
+    new_params = jax.vmap(lambda n, bound: cmaes.default_params(n, popsize, max_condition=bound))(
+        jnp.maximum(n, 1), params.max_condition
+    )
+    new_params = jax.tree.map(lambda a, b: a.astype(b.dtype), new_params, params)
+    reduced = cma.replace(
+        mean=jnp.where(keep, mean, 0).astype(cma.mean.dtype),
+        p_sigma=jnp.where(keep, cma.p_sigma, 0),
+        p_c=jnp.where(keep, cma.p_c, 0),
+        C=C,
+        B=B,
+        D=D,
+        mask=keep,
+        valid_axes=valid_axes,
+        n=n,
+        cond=cond,
+        cond_bounded=bounded,
+        best_x=jnp.where(keep, mean, 0).astype(cma.best_x.dtype),
+        best_cost=jnp.asarray(best_cost).astype(cma.best_cost.dtype),
+    )
+    return reduced, new_params
 
 
 def conclude(

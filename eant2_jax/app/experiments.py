@@ -16,18 +16,20 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ..compiler import networks
 from ..config import ExploitConfig, enable_x64
+from ..exploitation import run as run_engine
 from ..genome import Genome
 from ..kernels.pruning import PRUNERS
 from ..loop import EANT2Config
 from ..multirun import run_many
-from ..pruning import kept_genes
+from ..pruning import kept_genes, reduce, where_rows
 from ..rundir import RunDirError
 from ..tasks.base import ReportingTask, Task
-from ..tuning import optimize, tune
+from ..tuning import optimize, prepare, tune
 from .report import report
 
 __all__ = ["arm_config", "condition_experiment", "reproduce"]
@@ -49,6 +51,7 @@ def condition_experiment(
     weight_scale: float = 0.5,
     dtype: str = "float64",
     max_condition: float = 1e17,
+    evolved_warmup: int = 0,
 ) -> dict:
     """Paper V.A: cond(C) of a network against its pruned version.
 
@@ -75,6 +78,12 @@ def condition_experiment(
       weight_scale: std of the random initial weights.
       dtype: the CMA-ES state's dtype in those runs.
       max_condition: the bound on cond(C) in those runs.
+      evolved_warmup: if > 0, also the variant that continues from an EVOLVED covariance
+        instead of restarting at C = I: the original network's CMA-ES runs ``evolved_warmup``
+        iterations from its tuned weights (``inits`` runs, step size ``prune_sigma0``); then
+        each run goes on ``iters`` iterations twice, as it is and with the pruned genes
+        removed (C conditioned on them, the pruned network's weights), from the same state
+        and the same random numbers. Results under ``evolved``.
 
     Returns:
       ``before``/``after``: ``[inits][iters]`` cond(C) per run and iteration;
@@ -122,6 +131,12 @@ def condition_experiment(
     res = tune(starts_a + starts_b, task, key=k_run, config=config, pad_count=False)
     cond = np.asarray(res.history.cond, np.float64).T  # [runs, iters]
     before, after = cond[:inits], cond[inits:]
+    evolved = None
+    if evolved_warmup > 0:
+        evolved = _from_evolved(
+            genome, current, task, jax.random.fold_in(k_run, 1), config, inits, evolved_warmup,
+            prune_sigma0,
+        )  # fmt: skip
     return {
         "before": before.tolist(),
         "after": after.tolist(),
@@ -136,6 +151,54 @@ def condition_experiment(
         "dtype": dtype,
         "max_condition": max_condition,
         "removed": removed,
+        "evolved": evolved,
+    }
+
+
+def _from_evolved(genome, pruned, task, key, config, inits, warmup, sigma0) -> dict:
+    """The condition experiment continuing from an evolved covariance (see
+    :func:`condition_experiment`): rows ``[0, inits)`` the original network, rows
+    ``[inits, 2 inits)`` the same states with the pruned genes removed."""
+    kept = _kept_genes(genome, pruned)
+    w = np.zeros(genome.n_params)
+    w[kept] = pruned.weights
+    warm = config.replace(sigma0=sigma0, max_iters=warmup, patience=warmup + 1)
+    # Row i and row inits + i share their key: the same evolution up to the branch, the
+    # same random numbers after it.
+    keys = jax.random.split(key, inits)
+    prep = prepare([genome] * (2 * inits), task, key=key, config=warm,
+                   keys=jnp.concatenate([keys, keys]), pad_count=False)  # fmt: skip
+    st, _ = run_engine(prep.state, prep.batch.layout, task, key=key, config=warm)
+    p = prep.batch.bucket.genes
+    remove = np.zeros((2 * inits, p), bool)
+    remove[inits:, : genome.n_params] = ~np.isin(np.arange(genome.n_params), kept)
+    means = np.asarray(st.cma.mean).copy()
+    means[inits:, : genome.n_params] = w
+    cma, params = jax.jit(reduce)(
+        st.cma, st.params, jnp.asarray(remove), jnp.asarray(means, st.cma.mean.dtype),
+        jnp.full(2 * inits, jnp.inf),
+    )  # fmt: skip
+    branch = jnp.arange(2 * inits) >= inits
+    st = st.replace(
+        cma=where_rows(branch, cma, st.cma),
+        params=where_rows(branch, params, st.params),
+        stop=jnp.zeros_like(st.stop),
+        since_improve=jnp.zeros_like(st.since_improve),
+    )
+    go_on = config.replace(max_iters=warmup + config.max_iters, patience=warmup + config.max_iters)
+    st, hist = run_engine(st, prep.batch.layout, task, key=jax.random.fold_in(key, 1),
+                          config=go_on)  # fmt: skip
+    cond = np.asarray(hist.cond, np.float64).T
+    before, after = cond[:inits], cond[inits:]
+    best = np.asarray(st.cma.best_cost, np.float64)
+    return {
+        "warmup": warmup,
+        "before": before.tolist(),
+        "after": after.tolist(),
+        "peak_before": before.max(axis=1).tolist(),
+        "peak_after": after.max(axis=1).tolist(),
+        "cost_before": best[:inits].tolist(),
+        "cost_after": best[inits:].tolist(),
     }
 
 

@@ -310,7 +310,7 @@ def test_progress_reporter_announces_compilation(monkeypatch):
     lines = stream.getvalue().splitlines()
     assert lines[0] == "hello"
     assert re.fullmatch(
-        r"gen 0/0: compiling the exploitation program \(\d+ structures, \d+ genes, depth 1, "
+        r"gen 0/0: compiling the exploitation program \(\d+ structures, \d+ genes, depth \d+, "
         r"\d+ candidates\)\.\.\.",
         lines[1],
     )

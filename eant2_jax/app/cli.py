@@ -12,6 +12,8 @@ import numpy as np
 
 __all__ = ["main"]
 
+# A genome file of 64 MiB holds millions of genes, far beyond the compiler's limits.
+MAX_GENOME_BYTES = 64 * 2**20
 DEMO_GENOME = "N0/3*1.0 F2*0.3 N1/2*0.5 I0*1 I1*-2 R0*0.7 N2/2*-1.2 B*0.1 I2*0.4"
 # One output neuron reading both inputs, a bias and one hidden neuron: enough for XOR.
 XOR_START = "N0/4*1 N1/3*0.1 I0*0.1 I1*-0.1 B*0.05 I0*0.1 I1*0.1 B*0.0"
@@ -160,18 +162,34 @@ def _run(args: argparse.Namespace) -> int:
     return _finish(result, out)
 
 
-def _resume(args: argparse.Namespace) -> int:
+def _task_of(directory: str):
+    """The task a run directory names in its config.json (x64 mode on for --x64 runs)."""
     import eant2_jax
     from eant2_jax.rundir import RunDir, RunDirError
 
-    rundir = RunDir.open(args.dir)
-    meta = rundir.config()
+    with RunDir.open(directory, lock=False) as rundir:  # resume takes the lock itself
+        meta = rundir.config()
+    where = f"{Path(directory) / 'config.json'}"
     if "task" not in meta:
-        raise RunDirError(f"{args.dir}: config.json names no task (was it written by the CLI?)")
-    exploit = meta.get("config", {}).get("exploit", {})
+        raise RunDirError(f"{where} names no task (was it written by the CLI?)")
+    options = meta.get("task_options", {})
+    if not isinstance(meta["task"], str) or not isinstance(options, dict):
+        raise RunDirError(f"{where}: 'task' must be a name and 'task_options' an object")
+    config = meta.get("config")
+    exploit = config.get("exploit") if isinstance(config, dict) else None
     if isinstance(exploit, dict) and exploit.get("dtype") == "float64":
         eant2_jax.enable_x64()  # the run was started with --x64
-    task = eant2_jax.tasks.make(meta["task"], **meta.get("task_options", {}))
+    try:
+        task = eant2_jax.tasks.make(meta["task"], **options)
+    except (TypeError, ValueError) as e:
+        raise RunDirError(f"{where}: {e}") from None
+    return task, meta
+
+
+def _resume(args: argparse.Namespace) -> int:
+    import eant2_jax
+
+    task, meta = _task_of(args.dir)
     total = args.generations if args.generations is not None else meta.get("generations", 0)
     result = eant2_jax.resume(
         args.dir,
@@ -184,7 +202,16 @@ def _resume(args: argparse.Namespace) -> int:
 
 def _report(args: argparse.Namespace) -> int:
     from eant2_jax.app.report import report
+    from eant2_jax.rundir import RunDir
 
+    for d in args.dirs:
+        with RunDir.open(d, lock=False) as rundir:
+            if rundir.is_live():
+                print(
+                    f"eant2: warning: {d} is being written by a live run; reporting the "
+                    "generations it has committed so far",
+                    file=sys.stderr,
+                )
     out = Path(args.out) if args.out else Path(args.dirs[0]).parent / "report"
     path = report(args.dirs, out)
     print(f"report: {path}")
@@ -197,10 +224,22 @@ def _show(args: argparse.Namespace) -> int:
 
     src = Path(args.genome_file)
     try:
-        text = src.read_text(encoding="utf-8")
+        if src.stat().st_size > MAX_GENOME_BYTES:
+            raise ValueError(
+                f"{src}: {src.stat().st_size} bytes, more than a genome file may hold "
+                f"({MAX_GENOME_BYTES})"
+            )
+        data = src.read_bytes()
     except OSError as e:
         raise ValueError(f"cannot read {src}: {e.strerror}") from None
-    genome = eant2_jax.Genome.parse(text)
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{src}: not UTF-8 text (byte {e.start})") from None
+    try:
+        genome = eant2_jax.Genome.parse(text)
+    except ValueError as e:
+        raise ValueError(f"{src}: {e}") from None
     out = Path(args.out) if args.out else src.with_suffix(src.suffix + ".png")
     if out.exists() and not args.force:
         raise ValueError(f"{out} exists; not overwriting (use --out or --force)")
@@ -221,6 +260,8 @@ def _reproduce(args: argparse.Namespace) -> int:
     options = {"mode": args.mode} if args.task == "servo" else {}
     options.update(_task_options(args.task_option))
     task = eant2_jax.tasks.make(args.task, **options)
+    if args.seed + args.runs > 2**32:
+        raise ValueError(f"--seed {args.seed} + --runs {args.runs} goes past 2**32")
     pruners = [p.strip() for p in args.pruners.split(",") if p.strip()]
     from eant2_jax.app.experiments import arm_config
 
@@ -275,6 +316,18 @@ def _non_negative(text: str) -> int:
     return value
 
 
+def _seed(text: str) -> int:
+    """A run seed: JAX's 32-bit keys wrap seeds modulo 2**32, so only [0, 2**32) are
+    distinct runs (2**32 would silently repeat seed 0)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r:.40}") from None
+    if not 0 <= value < 2**32:
+        raise argparse.ArgumentTypeError(f"must be in [0, 2**32), got {text:.40}")
+    return value
+
+
 def _devices(text: str) -> int | str:
     if text == "all":
         return text
@@ -319,7 +372,9 @@ def _parser() -> argparse.ArgumentParser:
         help="generations after the initial one (default 15)",
     )
     run.add_argument("--population", type=_positive, default=20, help="population size")
-    run.add_argument("--seed", type=int, default=0, help="seed of the run's PRNG key")
+    run.add_argument(
+        "--seed", type=_seed, default=0, help="seed of the run's PRNG key, in [0, 2**32)"
+    )
     run.add_argument(
         "--max-iters",
         type=_positive,
@@ -383,7 +438,7 @@ def _parser() -> argparse.ArgumentParser:
         help="CMA-ES iteration budget per structure and generation",
     )
     rep.add_argument("--task", default="servo", help="task (default: servo, the paper's)")
-    rep.add_argument("--seed", type=int, default=0, help="first seed")
+    rep.add_argument("--seed", type=_seed, default=0, help="first seed, in [0, 2**32)")
     rep.add_argument("--workers", type=_positive, default=1, help="concurrent runs per device")
     rep.add_argument(
         "--condition-iters",

@@ -219,24 +219,28 @@ def _fmt_list(values: list[float]) -> str:
 
 def load_runs(dirs: Sequence[str | Path]) -> list[LoadedRun]:
     """Read run directories: config, generation records and arm label of each."""
-    from ..rundir import RunDir
+    from ..loop import validate
 
     runs = []
     for d in dirs:
-        rd = RunDir.open(d)
-        meta = rd.config()
-        gens = [GenerationRecord.from_json(g) for g in rd.generations()]
-        if not gens:
+        # Checked as resume checks it, reading only what was committed (so a live run is
+        # read consistently, without its lock).
+        v = validate(str(d), lock=False)
+        meta = v.committed.config
+        if not v.records:
             raise ValueError(f"{d}: no completed generation to report")
-        pruner = meta.get("config", {}).get("exploit", {}).get("pruner", "none")
+        arm = meta.get("arm", v.config.exploit.pruner)
+        task, seed = meta.get("task", "?"), meta.get("seed")
+        if not isinstance(arm, str) or not isinstance(task, str):
+            raise ValueError(f"{d}: config.json's arm and task must be names")
         runs.append(
             LoadedRun(
                 dir=str(d),
-                arm=meta.get("arm", pruner),
-                task=meta.get("task", "?"),
-                seed=meta.get("seed"),
-                generations=gens,
-                pruning=[PruneAttempt.from_json(p) for p in rd.pruning()],
+                arm=arm,
+                task=task,
+                seed=seed if isinstance(seed, int) else None,
+                generations=v.records,
+                pruning=v.pruning,
             )
         )
     return runs
@@ -330,10 +334,10 @@ def report(
     Returns:
       The path of ``report.md``.
     """
+    runs = load_runs(dirs)  # every directory checked before anything is written
     plt = _pyplot()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    runs = load_runs(dirs)
     summary = summarise(runs)
     extra = extra or {}
     colours = dict(zip(summary, plt.rcParams["axes.prop_cycle"].by_key()["color"], strict=False))

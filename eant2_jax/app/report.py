@@ -29,6 +29,10 @@ from ..pruning import PruneAttempt, kept_genes
 __all__ = ["LoadedRun", "draw_genome", "genome_stats", "load_runs", "report", "summarise"]
 
 
+MAX_DRAWN_INPUTS = 64
+MAX_INCHES = 60  # a drawing of a wide or deep genome is squeezed, not megapixels wide
+
+
 def _pyplot():
     import matplotlib
 
@@ -98,8 +102,16 @@ def draw_genome(
     for r in genome.roots:  # outputs on the top row
         level[genome[r].ref] = top
     pos: dict[tuple[str, int], tuple[float, float]] = {}
-    for j in range(n_in):
-        pos[("in", j)] = (j - (n_in - 1) / 2, 0.0)
+    # Every input up to MAX_DRAWN_INPUTS; beyond, only those read (a genome reading input
+    # 20000 alone must not draw 20001 nodes).
+    shown = (
+        list(range(n_in))
+        if n_in <= MAX_DRAWN_INPUTS
+        else sorted({g.ref for g in genome if g.kind == GeneKind.INPUT})
+    )
+    for k, j in enumerate(shown):
+        pos[("in", j)] = (k - (len(shown) - 1) / 2, 0.0)
+    n_in = len(shown)
     pos[("bias", 0)] = (n_in / 2 + 0.8, 0.0)
     rows: dict[int, list[int]] = {}
     for nid in genome.neuron_ids:
@@ -110,7 +122,10 @@ def draw_genome(
         for k, nid in enumerate(ids):
             pos[("n", nid)] = (k - (len(ids) - 1) / 2, float(lv))
 
-    fig, ax = plt.subplots(figsize=(max(6, n_in * 0.8), 1.6 * (top + 1)))
+    widest = max([n_in, *(len(ids) for ids in rows.values())])
+    fig, ax = plt.subplots(
+        figsize=(min(MAX_INCHES, max(6, widest * 0.8)), min(MAX_INCHES, 1.6 * (top + 1)))
+    )
     for i, g in enumerate(genome):
         p = genome.parent[i]
         if p < 0:

@@ -265,6 +265,9 @@ class ExploitConfig:
         return cls(**options)
 
 
+# A documented size limit (docs/reliability.md): far above any useful EANT2 population, far
+# below the sizes that would only exhaust memory before saying anything.
+MAX_POPULATION = 1_000_000
 _EANT2_TYPES = {
     "population": ("int",),
     "offspring": ("int", "None"),
@@ -357,8 +360,12 @@ class EANT2Config:
         w = tuple(float(x) for x in self.operator_weights)
         object.__setattr__(self, "operator_weights", w)
         checks = [
-            ("population", self.population >= 1, ">= 1"),
-            ("offspring", self.offspring is None or self.offspring >= 1, ">= 1 (or None)"),
+            ("population", 1 <= self.population <= MAX_POPULATION, f"in [1, {MAX_POPULATION}]"),
+            (
+                "offspring",
+                self.offspring is None or 1 <= self.offspring <= MAX_POPULATION,
+                f"in [1, {MAX_POPULATION}] (or None)",
+            ),
             ("init_connectivity", 0 < self.init_connectivity <= 1, "in (0, 1]"),
             ("init_weight_scale", self.init_weight_scale >= 0, ">= 0"),
             ("input_fraction", 0 < self.input_fraction <= 1, "in (0, 1]"),

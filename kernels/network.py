@@ -219,7 +219,12 @@ def _dot(w: jax.Array, reads: tuple[jax.Array, jax.Array], v: jax.Array) -> jax.
     read, w_nf = reads
     finite = jnp.isfinite(v)
     y = jnp.dot(w, jnp.where(finite, v, jnp.zeros_like(v)), precision=_PRECISION)
-    extra = jnp.sum(jnp.where(read & ~finite[None, :], w_nf * v[None, :], 0), axis=-1)
+    # Both factors are masked (not the product): a NaN in an unselected branch of a where
+    # would still make the gradient NaN.
+    take = read & ~finite[None, :]
+    w_take = jnp.where(take, w_nf, jnp.zeros_like(w_nf))
+    v_take = jnp.where(finite, jnp.zeros_like(v), v)
+    extra = jnp.sum(jnp.where(take, w_take * v_take[None, :], 0), axis=-1)
     return jnp.where(jnp.all(finite), y, y + extra)
 
 

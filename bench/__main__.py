@@ -5,7 +5,8 @@ generation (whole EANT2 generations, pruning overhead, scaling), peers (CMA-ES, 
 NEAT and EANT2 on the servo task at one evaluation budget), pole (evaluations to solve
 double pole balancing), profile (where a run's time goes: compilation, a profiler
 trace), scaling (over several devices), pycma (the batched engine against pycma + NumPy),
-redundancy (pruning on networks of known redundancy), condition (the paper's V.A, float64).
+redundancy (pruning on networks of known redundancy), condition (the paper's V.A, float64),
+fuzz_rundir (corrupted run directories and genome texts, issue 16).
 Each writes JSON (device, versions, config, compile time apart from steady state) and a
 markdown table, and never over an existing result file unless ``--force`` is given;
 ``--help`` after the suite name lists its options.
@@ -28,6 +29,7 @@ SUITES = {
     "profile": "bench.bench_profile",
     "redundancy": "bench.bench_redundancy",
     "condition": "bench.bench_condition",
+    "fuzz_rundir": "bench.bench_fuzz_rundir",
 }
 
 

@@ -444,6 +444,15 @@ class RunDir:
             if not isinstance(ckpt.get("offsets"), dict):
                 raise RunDirError(f"{where} is corrupt: no offsets object")
         logs = {name: self._read(name) or b"" for name in LOGS}
+        # Without a checkpoint the run was killed inside generation 0's commit (its lines
+        # may be appended, the checkpoint not yet written): more than that one record means
+        # the checkpoint was lost, and starting over would drop committed generations.
+        lines = logs[GENERATIONS].count(b"\n")
+        if ckpt is None and lines > 1:
+            raise RunDirError(
+                f"{where} is missing but {GENERATIONS} holds {lines} records; "
+                "refusing to start over"
+            )
         offsets = {}
         for name in LOGS:
             if ckpt is None:

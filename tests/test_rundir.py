@@ -425,6 +425,7 @@ CORRUPT = [
         "checksums",
     ),  # fmt: skip
     ("generations truncated", lambda d: (d / GENERATIONS).write_bytes(b""), "shorter"),
+    ("checkpoint deleted", lambda d: (d / CHECKPOINT).unlink(), "refusing to start over"),
     (
         "log not UTF-8 (committed part)",
         _replace(GENERATIONS, b"exploited", b"\xffxploited"),

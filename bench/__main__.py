@@ -7,6 +7,7 @@ double pole balancing), profile (where a run's time goes: compilation, a profile
 trace), scaling (over several devices), pycma (the batched engine against pycma + NumPy),
 redundancy (pruning on networks of known redundancy), condition (the paper's V.A, float64),
 coldstart (wall time of ``eant2 run`` from process start, empty and warm compilation cache).
+fuzz_rundir (corrupted run directories and genome texts, issue 16).
 Each writes JSON (device, versions, config, compile time apart from steady state) and a
 markdown table, and never over an existing result file unless ``--force`` is given;
 ``--help`` after the suite name lists its options.
@@ -30,6 +31,7 @@ SUITES = {
     "redundancy": "bench.bench_redundancy",
     "condition": "bench.bench_condition",
     "coldstart": "bench.bench_coldstart",
+    "fuzz_rundir": "bench.bench_fuzz_rundir",
 }
 
 

@@ -57,6 +57,9 @@ __all__ = [
 ]
 
 NEURON_FLOOR = 4
+# Layout.slot is int32: the flat parameter buffer (kernels.network.buffer_size) must index
+# within it. 24,576 neuron slots fit (with few inputs); the next bucket, 32,768, does not.
+MAX_BUFFER = 2**31 - 1
 GENE_FLOOR = 8
 SWEEP_FLOOR = 1
 BATCH_FLOOR = 1
@@ -194,6 +197,12 @@ def compile_genomes(
     elif bucket.neurons < need.neurons or bucket.genes < need.genes or bucket.sweeps < need.sweeps:
         raise ValueError(f"bucket {bucket} is too small for these genomes (need {need})")
     h, p = bucket.neurons, bucket.genes
+    if buffer_size(h, n_inputs, n_out) > MAX_BUFFER:
+        raise ValueError(
+            f"network too large to compile: {h} neuron slots (padded) and {n_inputs} inputs "
+            f"need {buffer_size(h, n_inputs, n_out):,} parameter entries, more than the "
+            f"int32 slot table holds ({MAX_BUFFER:,}; about 24,576 neurons with few inputs)"
+        )
     count = len(genomes)
     rows = max(count, min_rows)
     rows = bucket_size(rows, BATCH_FLOOR) if pad_count else rows

@@ -75,6 +75,17 @@ def _static(default):
 
 
 _INTS = ("max_iters", "patience", "prune_window", "bound_patience")
+# The static fields' types (they shape the program, so a wrong type is a wrong program).
+_STATIC_TYPES = {
+    "popsize": int,
+    "chunk": int,
+    "pruner": str,
+    "prune_candidates": int,
+    "dtype": str,
+    "prune_refit": int,
+    "prune_reference": str,
+    "prune_at_stop": bool,
+}
 DTYPES = ("float32", "float64")
 # The default bound on cond(C) by the dtype of the CMA-ES state: float32 resolves an
 # eigenvalue to about 1e-7 of the largest, so a larger bound lets rounding noise through
@@ -175,6 +186,13 @@ class ExploitConfig:
         leaves = [getattr(self, f.name) for f in dataclasses.fields(self)]
         if not all(v is None or isinstance(v, (int, float, str, np.number)) for v in leaves):
             return
+        for name, kind in _STATIC_TYPES.items():
+            v = getattr(self, name)
+            if not (isinstance(v, kind) and (kind is bool or not isinstance(v, bool))):
+                if not (name == "popsize" and v is None):
+                    raise ValueError(
+                        f"ExploitConfig.{name} must be of type {kind.__name__}, got {v!r}"
+                    )
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             if f.metadata.get("pytree_node", True) and v is not None:
@@ -233,6 +251,23 @@ class ExploitConfig:
                 raise ValueError(
                     f"ExploitConfig.{name} must be {want}, got {getattr(self, name)!r}"
                 )
+        # The numbers are used in the state's dtype: each must survive the cast there (a
+        # float32 sigma0 of 1e-45 is 0, and the search turns NaN).
+        info = np.finfo(self.dtype)
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.name in _INTS or not isinstance(v, float) or not math.isfinite(v) or v == 0:
+                continue
+            if not float(info.tiny) <= abs(v) <= float(info.max):
+                raise ValueError(
+                    f"ExploitConfig.{f.name} = {v!r} is outside the range of a {self.dtype} "
+                    f"state (normal numbers {float(info.tiny):.3g} to {float(info.max):.3g})"
+                )
+        if not math.isfinite(np.array(self.sigma0 * self.sigma_up, dtype=self.dtype)):
+            raise ValueError(
+                f"ExploitConfig.sigma0 * sigma_up = {self.sigma0 * self.sigma_up:.3g} "
+                f"overflows {self.dtype}"
+            )
 
     @classmethod
     def literal(cls, **options) -> ExploitConfig:
@@ -264,6 +299,26 @@ class ExploitConfig:
                 f"ExploitConfig: {', '.join(known)}"
             )
         return cls(**options)
+
+
+# A documented size limit (docs/reliability.md): far above any useful EANT2 population, far
+# below the sizes that would only exhaust memory before saying anything.
+MAX_POPULATION = 1_000_000
+_EANT2_TYPES = {
+    "population": ("int",),
+    "offspring": ("int", "None"),
+    "init_connectivity": ("float",),
+    "init_weight_scale": ("float",),
+    "input_fraction": ("float",),
+    "new_weight_scale": ("float",),
+    "reexploit": ("bool",),
+    "similar_limit": ("int",),
+    "prefer_smaller": ("bool",),
+    "size_tolerance": ("float",),
+    "size_atol": ("float",),
+    "target_cost": ("float", "None"),
+    "devices": ("int", "str", "None"),
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -311,11 +366,42 @@ class EANT2Config:
     )
 
     def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            kinds = _EANT2_TYPES.get(f.name)
+            if kinds is None:
+                continue
+            ok = v is None if "None" in kinds else False
+            ok = ok or ("bool" in kinds and isinstance(v, bool))
+            ok = ok or ("int" in kinds and isinstance(v, int) and not isinstance(v, bool))
+            ok = ok or (
+                "float" in kinds
+                and isinstance(v, int | float)
+                and not isinstance(v, bool)
+                and math.isfinite(v)
+            )
+            ok = ok or ("str" in kinds and isinstance(v, str))
+            if not ok:
+                raise ValueError(
+                    f"EANT2Config.{f.name} must be {' or '.join(kinds)} (finite), got {v!r:.60}"
+                )
+        if not isinstance(self.operator_weights, list | tuple) or not all(
+            isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+            for x in self.operator_weights
+        ):
+            raise ValueError(
+                f"EANT2Config.operator_weights must be finite numbers, got "
+                f"{self.operator_weights!r:.60}"
+            )
         w = tuple(float(x) for x in self.operator_weights)
         object.__setattr__(self, "operator_weights", w)
         checks = [
-            ("population", self.population >= 1, ">= 1"),
-            ("offspring", self.offspring is None or self.offspring >= 1, ">= 1 (or None)"),
+            ("population", 1 <= self.population <= MAX_POPULATION, f"in [1, {MAX_POPULATION}]"),
+            (
+                "offspring",
+                self.offspring is None or 1 <= self.offspring <= MAX_POPULATION,
+                f"in [1, {MAX_POPULATION}] (or None)",
+            ),
             ("init_connectivity", 0 < self.init_connectivity <= 1, "in (0, 1]"),
             ("init_weight_scale", self.init_weight_scale >= 0, ">= 0"),
             ("input_fraction", 0 < self.input_fraction <= 1, "in (0, 1]"),
@@ -349,13 +435,37 @@ class EANT2Config:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> EANT2Config:
-        """Inverse of `to_dict`; unknown keys are a ValueError naming them."""
+    def from_dict(cls, d: dict, *, complete: bool = False) -> EANT2Config:
+        """Inverse of :meth:`to_dict`; unknown keys are a ValueError naming them.
+
+        Args:
+          d: the dict (an ``exploit`` dict is required: without it pruning would silently
+            be off).
+          complete: also require every field (as :meth:`to_dict` writes them), so that no
+            missing key silently takes its default.
+        """
+        if not isinstance(d, dict):
+            raise ValueError(f"an EANT2 configuration must be an object, got {d!r:.40}")
         d = dict(d)
-        exploit = d.pop("exploit", {})
+        if not isinstance(d.get("exploit"), dict):
+            raise ValueError("the configuration has no 'exploit' object")
+        exploit = d.pop("exploit")
         _check_keys(cls, d, "EANT2Config")
         _check_keys(ExploitConfig, exploit, "ExploitConfig")
-        if "operator_weights" in d:
+        for name, v in exploit.items():  # the pytree skips validation of non-number leaves
+            if v is not None and not isinstance(v, bool | int | float | str):
+                raise ValueError(f"ExploitConfig.{name} must be a number or name, got {v!r:.40}")
+        if complete:
+            for kind, given, name in (
+                (cls, d, "EANT2Config"),
+                (ExploitConfig, exploit, "ExploitConfig"),
+            ):
+                missing = sorted(
+                    {f.name for f in dataclasses.fields(kind)} - set(given) - {"exploit"}
+                )
+                if missing:
+                    raise ValueError(f"{name} option(s) missing: {', '.join(missing)}")
+        if isinstance(d.get("operator_weights"), list):
             d["operator_weights"] = tuple(d["operator_weights"])
         return cls(**d, exploit=ExploitConfig(**exploit))
 

@@ -12,6 +12,9 @@ line, which is where genome files keep their header, see `eant2_jax.genomefile`)
 * ``F<id>*<w>``     forward jumper: the current-step output of neuron ``id``
 * ``R<id>*<w>``     recurrent jumper: the previous-step output of neuron ``id`` (0.0 at step 0)
 
+Numbers are ASCII digits, at most ``MAX_ID`` = 2**31 - 1; weights are float literals of at
+most 64 ASCII characters, finite.
+
 Semantics: walk the genes from last to first with a stack. ``I``, ``B``, ``F`` and ``R`` push
 ``w * value``. ``N`` pops ``k`` values, sums them to ``a``, computes ``o = act(a)`` (output
 activation for roots, hidden activation otherwise), records ``o`` as the neuron's output at
@@ -54,16 +57,20 @@ _LETTER = {
 
 # One regex per token; the weight is matched loosely and parsed by float() so that any Python
 # float literal (1, -2.5, 1e-3, 1_000.5, .5) is accepted and anything else is reported.
+# Numbers are ASCII digits only (\d would take any Unicode digit, int() would convert it).
 _TOKEN = re.compile(
     r"""^(?:
-        N(?P<nid>\d+)/(?P<k>\d+)
-      | I(?P<inp>\d+)
+        N(?P<nid>[0-9]+)/(?P<k>[0-9]+)
+      | I(?P<inp>[0-9]+)
       | (?P<bias>B)
-      | F(?P<fid>\d+)
-      | R(?P<rid>\d+)
+      | F(?P<fid>[0-9]+)
+      | R(?P<rid>[0-9]+)
     )\*(?P<w>\S+)$""",
     re.VERBOSE,
 )
+# Neuron ids, input indices and arities are below 2**31 (they index int32 tables); a
+# longer digit string is refused before int() sees it.
+MAX_ID = 2**31 - 1
 
 
 class GenomeError(ValueError):
@@ -75,7 +82,7 @@ class GenomeError(ValueError):
         self.token = token
         where = "" if position is None else f"token {position}"
         if token is not None:
-            where += f" {token!r}"
+            where += f" {token if len(token) <= 40 else token[:37] + '...'!r}"
         super().__init__(
             f"invalid genome: {where}: {reason}" if where else f"invalid genome: {reason}"
         )
@@ -100,6 +107,8 @@ class Gene:
 
 
 def _parse_weight(text: str, position: int, token: str) -> float:
+    if not text.isascii() or len(text) > 64:
+        raise GenomeError(f"unparsable weight {text[:20]!r}", position, token[:40])
     # float() accepts 'nan', 'inf', 'infinity' and surrounding spaces; the regex already
     # excluded spaces, and non-finite values get their own message.
     try:
@@ -122,6 +131,14 @@ def _parse_token(token: str, position: int) -> Gene:
             token,
         )
     w = _parse_weight(m["w"], position, token)
+    for group in ("nid", "k", "inp", "fid", "rid"):
+        digits = m[group]
+        if digits is not None and (len(digits) > 10 or int(digits) > MAX_ID):
+            raise GenomeError(
+                f"number {digits[:12]}{'...' if len(digits) > 12 else ''} is larger than {MAX_ID}",
+                position,
+                token,
+            )
     if m["nid"] is not None:
         k = int(m["k"])
         if k < 1:

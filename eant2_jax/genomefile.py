@@ -170,6 +170,8 @@ class GenomeFile:
             text = p.read_text(encoding="utf-8")
         except OSError as e:
             raise GenomeFileError(f"cannot read {p}: {e.strerror}") from None
+        except UnicodeDecodeError as e:
+            raise GenomeFileError(f"{p}: not UTF-8 text (byte {e.start})") from None
         return cls.parse(text, source=str(p))
 
     def write(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:

@@ -36,7 +36,7 @@ from .exploration import OPERATORS, initial_genome, mutate, select
 from .genome import Genome
 from .genomefile import GenomeFile
 from .pruning import PruneAttempt
-from .rundir import RunDir, RunDirError
+from .rundir import Committed, RunDir, RunDirError, as_float, dumps, typed_fields
 from .tasks import check_task, spec_of
 from .tasks import make as make_task
 from .tasks.base import Task
@@ -48,8 +48,10 @@ __all__ = [
     "Individual",
     "RunResult",
     "RunState",
+    "Validated",
     "resume",
     "run",
+    "validate",
 ]
 
 
@@ -66,7 +68,12 @@ class Individual:
 
     @classmethod
     def from_json(cls, d: dict) -> Individual:
-        return cls(Genome.parse(d["genome"]), float(d["cost"]), d.get("origin", "init"))
+        if not isinstance(d, dict) or not isinstance(d.get("genome"), str):
+            raise ValueError("an individual is not an object with a genome text")
+        if not isinstance(d.get("origin", "init"), str) or set(d) - {"genome", "cost", "origin"}:
+            raise ValueError(f"an individual has bad fields {sorted(d)}")
+        genome = Genome.parse(d["genome"])
+        return cls(genome, as_float(d.get("cost"), "cost"), d.get("origin", "init"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,13 +95,26 @@ class RunState:
 
     @classmethod
     def from_json(cls, d: dict) -> RunState:
+        """The state as :meth:`to_json` wrote it; a ValueError names a bad field."""
+        if not isinstance(d, dict):
+            raise ValueError("the state is not a JSON object")
+        unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise ValueError(f"the state has unknown field(s) {unknown}")
+        for name in ("generation", "next_id", "evaluations"):
+            v = d.get(name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ValueError(f"the state's {name} must be an integer >= 0, got {v!r:.40}")
+        pop = d.get("population")
+        if not isinstance(pop, list) or not pop:
+            raise ValueError("the state's population must be a non-empty list")
         return cls(
-            generation=int(d["generation"]),
-            population=tuple(Individual.from_json(x) for x in d["population"]),
-            next_id=int(d["next_id"]),
-            evaluations=int(d["evaluations"]),
-            key=tuple(int(k) for k in d["key"]),
-            wall_s=float(d.get("wall_s", 0.0)),
+            generation=d["generation"],
+            population=tuple(Individual.from_json(x) for x in pop),
+            next_id=d["next_id"],
+            evaluations=d["evaluations"],
+            key=_check_key(d.get("key"), "the state's key"),
+            wall_s=as_float(d.get("wall_s", 0.0), "wall_s"),
         )
 
     def best(self) -> Individual:
@@ -135,7 +155,8 @@ class GenerationRecord:
 
     @classmethod
     def from_json(cls, d: dict) -> GenerationRecord:
-        return cls(**d)
+        """The record as :meth:`to_json` wrote it; a ValueError names a bad field."""
+        return cls(**typed_fields(cls, d, "a generation record"))
 
 
 class RunResult(NamedTuple):
@@ -158,6 +179,18 @@ def _key_data(key: jax.Array) -> tuple[int, ...]:
     if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
         key = jax.random.key_data(key)
     return tuple(int(k) for k in np.asarray(key, dtype=np.uint32).ravel())
+
+
+def _check_key(data, what: str) -> tuple[int, ...]:
+    """Raw key data as JSON holds it: a non-empty list of uint32 words."""
+    if (
+        not isinstance(data, list)
+        or not 1 <= len(data) <= 8
+        or not all(isinstance(k, int) and not isinstance(k, bool) for k in data)
+        or not all(0 <= k < 2**32 for k in data)
+    ):
+        raise ValueError(f"{what} must be a list of 1 to 8 integers in [0, 2**32)")
+    return tuple(data)
 
 
 def _key_from_data(data: Sequence[int]) -> jax.Array:
@@ -379,23 +412,24 @@ def run(
     if generations < 0:
         raise ValueError(f"generations must be >= 0, got {generations}")
     check_task(task)  # before anything is written
-    rundir = None
     # What config.json records of the task; best.genome's header reads it too, in this run
     # and after a resume alike.
     spec = spec_of(task) or {"task_type": f"{type(task).__module__}.{type(task).__qualname__}"}
     meta = {**spec, **(meta or {})}
-    if out is not None:
-        rundir = RunDir.create(
-            out,
-            {
-                **meta,
-                "generations": generations,
-                "key": list(_key_data(key)),
-                "config": config.to_dict(),
-            },
-        )
+    mesh = distributed.make_mesh(config.devices)  # every check before anything is created
     key = _key_from_data(_key_data(key))
-    return _loop(task, None, key, config, generations, rundir, callback, meta)
+    if out is None:
+        return _loop(task, None, key, config, generations, None, callback, mesh, meta)
+    with RunDir.create(
+        out,
+        {
+            **meta,
+            "generations": generations,
+            "key": list(_key_data(key)),
+            "config": config.to_dict(),
+        },
+    ) as rundir:
+        return _loop(task, None, key, config, generations, rundir, callback, mesh, meta)
 
 
 def resume(
@@ -406,6 +440,9 @@ def resume(
     callback: Callable[[dict], None] | None = None,
 ) -> RunResult:
     """Continue a run directory from its last complete generation.
+
+    The directory is locked for the whole run (a second resume of a live run is refused)
+    and checked completely (:func:`validate`) before anything in it is changed.
 
     Args:
       out: the run directory.
@@ -418,27 +455,150 @@ def resume(
     Raises:
       RunDirError: not a run directory, a corrupt one, or no task given and none recorded.
     """
-    rundir = RunDir.open(out)
-    meta = rundir.config()
-    if task is None:
-        task = _task_from_meta(meta, rundir)
-    check_task(task)
+    if generations is not None and (
+        isinstance(generations, bool) or not isinstance(generations, int) or generations < 0
+    ):
+        raise ValueError(f"generations must be an integer >= 0, got {generations!r}")
+    with RunDir.open(out) as rundir:
+        committed = rundir.read()
+        if task is None:
+            task = _task_from_meta(committed.config, rundir)
+        check_task(task)
+        v = _validate(rundir, committed, task)
+        mesh = distributed.make_mesh(v.config.devices)
+        best = None if v.state is None else _best_text(v.state, task, committed.config)
+        rundir.rewind(v.committed.offsets, best)
+        total = v.generations if generations is None else generations
+        return _loop(
+            task, v.state, v.key, v.config, total, rundir, callback, mesh, committed.config,
+            v.records, v.pruning,
+        )  # fmt: skip
+
+
+class Validated(NamedTuple):
+    """A run directory's committed contents, typed and cross-checked (:func:`validate`).
+
+    Attributes:
+      committed: the raw :class:`~eant2_jax.rundir.Committed` contents.
+      config: the run's configuration; generations: the total it asked for.
+      state: the checkpoint's state (None before the first commit); key: the run's key.
+      records, pruning: the committed generation and pruning records.
+    """
+
+    committed: Committed
+    config: EANT2Config
+    generations: int
+    state: RunState | None
+    key: jax.Array
+    records: list[GenerationRecord]
+    pruning: list[PruneAttempt]
+
+
+def validate(out: str, task: Task | None = None, *, lock: bool = True) -> Validated:
+    """Check a run directory as :func:`resume` does, changing nothing.
+
+    Args:
+      out: the run directory.
+      task: the task it runs (its input and output counts are checked against the
+        genomes); None skips the task checks.
+      lock: take the directory's lock while checking (refused on a live run); without it
+        only the committed part is read, which is consistent on a live run too.
+
+    Raises:
+      RunDirError: one line naming the file and what is wrong.
+    """
+    with RunDir.open(out, lock=lock) as rundir:
+        return _validate(rundir, rundir.read(), task)
+
+
+def _validate(rundir: RunDir, c: Committed, task: Task | None) -> Validated:
+    path = rundir.path
+
+    def fail(name: str, reason: str):
+        raise RunDirError(f"{path / name}: {reason}")
+
+    meta = c.config
+    if not isinstance(meta.get("config"), dict):
+        fail("config.json", "no configuration object ('config')")
     try:
-        config = EANT2Config.from_dict(meta["config"])
-        total = int(meta["generations"] if generations is None else generations)
-    except (KeyError, TypeError, ValueError) as e:
-        raise RunDirError(f"{rundir.path}: config.json is corrupt: {e}") from None
-    ckpt = rundir.checkpoint()
+        config = EANT2Config.from_dict(meta["config"], complete=c.strict)
+    except (TypeError, ValueError) as e:
+        fail("config.json", f"bad configuration: {e}")
+    total = meta.get("generations")
+    if isinstance(total, bool) or not isinstance(total, int) or total < 0:
+        fail("config.json", f"generations must be an integer >= 0, got {total!r:.40}")
     try:
-        state = None if ckpt is None else RunState.from_json(ckpt["state"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise RunDirError(f"{rundir.path}: checkpoint.json is corrupt: {e}") from None
-    rundir.rewind(None if ckpt is None else ckpt["offsets"])
+        key_data = _check_key(meta.get("key"), "key")
+        key = _key_from_data(key_data)
+    except (TypeError, ValueError) as e:
+        fail("config.json", f"bad key: {e}")
+    try:
+        records = [GenerationRecord.from_json(r) for r in c.generations]
+    except (TypeError, ValueError) as e:
+        fail("generations.jsonl", f"corrupt record: {e}")
+    try:
+        pruning = [PruneAttempt.from_json(r) for r in c.pruning]
+    except (TypeError, ValueError) as e:
+        fail("pruning.jsonl", f"corrupt record: {e}")
+    state = None
+    if c.checkpoint is not None:
+        try:
+            state = RunState.from_json(c.checkpoint["state"])
+        except (TypeError, ValueError) as e:
+            fail("checkpoint.json", f"corrupt state: {e}")
+        last = records[-1]
+        best = state.best()
+        if state.key != key_data:
+            fail("checkpoint.json", "its key is not the run's key in config.json")
+        if len(state.population) > config.population:
+            fail(
+                "checkpoint.json",
+                f"{len(state.population)} individuals, more than the "
+                f"population of {config.population}",
+            )
+        if last.best_genome != str(best.genome) or dumps(last.best_cost) != dumps(best.cost):
+            fail("checkpoint.json", "its best individual is not the last generation record's")
+        if last.evaluations != state.evaluations:
+            fail("checkpoint.json", "its evaluations differ from the last generation record's")
+        if sum(r.prune_attempts for r in records) != len(pruning):
+            fail(
+                "pruning.jsonl",
+                f"{len(pruning)} record(s) where the generation records "
+                f"count {sum(r.prune_attempts for r in records)}",
+            )
+        if any(p.generation is None or not 0 <= p.generation <= state.generation for p in pruning):
+            fail("pruning.jsonl", "a record of a generation the checkpoint has not committed")
+        for i, ind in enumerate(state.population):
+            g = ind.genome
+            if max(g.neuron_ids) >= state.next_id:
+                fail(
+                    "checkpoint.json",
+                    f"individual {i} has neuron id {max(g.neuron_ids)} >= next_id {state.next_id}",
+                )
+            if task is not None and (g.n_outputs != task.n_outputs or g.n_inputs > task.n_inputs):
+                fail(
+                    "checkpoint.json",
+                    f"individual {i} has {g.n_outputs} outputs and reads {g.n_inputs} "
+                    f"inputs; the task has {task.n_outputs} and {task.n_inputs}",
+                )
+    elif records or pruning:
+        fail("checkpoint.json", "missing, but the logs hold committed records")
+    for r in records:
+        try:
+            g = Genome.parse(r.best_genome)
+        except ValueError as e:
+            fail("generations.jsonl", f"generation {r.generation}: {e}")
+        if task is not None and (g.n_outputs != task.n_outputs or g.n_inputs > task.n_inputs):
+            fail(
+                "generations.jsonl",
+                f"generation {r.generation}'s best genome does not fit "
+                f"the task ({g.n_outputs} outputs, {g.n_inputs} inputs read)",
+            )
     if state is None:
-        key = _key_from_meta(meta, rundir)
+        key = _key_from_data(key_data)
     else:
         key = _key_from_data(state.key)
-    return _loop(task, state, key, config, total, rundir, callback, meta)
+    return Validated(c, config, total, state, key, records, pruning)
 
 
 def _task_from_meta(meta: dict, rundir: RunDir) -> Task:
@@ -453,21 +613,26 @@ def _task_from_meta(meta: dict, rundir: RunDir) -> Task:
     options = meta.get("task_options", {})
     if not isinstance(options, dict):
         raise RunDirError(f"{rundir.path}: config.json is corrupt: task_options is not a dict")
-    return make_task(meta["task"], **options)
+    try:
+        return make_task(meta["task"], **options)
+    except (TypeError, ValueError) as e:
+        raise RunDirError(f"{rundir.path / 'config.json'}: {e}") from None
 
 
-def _key_from_meta(meta: dict, rundir: RunDir) -> jax.Array:
-    if "key" not in meta:
-        raise RunDirError(f"{rundir.path}: config.json has no key; the run cannot be resumed")
-    return _key_from_data(meta["key"])
-
-
-def _loop(task, state, key, config, generations, rundir, callback, meta) -> RunResult:
-    gen_records = (
-        [] if rundir is None else [GenerationRecord.from_json(r) for r in rundir.generations()]
+def _best_text(state: RunState, task: Task, meta: dict) -> str:
+    """``best.genome``'s text: the best genome with a header that carries what is needed to
+    run it (activations, sizes, the task); ``commit`` adds the final newline."""
+    best = GenomeFile.from_task(
+        state.best().genome, task, name=meta.get("task"), options=meta.get("task_options")
     )
-    prune_records = [] if rundir is None else [PruneAttempt.from_json(r) for r in rundir.pruning()]
-    mesh = distributed.make_mesh(config.devices)
+    return best.to_text().rstrip("\n")
+
+
+def _loop(
+    task, state, key, config, generations, rundir, callback, mesh, meta,
+    gen_records=(), prune_records=(),
+) -> RunResult:  # fmt: skip
+    gen_records, prune_records = list(gen_records), list(prune_records)
     bucket = None  # grows, never shrinks: one program for as long as the genomes fit
     while state is None or state.generation < generations:
         if state is not None and config.target_cost is not None:
@@ -477,17 +642,10 @@ def _loop(task, state, key, config, generations, rundir, callback, meta) -> RunR
         gen_records.append(record)
         prune_records.extend(prune)
         if rundir is not None:
-            # best.genome carries what is needed to run it: activations, sizes, the task.
-            best = GenomeFile.from_task(
-                state.best().genome,
-                task,
-                name=meta.get("task"),
-                options=meta.get("task_options"),
-            )
             rundir.commit(
                 [record.to_json()],
                 [r.to_json() for r in prune],
-                best.to_text().rstrip("\n"),  # commit adds the newline
+                _best_text(state, task, meta),
                 state.to_json(),
             )
         if callback is not None:

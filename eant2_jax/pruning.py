@@ -30,6 +30,7 @@ from .genome import Gene, GeneKind, Genome
 from .kernels import cmaes
 from .kernels import pruning as kp
 from .kernels.pruning import PRUNERS, Tables
+from .rundir import typed_fields
 
 __all__ = [
     "NORMAL",
@@ -551,8 +552,9 @@ class PruneAttempt:
     @classmethod
     def from_json(cls, d: dict) -> PruneAttempt:
         # Records written before the tentative attempt existed have neither field.
-        d = {"e_refit": None, "e_reference": d.get("e"), **d}
-        return cls(**d)
+        if isinstance(d, dict):
+            d = {"e_refit": None, "e_reference": d.get("e"), **d}
+        return cls(**typed_fields(cls, d, "a pruning record"))
 
 
 def attempt_records(

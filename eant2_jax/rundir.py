@@ -1,11 +1,11 @@
-"""Run directories: what a run writes, and how it survives a kill at any moment.
+"""Run directories: what a run writes, how it survives a kill, and why it can be trusted.
 
 A run directory holds
 
 * ``config.json``        the task, its options, the seed and the EANT2 configuration;
 * ``generations.jsonl``  one JSON object per completed generation;
 * ``pruning.jsonl``      one JSON object per pruning attempt;
-* ``best.genome``        the best genome so far, in text form;
+* ``best.genome``        the best genome so far, in text form (a copy of the checkpoint's);
 * ``checkpoint.json``    everything needed to continue after the last complete generation.
 
 Crash safety: after a generation, its lines are appended to the ``.jsonl`` files and
@@ -15,29 +15,172 @@ each ``.jsonl`` file at that moment; resuming truncates them back to it. So a ru
 any instant — even with SIGKILL inside a checkpoint write — resumes from its last complete
 generation with no duplicate or half-written line, and loses at most the generation in
 progress.
+
+Trust (docs/reliability.md):
+
+* one writer: a process that writes a run directory holds an exclusive ``flock`` on the
+  directory itself for its whole life (the OS drops it when the process dies, so a killed
+  run is resumable at once); a second ``resume`` of a live run is refused;
+* atomic creation: a new directory is built under a hidden temporary name in the same
+  folder, locked, and renamed into place, so the path is either absent or a complete run
+  directory (with no checkpoint yet: a stub that ``resume`` starts from generation 0);
+* no links followed: every file is opened with ``O_NOFOLLOW`` relative to the directory and
+  must be a regular file (the logs also with a single link), or the directory is refused;
+* validate, then truncate: the checkpoint's offsets must be integers at line ends of the
+  logs, and the records before them must number the checkpoint's generation + 1; the
+  checkpoint (format 2) carries SHA-256 sums of ``config.json``, the committed log prefixes
+  and its own state, so a silent edit of any committed byte is detected; nothing is
+  truncated before all of this has passed;
+* strict JSON: files are written with ``allow_nan=False`` (a non-finite float is written as
+  the string ``"inf"``, ``"-inf"`` or ``"nan"``, which :func:`as_float` reads back) and
+  format-2 files are read with ``Infinity``/``NaN`` refused.
+
+Directories of format 1 (before checksums) are still read and resumed; their files may
+hold bare ``Infinity``/``NaN`` and their checkpoint has no checksums.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import errno
+import fcntl
+import hashlib
 import json
+import math
 import os
+import shutil
+import stat
 import tempfile
 from pathlib import Path
+from typing import Any
 
-__all__ = ["RunDir", "RunDirError"]
+__all__ = ["Committed", "RunDir", "RunDirError", "as_float", "dumps", "loads", "typed_fields"]
 
 CONFIG = "config.json"
 GENERATIONS = "generations.jsonl"
 PRUNING = "pruning.jsonl"
 BEST = "best.genome"
 CHECKPOINT = "checkpoint.json"
-FORMAT = 1
+LOGS = (GENERATIONS, PRUNING)
+FORMAT = 2  # 2: checksums in the checkpoint, strict JSON; 1 is still read (see above)
+FORMATS = (1, 2)
+# What the checkpoint's "sha256" holds: the config file, the committed log prefixes, the state.
+SUMS = (CONFIG, GENERATIONS, PRUNING, "state")
+# Nesting deeper than this in a run directory's JSON is corruption (ours is at most 4 deep);
+# refusing it early keeps Python's recursion limit out of the error path.
+MAX_DEPTH = 32
+_CREATING = ".creating-"
 
 
 class RunDirError(ValueError):
-    """A missing, foreign or corrupt run directory."""
+    """A missing, foreign, corrupt or busy run directory (the message is one line)."""
 
 
+# ----------------------------------------------------------------------------- strict JSON
+_NONFINITE = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
+
+
+def _encode(obj: Any) -> Any:
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return "nan" if math.isnan(obj) else ("inf" if obj > 0 else "-inf")
+    if isinstance(obj, dict):
+        return {k: _encode(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_encode(v) for v in obj]
+    return obj
+
+
+def dumps(obj: Any, **kwargs) -> str:
+    """Strict JSON: non-finite floats become the strings ``"inf"``, ``"-inf"``, ``"nan"``."""
+    return json.dumps(_encode(obj), allow_nan=False, **kwargs)
+
+
+def as_float(value: Any, what: str) -> float:
+    """A float field as :func:`dumps` wrote it (a number, or "inf", "-inf", "nan")."""
+    if isinstance(value, str) and value in _NONFINITE:
+        return _NONFINITE[value]
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError(f"{what} must be a number, got {_short(value)}")
+    return float(value)
+
+
+def typed_fields(cls, d: Any, what: str, defaults: dict | None = None) -> dict:
+    """The fields of dataclass ``cls`` from a JSON object, each checked against its
+    annotation (``int``, ``float``, ``str``, ``bool``, optionally ``| None``); a ValueError
+    names ``what`` and the field. Floats go through :func:`as_float`."""
+    if not isinstance(d, dict):
+        raise ValueError(f"{what} is not a JSON object")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(d) - set(fields))
+    if unknown:
+        raise ValueError(f"{what} has unknown field(s) {', '.join(map(repr, unknown))}")
+    out = {}
+    for name, f in fields.items():
+        if name not in d:
+            if defaults is not None and name in defaults:
+                out[name] = defaults[name]
+                continue
+            if f.default is not dataclasses.MISSING:
+                continue
+            raise ValueError(f"{what} has no field {name!r}")
+        v = d[name]
+        kind, *rest = str(f.type).replace(" ", "").split("|")
+        if v is None and "None" in rest:
+            out[name] = None
+        elif kind == "float":
+            out[name] = as_float(v, f"{what}: {name}")
+        elif kind == "int" and isinstance(v, int) and not isinstance(v, bool):
+            out[name] = v
+        elif kind == "str" and isinstance(v, str):
+            out[name] = v
+        elif kind == "bool" and isinstance(v, bool):
+            out[name] = v
+        else:
+            raise ValueError(f"{what}: {name} must be {str(f.type)}, got {_short(v)}")
+    return out
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _depth_ok(text: str) -> bool:
+    """Whether the JSON text nests at most MAX_DEPTH deep (brackets inside strings count,
+    which only makes the test stricter than needed for text we did not write)."""
+    depth = deepest = 0
+    for ch in text:
+        if ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+            if deepest > MAX_DEPTH:
+                return False
+        elif ch in "]}":
+            depth -= 1
+    return True
+
+
+def loads(data: bytes | str, where: str, *, strict: bool = True) -> Any:
+    """Parse JSON from a run directory; any problem is a one-line :class:`RunDirError` that
+    names ``where``. ``strict`` refuses ``Infinity`` and ``NaN``."""
+    if isinstance(data, bytes):
+        try:
+            data = data.decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise RunDirError(f"{where} is corrupt: not UTF-8 (byte {e.start})") from None
+    if not _depth_ok(data):
+        raise RunDirError(f"{where} is corrupt: JSON nested deeper than {MAX_DEPTH}")
+
+    def constant(name):
+        raise ValueError(f"{name} is not JSON (non-finite numbers are written as strings)")
+
+    try:
+        return json.loads(data, parse_constant=constant if strict else None)
+    except (ValueError, RecursionError) as e:
+        raise RunDirError(f"{where} is corrupt: {str(e).splitlines()[0]}") from None
+
+
+# ----------------------------------------------------------------------------- files
 def _fsync_dir(path: Path) -> None:
     fd = os.open(path, os.O_RDONLY)
     try:
@@ -47,7 +190,9 @@ def _fsync_dir(path: Path) -> None:
 
 
 def write_atomic(path: Path, text: str) -> None:
-    """Replace ``path`` with ``text`` atomically (temporary file, fsync, rename, fsync dir)."""
+    """Replace ``path`` with ``text`` atomically (temporary file, fsync, rename, fsync dir).
+
+    The rename replaces a link at ``path`` itself, never what it points to."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     # mkstemp makes the file 0600; give it the mode an ordinary open() would (umask).
     umask = os.umask(0)
@@ -65,89 +210,344 @@ def write_atomic(path: Path, text: str) -> None:
     _fsync_dir(path.parent)
 
 
+def _sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def _state_sum(state: dict) -> str:
+    return _sha(dumps(state, sort_keys=True).encode())
+
+
+@dataclasses.dataclass(frozen=True)
+class Committed:
+    """What a run directory has committed, read and checked by :meth:`RunDir.read`.
+
+    Attributes:
+      config: ``config.json``'s object.
+      checkpoint: ``checkpoint.json``'s object, or None before the first commit.
+      offsets: committed length of each log (0 without a checkpoint).
+      generations, pruning: the records in the committed log prefixes.
+      best: ``best.genome``'s text (stripped), or None if absent.
+      strict: whether the directory is of the strict format (2).
+    """
+
+    config: dict
+    checkpoint: dict | None
+    offsets: dict[str, int]
+    generations: list[dict]
+    pruning: list[dict]
+    best: str | None
+    strict: bool
+
+
 class RunDir:
-    """A run directory on disk (see the module docstring for its files)."""
+    """A run directory on disk (see the module docstring for its files and guarantees).
 
-    def __init__(self, path: str | os.PathLike):
+    Use :meth:`create` or :meth:`open`, and :meth:`close` (or ``with``) when done: the
+    object holds the directory open, and locked when it was opened to write.
+    """
+
+    def __init__(self, path: str | os.PathLike, fd: int):
         self.path = Path(path)
+        self._fd = fd
+        self._sums: dict[str, Any] = {}  # running SHA-256 of each log's committed prefix
+        self._config_sum: str | None = None
 
+    # ------------------------------------------------------------------ opening and locking
     @classmethod
     def create(cls, path: str | os.PathLike, config: dict) -> RunDir:
-        """Make a new run directory; refuses to touch an existing non-empty one."""
+        """Make a new run directory, locked; refuses to touch an existing non-empty one.
+
+        The directory is built under a hidden temporary name beside ``path`` and renamed
+        into place, so ``path`` is never half-made. A temporary directory left by a process
+        killed while creating is removed by the next ``create`` of the same path.
+        """
         p = Path(path)
-        if p.exists() and (not p.is_dir() or any(p.iterdir())):
+        if p.is_symlink() or (p.exists() and (not p.is_dir() or any(p.iterdir()))):
             raise RunDirError(f"{p} already exists and is not an empty directory; not overwriting")
-        p.mkdir(parents=True, exist_ok=True)
-        run = cls(p)
-        write_atomic(p / CONFIG, json.dumps({"format": FORMAT, **config}, indent=2) + "\n")
-        for name in (GENERATIONS, PRUNING):
-            (p / name).touch()
+        text = dumps({"format": FORMAT, **config}, indent=2) + "\n"
+        p.parent.mkdir(parents=True, exist_ok=True)
+        _remove_dead_creations(p)
+        tmp = Path(tempfile.mkdtemp(dir=p.parent, prefix=f".{p.name}{_CREATING}"))
+        try:
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o777 & ~umask)
+            fd = os.open(tmp, os.O_RDONLY | os.O_DIRECTORY)
+            # The lock is on the directory's inode: it stays held across the rename.
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            run = cls(tmp, fd)
+            run._write_new(CONFIG, text.encode())
+            for name in LOGS:
+                run._write_new(name, b"")
+            os.fsync(fd)
+            try:
+                os.rename(tmp, p)  # replaces an empty directory; fails on anything else
+            except OSError as e:
+                if e.errno in (errno.ENOTEMPTY, errno.EEXIST, errno.ENOTDIR, errno.EISDIR):
+                    raise RunDirError(
+                        f"{p} already exists and is not an empty directory; not overwriting"
+                    ) from None
+                raise
+        except BaseException:
+            if "run" in locals():
+                run.close()
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        _fsync_dir(p.parent)
+        run.path = p
+        run._config_sum = _sha(text.encode())
+        run._sums = {name: hashlib.sha256() for name in LOGS}
         return run
 
     @classmethod
-    def open(cls, path: str | os.PathLike) -> RunDir:
-        """Open an existing run directory for resuming; checks that it is one."""
+    def open(cls, path: str | os.PathLike, *, lock: bool = True) -> RunDir:
+        """Open an existing run directory; checks that it is one.
+
+        Args:
+          path: the directory.
+          lock: take the exclusive lock (to write: resume); refused while another process
+            holds it. Without it the directory is only read (report).
+        """
         p = Path(path)
         if not p.is_dir():
             raise RunDirError(f"{p}: no such run directory")
-        for name in (CONFIG, GENERATIONS, PRUNING):
-            if not (p / name).is_file():
-                raise RunDirError(f"{p} is not a run directory (missing {name})")
-        run = cls(p)
-        run.config()  # validates
+        try:
+            fd = os.open(p, os.O_RDONLY | os.O_DIRECTORY)
+        except OSError as e:
+            raise RunDirError(f"{p}: cannot open the run directory: {e.strerror}") from None
+        run = cls(p, fd)
+        try:
+            if lock:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    raise RunDirError(
+                        f"{p} is in use by another eant2 process (a live run); not touching it"
+                    ) from None
+            for name in (CONFIG, *LOGS):
+                if run._lstat(name) is None:
+                    raise RunDirError(f"{p} is not a run directory (missing {name})")
+            for name in (CONFIG, *LOGS, BEST, CHECKPOINT):
+                run._lstat(name, check=True)
+        except BaseException:
+            run.close()
+            raise
         return run
 
-    def config(self) -> dict:
+    def is_live(self) -> bool:
+        """Whether another process holds the directory's lock (a run is writing it)."""
+        fd = os.open(self.path, os.O_RDONLY | os.O_DIRECTORY)
         try:
-            data = json.loads((self.path / CONFIG).read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as e:
-            raise RunDirError(f"{self.path / CONFIG} is unreadable or corrupt: {e}") from None
-        if not isinstance(data, dict) or data.get("format") != FORMAT:
-            raise RunDirError(f"{self.path / CONFIG}: not a run configuration of format {FORMAT}")
-        return data
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        finally:
+            os.close(fd)  # closing drops a lock taken here
+        return False
 
-    def checkpoint(self) -> dict | None:
-        """The last complete generation's checkpoint, or None if no generation completed."""
-        p = self.path / CHECKPOINT
-        if not p.exists():
+    def close(self) -> None:
+        """Release the lock and the directory."""
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __enter__(self) -> RunDir:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown
+            pass
+
+    # ------------------------------------------------------------------ raw file access
+    def _lstat(self, name: str, *, check: bool = False) -> os.stat_result | None:
+        try:
+            st = os.stat(name, dir_fd=self._fd, follow_symlinks=False)
+        except FileNotFoundError:
             return None
+        if check and not stat.S_ISREG(st.st_mode):
+            what = "a symbolic link" if stat.S_ISLNK(st.st_mode) else "not a regular file"
+            raise RunDirError(f"{self.path / name} is {what}; refusing the run directory")
+        if check and name in LOGS and st.st_nlink != 1:
+            raise RunDirError(
+                f"{self.path / name} has {st.st_nlink} hard links; refusing the run directory"
+            )
+        return st
+
+    def _open(self, name: str, flags: int) -> int:
+        """A descriptor of a regular file of the directory, never through a link."""
         try:
-            data = json.loads(p.read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as e:
-            raise RunDirError(f"{p} is corrupt: {e}") from None
-        if not isinstance(data, dict) or "state" not in data or "offsets" not in data:
-            raise RunDirError(f"{p} is corrupt: missing fields")
-        return data
-
-    def rewind(self, offsets: dict | None) -> None:
-        """Truncate the ``.jsonl`` files to the lengths recorded with a checkpoint.
-
-        Every length is checked before any file is touched, so a corrupt checkpoint leaves
-        the directory as it was.
-        """
-        sizes = {}
-        for name in (GENERATIONS, PRUNING):
-            try:
-                size = 0 if offsets is None else int(offsets[name])
-            except (KeyError, TypeError, ValueError):
+            fd = os.open(name, flags | os.O_NOFOLLOW | os.O_NONBLOCK, dir_fd=self._fd)
+        except OSError as e:
+            if e.errno == errno.ELOOP:
                 raise RunDirError(
-                    f"{self.path / CHECKPOINT} is corrupt: no valid offset of {name}"
+                    f"{self.path / name} is a symbolic link; refusing the run directory"
                 ) from None
-            p = self.path / name
-            if size < 0 or p.stat().st_size < size:
-                raise RunDirError(f"{p} is shorter than its checkpoint says; the run is corrupt")
-            sizes[name] = size
-        for name, size in sizes.items():
-            p = self.path / name
-            with open(p, "r+b") as f:
-                f.truncate(size)
-                f.flush()
-                os.fsync(f.fileno())
+            raise RunDirError(f"{self.path / name}: {e.strerror}") from None
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or (name in LOGS and st.st_nlink != 1):
+            os.close(fd)
+            self._lstat(name, check=True)
+            raise RunDirError(f"{self.path / name} changed while opening it")
+        return fd
+
+    def _read(self, name: str) -> bytes | None:
+        if self._lstat(name, check=True) is None:
+            return None
+        fd = self._open(name, os.O_RDONLY)
+        with os.fdopen(fd, "rb") as f:
+            return f.read()
+
+    def _write_new(self, name: str, data: bytes) -> None:
+        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW
+        fd = os.open(name, flags, 0o666, dir_fd=self._fd)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+
+    # ------------------------------------------------------------------ reading
+    def config(self) -> dict:
+        """``config.json`` (an object of a known format), or a :class:`RunDirError`."""
+        where = str(self.path / CONFIG)
+        data = self._read(CONFIG)
+        if data is None:
+            raise RunDirError(f"{self.path} is not a run directory (missing {CONFIG})")
+        head = loads(data, where, strict=False)
+        if not isinstance(head, dict) or head.get("format") not in FORMATS:
+            raise RunDirError(f"{where}: not a run configuration of format {FORMAT}")
+        if head["format"] >= 2:
+            head = loads(data, where, strict=True)
+        return head
+
+    def read(self) -> Committed:
+        """Everything committed, checked: offsets, checksums and the record count.
+
+        Reads nothing beyond the checkpoint's offsets, so it also reads a live run
+        consistently. Raises :class:`RunDirError` (one line) on any inconsistency.
+        """
+        config_bytes = self._read(CONFIG)
+        config = self.config()
+        strict = config["format"] >= 2
+        where = str(self.path / CHECKPOINT)
+        raw = self._read(CHECKPOINT)
+        ckpt = None
+        if raw is not None:
+            ckpt = loads(raw, where, strict=strict)
+            if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state"), dict):
+                raise RunDirError(f"{where} is corrupt: no state object")
+            if not isinstance(ckpt.get("offsets"), dict):
+                raise RunDirError(f"{where} is corrupt: no offsets object")
+        logs = {name: self._read(name) or b"" for name in LOGS}
+        # Without a checkpoint the run was killed inside generation 0's commit (its lines
+        # may be appended, the checkpoint not yet written): more than that one record means
+        # the checkpoint was lost, and starting over would drop committed generations.
+        lines = logs[GENERATIONS].count(b"\n")
+        if ckpt is None and lines > 1:
+            raise RunDirError(
+                f"{where} is missing but {GENERATIONS} holds {lines} records; "
+                "refusing to start over"
+            )
+        offsets = {}
+        for name in LOGS:
+            if ckpt is None:
+                offsets[name] = 0
+                continue
+            off = ckpt["offsets"].get(name)
+            if isinstance(off, bool) or not isinstance(off, int):
+                raise RunDirError(
+                    f"{where} is corrupt: the offset of {name} is {_short(off)}, not an integer"
+                )
+            if off < 0 or off > len(logs[name]):
+                raise RunDirError(
+                    f"{self.path / name} is shorter than its checkpoint says "
+                    f"({len(logs[name])} < {off} bytes); the run is corrupt"
+                )
+            if off > 0 and logs[name][off - 1 : off] != b"\n":
+                raise RunDirError(
+                    f"{where} is corrupt: the offset {off} of {name} is not at a line end"
+                )
+            offsets[name] = off
+        if ckpt is not None and (strict or "sha256" in ckpt):
+            sums = ckpt.get("sha256")
+            if not isinstance(sums, dict) or sorted(sums) != sorted(SUMS):
+                raise RunDirError(f"{where} is corrupt: no checksums of {', '.join(SUMS)}")
+            actual = {
+                CONFIG: _sha(config_bytes),
+                **{name: _sha(logs[name][: offsets[name]]) for name in LOGS},
+                "state": _state_sum(ckpt["state"]),
+            }
+            for name in SUMS:
+                if sums[name] != actual[name]:
+                    what = "the checkpoint's state" if name == "state" else name
+                    raise RunDirError(
+                        f"{self.path}: {what} does not match the checksum of its last "
+                        "commit (edited or damaged); refusing the run directory"
+                    )
+        records = {}
+        for name in LOGS:
+            rows = []
+            for n, line in enumerate(logs[name][: offsets[name]].split(b"\n")[:-1], 1):
+                row = loads(line, f"{self.path / name}:{n}", strict=strict)
+                if not isinstance(row, dict):
+                    raise RunDirError(f"{self.path / name}:{n} is corrupt: not a JSON object")
+                rows.append(row)
+            records[name] = rows
+        gens = records[GENERATIONS]
+        for i, row in enumerate(gens):
+            if row.get("generation") != i or isinstance(row.get("generation"), bool):
+                raise RunDirError(
+                    f"{self.path / GENERATIONS}:{i + 1} is corrupt: generation "
+                    f"{_short(row.get('generation'))} where {i} belongs"
+                )
+        if ckpt is not None:
+            g = ckpt["state"].get("generation")
+            if isinstance(g, bool) or not isinstance(g, int) or g != len(gens) - 1:
+                raise RunDirError(
+                    f"{where} is corrupt: generation {_short(g)} but {GENERATIONS} commits "
+                    f"{len(gens)} record(s)"
+                )
+        best = self._read(BEST)
+        if best is not None:
+            try:
+                best = best.decode("utf-8").strip()
+            except UnicodeDecodeError:
+                best = ""  # derived; rewritten from the checkpoint by rewind
+        self._config_sum = _sha(config_bytes)
+        self._sums = {name: hashlib.sha256(logs[name][: offsets[name]]) for name in LOGS}
+        return Committed(config, ckpt, offsets, gens, records[PRUNING], best, strict)
+
+    # ------------------------------------------------------------------ writing
+    def rewind(self, offsets: dict[str, int], best: str | None = None) -> None:
+        """Truncate the logs to the offsets :meth:`read` checked, restore ``best.genome`` from
+        the checkpoint (``best``) if it differs, and remove a dead commit's temporary files.
+
+        Call only after :meth:`read` and every other check passed: this is the first write.
+        """
+        for name in LOGS:
+            fd = self._open(name, os.O_WRONLY)
+            try:
+                if os.fstat(fd).st_size != offsets[name]:
+                    os.ftruncate(fd, offsets[name])
+                    os.fsync(fd)
+            finally:
+                os.close(fd)
         # A kill inside write_atomic leaves its temporary file behind (the target itself is
         # whole, old or new): remove our own leftovers, named as write_atomic names them.
         for name in (BEST, CHECKPOINT):
             for tmp in self.path.glob(f".{name}.*.tmp"):
                 tmp.unlink(missing_ok=True)
+        # best.genome is a copy of the checkpoint's best: a kill between its rename and the
+        # checkpoint's leaves the next generation's there.
+        if best is not None:
+            current = self._read(BEST)
+            if current != (best + "\n").encode():
+                write_atomic(self.path / BEST, best + "\n")
 
     def commit(
         self, generation_records: list[dict], pruning_records: list[dict], best: str, state: dict
@@ -155,32 +555,42 @@ class RunDir:
         """Persist one completed generation (logs first, then the atomic checkpoint)."""
         offsets = {}
         for name, rows in ((GENERATIONS, generation_records), (PRUNING, pruning_records)):
-            p = self.path / name
-            with open(p, "a", encoding="utf-8") as f:
-                for row in rows:
-                    f.write(json.dumps(row) + "\n")
-                f.flush()
-                os.fsync(f.fileno())
-            offsets[name] = p.stat().st_size
+            data = "".join(dumps(row) + "\n" for row in rows).encode()
+            fd = self._open(name, os.O_WRONLY | os.O_APPEND)
+            try:
+                view = memoryview(data)
+                while view:
+                    view = view[os.write(fd, view) :]
+                os.fsync(fd)
+                offsets[name] = os.fstat(fd).st_size
+            finally:
+                os.close(fd)
+            self._sums[name].update(data)
+        sums = {
+            CONFIG: self._config_sum,
+            **{name: self._sums[name].copy().hexdigest() for name in LOGS},
+            "state": _state_sum(state),
+        }
         write_atomic(self.path / BEST, best + "\n")
         write_atomic(
-            self.path / CHECKPOINT, json.dumps({"offsets": offsets, "state": state}) + "\n"
+            self.path / CHECKPOINT,
+            dumps({"format": FORMAT, "offsets": offsets, "state": state, "sha256": sums}) + "\n",
         )
 
-    def generations(self) -> list[dict]:
-        return _read_jsonl(self.path / GENERATIONS)
 
-    def pruning(self) -> list[dict]:
-        return _read_jsonl(self.path / PRUNING)
-
-
-def _read_jsonl(path: Path) -> list[dict]:
-    out = []
-    with open(path, encoding="utf-8") as f:
-        for n, line in enumerate(f, 1):
-            if line.strip():
-                try:
-                    out.append(json.loads(line))
-                except json.JSONDecodeError as e:
-                    raise RunDirError(f"{path}:{n} is corrupt: {e}") from None
-    return out
+def _remove_dead_creations(p: Path) -> None:
+    """Remove temporary directories of creations of ``p`` whose process died (unlocked)."""
+    for tmp in p.parent.glob(f".{p.name}{_CREATING}*"):
+        if tmp.is_symlink() or not tmp.is_dir():
+            continue
+        try:
+            fd = os.open(tmp, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            continue  # a live creation
+        finally:
+            os.close(fd)
+        shutil.rmtree(tmp, ignore_errors=True)

@@ -16,6 +16,10 @@ One step of the network on one example:
     h    = 0;  repeat `sweeps` times:  h = act(base + w_ff @ h)
     y    = w_out @ h
 
+Non-finite inputs follow the stack semantics exactly: a NaN or infinite value reaches only
+the neurons that read it (through a gene, even one of weight 0), never through the zeros of
+the dense matrices (see ``_dot``), as in :func:`eant2_jax.reference.interpret`.
+
 ``w_ff`` is strictly lower-triangular in slot order (a neuron only reads earlier slots), so
 after ``d`` sweeps every neuron of depth <= d is exact and stays exact: ``sweeps`` must be at
 least the network's depth (the longest chain of neurons). No Python loop over neurons or genes
@@ -96,7 +100,10 @@ class Network:
       w_ff: ``[H, H]`` current-step weights, ``w_ff[i, j]``: neuron j into neuron i (j < i).
       w_rec: ``[H, H]`` previous-step weights (recurrent jumpers).
       w_out: ``[n_out, H]`` output selection: root r's own weight at its neuron's slot.
-      is_root, neuron_mask: ``bool[H]`` as in `Layout`.
+      is_root, neuron_mask: ``bool[H]`` as in :class:`Layout`.
+      reads: for ``w_in``, ``w_rec``, ``w_ff`` and ``w_out``: ``(mask, weights)``, the entries
+        some gene sets (a connection; its weight may still be 0) and the weights a
+        non-finite source is multiplied by (NaN where the genes' own products give NaN).
       sweeps: static number of dense sweeps per step (>= depth).
     """
 
@@ -107,6 +114,7 @@ class Network:
     w_out: jax.Array
     is_root: jax.Array
     neuron_mask: jax.Array
+    reads: tuple[tuple[jax.Array, jax.Array], ...]
     sweeps: int = struct.field(pytree_node=False)
 
 
@@ -129,7 +137,25 @@ def network(layout: Layout, params: jax.Array) -> Network:
     for s in sizes:
         offsets.append(offsets[-1] + s)
     part = [flat[offsets[i] : offsets[i + 1]] for i in range(len(sizes))]
+
+    # For non-finite sources: the stack semantics add w_i * v gene by gene, so an entry set
+    # by a gene of weight 0, or by genes of both signs, gives NaN for v = +-inf where the
+    # summed weight would not; NaN marks those entries in the weights used for such values.
+    def count(cond):
+        ones = (layout.gene_mask & cond).astype(jnp.int32)
+        return jnp.zeros(flat.shape, jnp.int32).at[layout.slot].add(ones) > 0
+
+    used = count(True)
+    poison = count(params == 0) | (count(params > 0) & count(params < 0))
+    w_nf = jnp.where(used, jnp.where(poison, jnp.nan, flat), 0.0).astype(flat.dtype)
+    shapes = ((h, n_in), (h,), (h, h), (h, h), (n_out, h))
+
+    def pair(i):
+        a, b = offsets[i], offsets[i + 1]
+        return used[a:b].reshape(shapes[i]), w_nf[a:b].reshape(shapes[i])
+
     return Network(
+        reads=(pair(0), pair(3), pair(2), pair(4)),
         w_in=part[0].reshape(h, n_in),
         bias=part[1],
         w_ff=part[2].reshape(h, h),
@@ -162,21 +188,34 @@ def step(
       ``(y [n_out], h [H])``: the outputs and every neuron's output at this step.
     """
     act_h, act_o = activation(hidden), activation(output)
-    base = (
-        jnp.dot(net.w_in, x, precision=_PRECISION)
-        + net.bias
-        + jnp.dot(net.w_rec, h_prev, precision=_PRECISION)
-    )
+    read_in, read_rec, read_ff, read_out = net.reads
+    base = _dot(net.w_in, read_in, x) + net.bias + _dot(net.w_rec, read_rec, h_prev)
 
     def sweep(_, h):
-        a = base + jnp.dot(net.w_ff, h, precision=_PRECISION)
+        a = base + _dot(net.w_ff, read_ff, h)
         o = jnp.where(net.is_root, act_o(a), act_h(a))
         # Padding neurons stay at exactly 0 (sigmoid(0) would be 0.5).
         return jnp.where(net.neuron_mask, o, jnp.zeros_like(o))
 
     h = jax.lax.fori_loop(0, net.sweeps, sweep, jnp.zeros_like(base), unroll=True)
-    y = jnp.dot(net.w_out, h, precision=_PRECISION)
+    y = _dot(net.w_out, read_out, h)
     return y, h
+
+
+def _dot(w: jax.Array, reads: tuple[jax.Array, jax.Array], v: jax.Array) -> jax.Array:
+    """``w @ v`` as the stack semantics compute it: a non-finite ``v[j]`` reaches exactly the
+    rows that read it (a dense product would make ``0 * nan`` of every other row NaN). With
+    a finite ``v`` it is ``w @ v`` to the bit; the masked terms cost one element-wise pass."""
+    read, w_nf = reads
+    finite = jnp.isfinite(v)
+    y = jnp.dot(w, jnp.where(finite, v, jnp.zeros_like(v)), precision=_PRECISION)
+    # Both factors are masked (not the product): a NaN in an unselected branch of a where
+    # would still make the gradient NaN.
+    take = read & ~finite[None, :]
+    w_take = jnp.where(take, w_nf, jnp.zeros_like(w_nf))
+    v_take = jnp.where(finite, jnp.zeros_like(v), v)
+    extra = jnp.sum(jnp.where(take, w_take * v_take[None, :], 0), axis=-1)
+    return jnp.where(jnp.all(finite), y, y + extra)
 
 
 def rollout(

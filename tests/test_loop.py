@@ -243,12 +243,12 @@ def test_resume_before_the_first_checkpoint(xor_run, tmp_path):
 def test_rewind_refuses_a_log_shorter_than_its_checkpoint(tmp_path):
     from eant2_jax.rundir import RunDir
 
-    run_dir = RunDir.create(tmp_path / "run", {"generations": 1})
-    run_dir.commit([{"generation": 0}], [], "N0/1*1.0 I0*1.0", {"generation": 0})
-    offsets = json.loads((tmp_path / "run" / CHECKPOINT).read_text())["offsets"]
+    with RunDir.create(tmp_path / "run", {"generations": 1}) as run_dir:
+        run_dir.commit([{"generation": 0}], [], "N0/1*1.0 I0*1.0", {"generation": 0})
     (tmp_path / "run" / GENERATIONS).write_text("")
-    with pytest.raises(RunDirError, match="shorter than its checkpoint"):
-        run_dir.rewind(offsets)
+    with RunDir.open(tmp_path / "run") as run_dir:
+        with pytest.raises(RunDirError, match="shorter than its checkpoint"):
+            run_dir.read()
 
 
 # ------------------------------------------------------------------------- command line
@@ -465,7 +465,7 @@ def _corrupt(d: Path, name: str, text: str | None) -> None:
     [
         ("config.json", None, "missing config.json"),
         ("generations.jsonl", None, "missing generations.jsonl"),
-        ("config.json", "{not json", "config.json is unreadable or corrupt"),
+        ("config.json", "{not json", "config.json is corrupt"),
         ("config.json", "[1, 2]", "not a run configuration"),
         ("config.json", '{"format": 1, "seed": 0}', "records no task spec"),
         (
@@ -477,13 +477,13 @@ def _corrupt(d: Path, name: str, text: str | None) -> None:
             "config.json",
             '{"format": 1, "task": "xor", "generations": 1, "key": [0, 0], '
             '"config": {"population": 0}}',
-            "config.json is corrupt",
+            "config.json does not match the checksum",
         ),
         (
             "config.json",
             '{"format": 1, "task": "xor", "generations": 1, "key": [0, 0], '
             '"config": {"colour": "red"}}',
-            "config.json is corrupt",
+            "config.json does not match the checksum",
         ),
         ("checkpoint.json", "", "checkpoint.json is corrupt"),
         ("checkpoint.json", '{"offsets": {"generations.js', "checkpoint.json is corrupt"),

@@ -11,6 +11,8 @@ import numpy as np
 
 __all__ = ["main"]
 
+# A genome file of 64 MiB holds millions of genes, far beyond the compiler's limits.
+MAX_GENOME_BYTES = 64 * 2**20
 DEMO_GENOME = "N0/3*1.0 F2*0.3 N1/2*0.5 I0*1 I1*-2 R0*0.7 N2/2*-1.2 B*0.1 I2*0.4"
 # One output neuron reading both inputs, a bias and one hidden neuron: enough for XOR.
 XOR_START = "N0/4*1 N1/3*0.1 I0*0.1 I1*-0.1 B*0.05 I0*0.1 I1*0.1 B*0.0"
@@ -150,8 +152,10 @@ def _resume(args: argparse.Namespace) -> int:
     from eant2_jax.progress import ProgressReporter
     from eant2_jax.rundir import RunDir
 
-    meta = RunDir.open(args.dir).config()
-    exploit = meta.get("config", {}).get("exploit", {})
+    with RunDir.open(args.dir, lock=False) as rundir:  # resume takes the lock itself
+        meta = rundir.config()
+    config = meta.get("config")
+    exploit = config.get("exploit") if isinstance(config, dict) else None
     if isinstance(exploit, dict) and exploit.get("dtype") == "float64":
         eant2_jax.enable_x64()  # the run was started with --x64
     _user_modules()
@@ -167,7 +171,16 @@ def _resume(args: argparse.Namespace) -> int:
 
 def _report(args: argparse.Namespace) -> int:
     from eant2_jax.app.report import report
+    from eant2_jax.rundir import RunDir
 
+    for d in args.dirs:
+        with RunDir.open(d, lock=False) as rundir:
+            if rundir.is_live():
+                print(
+                    f"eant2: warning: {d} is being written by a live run; reporting the "
+                    "generations it has committed so far",
+                    file=sys.stderr,
+                )
     out = Path(args.out) if args.out else Path(args.dirs[0]).parent / "report"
     path = report(args.dirs, out, allow_mixed=args.allow_mixed, reference=args.reference)
     print(f"report: {path}")
@@ -179,7 +192,20 @@ def _show(args: argparse.Namespace) -> int:
     from eant2_jax.genomefile import GenomeFile
 
     src = Path(args.genome_file)
-    spec = GenomeFile.read(src)
+    try:
+        if src.stat().st_size > MAX_GENOME_BYTES:
+            raise ValueError(
+                f"{src}: {src.stat().st_size} bytes, more than a genome file may hold "
+                f"({MAX_GENOME_BYTES})"
+            )
+        data = src.read_bytes()
+    except OSError as e:
+        raise ValueError(f"cannot read {src}: {e.strerror}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{src}: not UTF-8 text (byte {e.start})") from None
+    spec = GenomeFile.parse(text, source=str(src))
     genome = spec.genome
     out = Path(args.out) if args.out else src.with_suffix(src.suffix + ".png")
     if out.exists() and not args.force:
@@ -240,6 +266,8 @@ def _reproduce(args: argparse.Namespace) -> int:
     options = {"mode": args.mode} if args.task == "servo" else {}
     options.update(_task_options(args.task_option))
     task = eant2_jax.tasks.make(args.task, **options)
+    if args.seed + args.runs > 2**32:
+        raise ValueError(f"--seed {args.seed} + --runs {args.runs} goes past 2**32")
     pruners = [p.strip() for p in args.pruners.split(",") if p.strip()]
     from eant2_jax.app.experiments import arm_config
 
@@ -291,6 +319,18 @@ def _non_negative(text: str) -> int:
     value = int(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def _seed(text: str) -> int:
+    """A run seed: JAX's 32-bit keys wrap seeds modulo 2**32, so only [0, 2**32) are
+    distinct runs (2**32 would silently repeat seed 0)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r:.40}") from None
+    if not 0 <= value < 2**32:
+        raise argparse.ArgumentTypeError(f"must be in [0, 2**32), got {text:.40}")
     return value
 
 
@@ -351,7 +391,9 @@ def _parser() -> argparse.ArgumentParser:
         help="generations after the initial one (default 15)",
     )
     run.add_argument("--population", type=_positive, default=20, help="population size")
-    run.add_argument("--seed", type=int, default=0, help="seed of the run's PRNG key")
+    run.add_argument(
+        "--seed", type=_seed, default=0, help="seed of the run's PRNG key, in [0, 2**32)"
+    )
     run.add_argument(
         "--max-iters",
         type=_positive,
@@ -415,7 +457,7 @@ def _parser() -> argparse.ArgumentParser:
         help="CMA-ES iteration budget per structure and generation",
     )
     rep.add_argument("--task", default="servo", help="task (default: servo, the paper's)")
-    rep.add_argument("--seed", type=int, default=0, help="first seed")
+    rep.add_argument("--seed", type=_seed, default=0, help="first seed, in [0, 2**32)")
     rep.add_argument("--workers", type=_positive, default=1, help="concurrent runs per device")
     rep.add_argument(
         "--condition-iters",

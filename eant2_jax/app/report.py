@@ -54,6 +54,10 @@ class MixedRunsError(ValueError):
     """Run directories that differ in their task or configuration (beyond pruning)."""
 
 
+MAX_DRAWN_INPUTS = 64
+MAX_INCHES = 60  # a drawing of a wide or deep genome is squeezed, not megapixels wide
+
+
 def _pyplot():
     import matplotlib
 
@@ -142,8 +146,16 @@ def genome_figure(
     for r in genome.roots:  # outputs on the top row
         level[genome[r].ref] = top
     pos: dict[tuple[str, int], tuple[float, float]] = {}
-    for j in range(n_in):
-        pos[("in", j)] = (j - (n_in - 1) / 2, 0.0)
+    # Every input up to MAX_DRAWN_INPUTS; beyond, only those read (a genome reading input
+    # 20000 alone must not draw 20001 nodes).
+    shown = (
+        list(range(n_in))
+        if n_in <= MAX_DRAWN_INPUTS
+        else sorted({g.ref for g in genome if g.kind == GeneKind.INPUT})
+    )
+    for k, j in enumerate(shown):
+        pos[("in", j)] = (k - (len(shown) - 1) / 2, 0.0)
+    n_in = len(shown)
     if any(g.kind == GeneKind.BIAS for g in genome):
         pos[("bias", 0)] = (n_in / 2 + 0.8, 0.0)
     rows: dict[int, list[int]] = {}
@@ -155,7 +167,10 @@ def genome_figure(
         for k, nid in enumerate(ids):
             pos[("n", nid)] = (k - (len(ids) - 1) / 2, float(lv))
 
-    fig, ax = plt.subplots(figsize=(max(6, n_in * 0.8), 1.6 * (top + 1)))
+    widest = max([n_in, *(len(ids) for ids in rows.values())])
+    fig, ax = plt.subplots(
+        figsize=(min(MAX_INCHES, max(6, widest * 0.8)), min(MAX_INCHES, 1.6 * (top + 1)))
+    )
     for i, g in enumerate(genome):
         p = genome.parent[i]
         if p < 0:
@@ -331,27 +346,31 @@ def _fmt_list(values: list[float]) -> str:
 
 def load_runs(dirs: Sequence[str | Path]) -> list[LoadedRun]:
     """Read run directories: config, generation records and arm label of each."""
-    from ..rundir import RunDir
+    from ..loop import validate
 
     runs = []
     for d in dirs:
-        rd = RunDir.open(d)
-        meta = rd.config()
-        gens = [GenerationRecord.from_json(g) for g in rd.generations()]
-        if not gens:
+        # Checked as resume checks it, reading only what was committed (so a live run is
+        # read consistently, without its lock).
+        v = validate(str(d), lock=False)
+        meta = v.committed.config
+        if not v.records:
             raise ValueError(f"{d}: no completed generation to report")
         config = meta.get("config", {})
-        pruner = config.get("exploit", {}).get("pruner", "none")
+        arm = meta.get("arm", v.config.exploit.pruner)
+        task, seed = meta.get("task", meta.get("task_type", "?")), meta.get("seed")
+        if not isinstance(arm, str) or not isinstance(task, str):
+            raise ValueError(f"{d}: config.json's arm and task must be names")
         budget = meta.get("generations")
-        target = config.get("target_cost")
+        target = config.get("target_cost") if isinstance(config, dict) else None
         runs.append(
             LoadedRun(
                 dir=str(d),
-                arm=meta.get("arm", pruner),
-                task=meta.get("task"),
-                seed=meta.get("seed"),
-                generations=gens,
-                pruning=[PruneAttempt.from_json(p) for p in rd.pruning()],
+                arm=arm,
+                task=task,
+                seed=seed if isinstance(seed, int) else None,
+                generations=v.records,
+                pruning=v.pruning,
                 setting=setting(meta),
                 budget=budget if isinstance(budget, int) else None,
                 target_cost=target if isinstance(target, int | float) else None,
@@ -522,9 +541,9 @@ def report(
     Returns:
       The path of ``report.md``.
     """
+    runs = load_runs(dirs)  # every directory checked before anything is written
     plt = _pyplot()
     out = Path(out)
-    runs = load_runs(dirs)
     mixed = check_comparable(runs)
     if mixed and not allow_mixed:
         raise MixedRunsError(_mixed_message(runs, mixed))

@@ -132,7 +132,10 @@ class GenomeFile:
         """Read a file's text; ``source`` names it in errors. A file without a header is
         accepted (its activations are None)."""
         first = text.lstrip().split("\n", 1)[0]
-        genome = Genome.parse(text)
+        try:
+            genome = Genome.parse(text)
+        except ValueError as e:
+            raise GenomeFileError(f"{source}: {e}") from None
         if not first.startswith(HEADER.rstrip()):
             return cls(genome)
         try:

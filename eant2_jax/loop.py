@@ -466,7 +466,9 @@ def resume(
         check_task(task)
         v = _validate(rundir, committed, task)
         mesh = distributed.make_mesh(v.config.devices)
-        best = None if v.state is None else _best_text(v.state, task, committed.config)
+        best = None
+        if v.state is not None and not _best_file_holds(rundir, v.state):
+            best = _best_text(v.state, task, committed.config)
         rundir.rewind(v.committed.offsets, best)
         total = v.generations if generations is None else generations
         return _loop(
@@ -617,6 +619,18 @@ def _task_from_meta(meta: dict, rundir: RunDir) -> Task:
         return make_task(meta["task"], **options)
     except (TypeError, ValueError) as e:
         raise RunDirError(f"{rundir.path / 'config.json'}: {e}") from None
+
+
+def _best_file_holds(rundir: RunDir, state: RunState) -> bool:
+    """Whether ``best.genome`` already holds the checkpoint's best (with or without a
+    header: a file from before headers is left as it is)."""
+    path = rundir.path / "best.genome"
+    try:
+        if path.is_symlink() or not path.is_file():
+            return False
+        return GenomeFile.parse(path.read_text(encoding="utf-8")).genome == state.best().genome
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
 
 
 def _best_text(state: RunState, task: Task, meta: dict) -> str:

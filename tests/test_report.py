@@ -39,15 +39,21 @@ def make_run(
     config = EANT2Config(
         population=population, target_cost=target_cost, exploit=ExploitConfig(pruner=pruner)
     )
-    meta = {"task": task, "task_options": options or {}, "seed": seed}
-    rd = RunDir.create(path, {**meta, "generations": generations, "config": config.to_dict()})
+    meta = {"task": task, "task_options": options or {}, "seed": seed, "key": [0, 0]}
     rng = np.random.default_rng(seed + len(pruner))
     cost = 1.0
-    for g in range(generations + 1 if done is None else done):
-        cost *= rng.uniform(0.5, 0.9)
-        rec = GenerationRecord(g, cost, 5, 5.0, 2, 100 * (g + 1), 1.0, 0, 0, population, 4, 1.0,
-                               GENOME)  # fmt: skip
-        rd.commit([rec.to_json()], [], GENOME, {})
+    # A consistent directory (the checks of resume and report pass): each checkpoint's state
+    # agrees with its generation record.
+    with RunDir.create(
+        path, {**meta, "generations": generations, "config": config.to_dict()}
+    ) as rd:
+        for g in range(generations + 1 if done is None else done):
+            cost *= rng.uniform(0.5, 0.9)
+            rec = GenerationRecord(g, cost, 5, 5.0, 2, 100 * (g + 1), 1.0, 0, 0, population, 4,
+                                   1.0, str(Genome.parse(GENOME)))  # fmt: skip
+            state = {"generation": g, "population": [{"genome": GENOME, "cost": cost}],
+                     "next_id": 3, "evaluations": 100 * (g + 1), "key": [0, 0]}  # fmt: skip
+            rd.commit([rec.to_json()], [], GENOME, state)
     return str(path)
 
 

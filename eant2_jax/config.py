@@ -436,12 +436,12 @@ class EANT2Config:
 
     @classmethod
     def from_dict(cls, d: dict, *, complete: bool = False) -> EANT2Config:
-        """Inverse of :meth:`to_dict`; unknown keys are a ValueError naming them.
+        """Inverse of `to_dict`; unknown keys are a ValueError naming them.
 
         Args:
           d: the dict (an ``exploit`` dict is required: without it pruning would silently
             be off).
-          complete: also require every field (as :meth:`to_dict` writes them), so that no
+          complete: also require every field (as `to_dict` writes them), so that no
             missing key silently takes its default.
         """
         if not isinstance(d, dict):

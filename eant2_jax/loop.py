@@ -95,7 +95,7 @@ class RunState:
 
     @classmethod
     def from_json(cls, d: dict) -> RunState:
-        """The state as :meth:`to_json` wrote it; a ValueError names a bad field."""
+        """The state as `to_json` wrote it; a ValueError names a bad field."""
         if not isinstance(d, dict):
             raise ValueError("the state is not a JSON object")
         unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
@@ -155,7 +155,7 @@ class GenerationRecord:
 
     @classmethod
     def from_json(cls, d: dict) -> GenerationRecord:
-        """The record as :meth:`to_json` wrote it; a ValueError names a bad field."""
+        """The record as `to_json` wrote it; a ValueError names a bad field."""
         return cls(**typed_fields(cls, d, "a generation record"))
 
 
@@ -305,7 +305,7 @@ def _generation(
     bucket: Bucket | None = None,
 ) -> tuple[RunState, GenerationRecord, list[PruneAttempt], Bucket | None]:
     """One generation (generation 0 initialises); returns the new state, its records and
-    the bucket it compiled into (:func:`grow_bucket` of ``bucket``)."""
+    the bucket it compiled into (`grow_bucket` of ``bucket``)."""
     t0 = time.perf_counter()
     gen = 0 if state is None else state.generation + 1
     gkey = jax.random.fold_in(key, gen)
@@ -442,7 +442,7 @@ def resume(
     """Continue a run directory from its last complete generation.
 
     The directory is locked for the whole run (a second resume of a live run is refused)
-    and checked completely (:func:`validate`) before anything in it is changed.
+    and checked completely (`validate`) before anything in it is changed.
 
     Args:
       out: the run directory.
@@ -478,10 +478,10 @@ def resume(
 
 
 class Validated(NamedTuple):
-    """A run directory's committed contents, typed and cross-checked (:func:`validate`).
+    """A run directory's committed contents, typed and cross-checked (`validate`).
 
     Attributes:
-      committed: the raw :class:`~eant2_jax.rundir.Committed` contents.
+      committed: the raw `Committed` contents.
       config: the run's configuration; generations: the total it asked for.
       state: the checkpoint's state (None before the first commit); key: the run's key.
       records, pruning: the committed generation and pruning records.
@@ -497,7 +497,7 @@ class Validated(NamedTuple):
 
 
 def validate(out: str, task: Task | None = None, *, lock: bool = True) -> Validated:
-    """Check a run directory as :func:`resume` does, changing nothing.
+    """Check a run directory as `resume` does, changing nothing.
 
     Args:
       out: the run directory.

@@ -32,7 +32,7 @@ Trust (docs/reliability.md):
   and its own state, so a silent edit of any committed byte is detected; nothing is
   truncated before all of this has passed;
 * strict JSON: files are written with ``allow_nan=False`` (a non-finite float is written as
-  the string ``"inf"``, ``"-inf"`` or ``"nan"``, which :func:`as_float` reads back) and
+  the string ``"inf"``, ``"-inf"`` or ``"nan"``, which `as_float` reads back) and
   format-2 files are read with ``Infinity``/``NaN`` refused.
 
 Directories of format 1 (before checksums) are still read and resumed; their files may
@@ -51,6 +51,7 @@ import os
 import shutil
 import stat
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -96,7 +97,7 @@ def dumps(obj: Any, **kwargs) -> str:
 
 
 def as_float(value: Any, what: str) -> float:
-    """A float field as :func:`dumps` wrote it (a number, or "inf", "-inf", "nan")."""
+    """A float field as `dumps` wrote it (a number, or "inf", "-inf", "nan")."""
     if isinstance(value, str) and value in _NONFINITE:
         return _NONFINITE[value]
     if isinstance(value, bool) or not isinstance(value, int | float):
@@ -107,7 +108,7 @@ def as_float(value: Any, what: str) -> float:
 def typed_fields(cls, d: Any, what: str, defaults: dict | None = None) -> dict:
     """The fields of dataclass ``cls`` from a JSON object, each checked against its
     annotation (``int``, ``float``, ``str``, ``bool``, optionally ``| None``); a ValueError
-    names ``what`` and the field. Floats go through :func:`as_float`."""
+    names ``what`` and the field. Floats go through `as_float`."""
     if not isinstance(d, dict):
         raise ValueError(f"{what} is not a JSON object")
     fields = {f.name: f for f in dataclasses.fields(cls)}
@@ -161,7 +162,7 @@ def _depth_ok(text: str) -> bool:
 
 
 def loads(data: bytes | str, where: str, *, strict: bool = True) -> Any:
-    """Parse JSON from a run directory; any problem is a one-line :class:`RunDirError` that
+    """Parse JSON from a run directory; any problem is a one-line `RunDirError` that
     names ``where``. ``strict`` refuses ``Infinity`` and ``NaN``."""
     if isinstance(data, bytes):
         try:
@@ -220,7 +221,7 @@ def _state_sum(state: dict) -> str:
 
 @dataclasses.dataclass(frozen=True)
 class Committed:
-    """What a run directory has committed, read and checked by :meth:`RunDir.read`.
+    """What a run directory has committed, read and checked by `RunDir.read`.
 
     Attributes:
       config: ``config.json``'s object.
@@ -243,7 +244,7 @@ class Committed:
 class RunDir:
     """A run directory on disk (see the module docstring for its files and guarantees).
 
-    Use :meth:`create` or :meth:`open`, and :meth:`close` (or ``with``) when done: the
+    Use `create` or `open`, and `close` (or ``with``) when done: the
     object holds the directory open, and locked when it was opened to write.
     """
 
@@ -255,7 +256,7 @@ class RunDir:
 
     # ------------------------------------------------------------------ opening and locking
     @classmethod
-    def create(cls, path: str | os.PathLike, config: dict) -> RunDir:
+    def create(cls, path: str | os.PathLike, config: dict, *, _attempts: int = 0) -> RunDir:
         """Make a new run directory, locked; refuses to touch an existing non-empty one.
 
         The directory is built under a hidden temporary name beside ``path`` and renamed
@@ -274,8 +275,19 @@ class RunDir:
             os.umask(umask)
             os.chmod(tmp, 0o777 & ~umask)
             fd = os.open(tmp, os.O_RDONLY | os.O_DIRECTORY)
-            # The lock is on the directory's inode: it stays held across the rename.
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            # The lock is on the directory's inode: it stays held across the rename. Nobody
+            # else writes a fresh hidden directory, but another creator's clean-up may hold
+            # a shared lock on it for a moment to see whether it is alive: wait that out.
+            for attempt in range(200):
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if attempt == 199:
+                        raise RunDirError(f"{p}: could not lock its new directory") from None
+                    time.sleep(0.005)
+            if not _same_inode(tmp, fd):  # removed by another creator's clean-up
+                raise _Vanished
             run = cls(tmp, fd)
             run._write_new(CONFIG, text.encode())
             for name in LOGS:
@@ -289,6 +301,16 @@ class RunDir:
                         f"{p} already exists and is not an empty directory; not overwriting"
                     ) from None
                 raise
+        except (_Vanished, FileNotFoundError):
+            # Removed by another creator's clean-up between mkdtemp and the lock: start again.
+            if "fd" in locals():
+                os.close(fd)
+            shutil.rmtree(tmp, ignore_errors=True)
+            if _attempts >= 20:
+                raise RunDirError(
+                    f"{p}: could not create it (its new directory kept vanishing)"
+                ) from None
+            return cls.create(path, config, _attempts=_attempts + 1)
         except BaseException:
             if "run" in locals():
                 run.close()
@@ -413,7 +435,7 @@ class RunDir:
 
     # ------------------------------------------------------------------ reading
     def config(self) -> dict:
-        """``config.json`` (an object of a known format), or a :class:`RunDirError`."""
+        """``config.json`` (an object of a known format), or a `RunDirError`."""
         where = str(self.path / CONFIG)
         data = self._read(CONFIG)
         if data is None:
@@ -429,7 +451,7 @@ class RunDir:
         """Everything committed, checked: offsets, checksums and the record count.
 
         Reads nothing beyond the checkpoint's offsets, so it also reads a live run
-        consistently. Raises :class:`RunDirError` (one line) on any inconsistency.
+        consistently. Raises `RunDirError` (one line) on any inconsistency.
         """
         config_bytes = self._read(CONFIG)
         config = self.config()
@@ -524,10 +546,10 @@ class RunDir:
 
     # ------------------------------------------------------------------ writing
     def rewind(self, offsets: dict[str, int], best: str | None = None) -> None:
-        """Truncate the logs to the offsets :meth:`read` checked, restore ``best.genome`` from
+        """Truncate the logs to the offsets `read` checked, restore ``best.genome`` from
         the checkpoint (``best``) if it differs, and remove a dead commit's temporary files.
 
-        Call only after :meth:`read` and every other check passed: this is the first write.
+        Call only after `read` and every other check passed: this is the first write.
         """
         for name in LOGS:
             fd = self._open(name, os.O_WRONLY)
@@ -578,6 +600,17 @@ class RunDir:
         )
 
 
+class _Vanished(Exception):
+    """A creation's new directory was removed under it (see ``_remove_dead_creations``)."""
+
+
+def _same_inode(path: Path, fd: int) -> bool:
+    try:
+        return os.stat(path, follow_symlinks=False).st_ino == os.fstat(fd).st_ino
+    except OSError:
+        return False
+
+
 def _remove_dead_creations(p: Path) -> None:
     """Remove temporary directories of creations of ``p`` whose process died (unlocked)."""
     for tmp in p.parent.glob(f".{p.name}{_CREATING}*"):
@@ -588,9 +621,12 @@ def _remove_dead_creations(p: Path) -> None:
         except OSError:
             continue
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            continue  # a live creation
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                continue  # a live creation
+            # Removed while locked: a creation that has just made it waits for the lock, then
+            # finds it gone and starts again (see RunDir.create).
+            shutil.rmtree(tmp, ignore_errors=True)
         finally:
             os.close(fd)
-        shutil.rmtree(tmp, ignore_errors=True)

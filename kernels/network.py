@@ -18,7 +18,7 @@ One step of the network on one example:
 
 Non-finite inputs follow the stack semantics exactly: a NaN or infinite value reaches only
 the neurons that read it (through a gene, even one of weight 0), never through the zeros of
-the dense matrices (see ``_dot``), as in :func:`eant2_jax.reference.interpret`.
+the dense matrices (see ``_dot``), as in `eant2_jax.reference.interpret`.
 
 ``w_ff`` is strictly lower-triangular in slot order (a neuron only reads earlier slots), so
 after ``d`` sweeps every neuron of depth <= d is exact and stays exact: ``sweeps`` must be at
@@ -100,10 +100,12 @@ class Network:
       w_ff: ``[H, H]`` current-step weights, ``w_ff[i, j]``: neuron j into neuron i (j < i).
       w_rec: ``[H, H]`` previous-step weights (recurrent jumpers).
       w_out: ``[n_out, H]`` output selection: root r's own weight at its neuron's slot.
-      is_root, neuron_mask: ``bool[H]`` as in :class:`Layout`.
+      is_root, neuron_mask: ``bool[H]`` as in `Layout`.
       reads: for ``w_in``, ``w_rec``, ``w_ff`` and ``w_out``: ``(mask, weights)``, the entries
         some gene sets (a connection; its weight may still be 0) and the weights a
         non-finite source is multiplied by (NaN where the genes' own products give NaN).
+        None (a network built by hand): plain dense products, where a non-finite input
+        reaches every neuron.
       sweeps: static number of dense sweeps per step (>= depth).
     """
 
@@ -114,8 +116,8 @@ class Network:
     w_out: jax.Array
     is_root: jax.Array
     neuron_mask: jax.Array
-    reads: tuple[tuple[jax.Array, jax.Array], ...]
     sweeps: int = struct.field(pytree_node=False)
+    reads: tuple[tuple[jax.Array, jax.Array], ...] | None = None
 
 
 def network(layout: Layout, params: jax.Array) -> Network:
@@ -188,7 +190,7 @@ def step(
       ``(y [n_out], h [H])``: the outputs and every neuron's output at this step.
     """
     act_h, act_o = activation(hidden), activation(output)
-    read_in, read_rec, read_ff, read_out = net.reads
+    read_in, read_rec, read_ff, read_out = net.reads or (None,) * 4
     base = _dot(net.w_in, read_in, x) + net.bias + _dot(net.w_rec, read_rec, h_prev)
 
     def sweep(_, h):
@@ -202,10 +204,12 @@ def step(
     return y, h
 
 
-def _dot(w: jax.Array, reads: tuple[jax.Array, jax.Array], v: jax.Array) -> jax.Array:
+def _dot(w: jax.Array, reads: tuple[jax.Array, jax.Array] | None, v: jax.Array) -> jax.Array:
     """``w @ v`` as the stack semantics compute it: a non-finite ``v[j]`` reaches exactly the
     rows that read it (a dense product would make ``0 * nan`` of every other row NaN). With
     a finite ``v`` it is ``w @ v`` to the bit; the masked terms cost one element-wise pass."""
+    if reads is None:
+        return jnp.dot(w, v, precision=_PRECISION)
     read, w_nf = reads
     finite = jnp.isfinite(v)
     y = jnp.dot(w, jnp.where(finite, v, jnp.zeros_like(v)), precision=_PRECISION)

@@ -157,7 +157,7 @@ def condition_experiment(
 
 def _from_evolved(genome, pruned, task, key, config, inits, warmup, sigma0) -> dict:
     """The condition experiment continuing from an evolved covariance (see
-    :func:`condition_experiment`): rows ``[0, inits)`` the original network, rows
+    `condition_experiment`): rows ``[0, inits)`` the original network, rows
     ``[inits, 2 inits)`` the same states with the pruned genes removed."""
     kept = _kept_genes(genome, pruned)
     w = np.zeros(genome.n_params)

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import distributed
-from .compiler import GENE_FLOOR, NEURON_FLOOR, Bucket, bucket_for, bucket_size
+from .compiler import GENE_FLOOR, NEURON_FLOOR, Bucket, bucket_size
 from .config import EANT2Config
 from .exploration import OPERATORS, initial_genome, mutate, select
 from .genome import Genome
@@ -281,17 +281,18 @@ def grow_bucket(genomes: Sequence[Genome], current: Bucket | None) -> Bucket:
     Each new bucket is a new program to compile (seconds on a CPU, more on a GPU), while the
     padding costs little (a generation is latency-bound: docs/benchmarks.md). Results do not
     depend on it: a structure's CMA-ES is independent of its padding."""
-    need = bucket_for(genomes)
+    neurons = max(g.n_neurons for g in genomes)
+    genes = max(g.n_params for g in genomes)
+    depth = max(g.depth() for g in genomes)
+    # A series value holds a size iff it is at least the size (every bucket is one).
     if current is not None and (
-        need.neurons <= current.neurons
-        and need.genes <= current.genes
-        and need.sweeps <= current.sweeps
+        neurons <= current.neurons and genes <= current.genes and depth <= current.sweeps
     ):
         return current
     return Bucket(
-        neurons=bucket_size(max(g.n_neurons for g in genomes) + 1, NEURON_FLOOR),
-        genes=bucket_size(max(g.n_params for g in genomes) + 1, GENE_FLOOR),
-        sweeps=bucket_size(max(max(g.depth() for g in genomes) + 1, 2)),
+        neurons=bucket_size(neurons + 1, NEURON_FLOOR),
+        genes=bucket_size(genes + 1, GENE_FLOOR),
+        sweeps=bucket_size(max(depth + 1, 2)),
     )
 
 
@@ -467,7 +468,7 @@ def resume(
         v = _validate(rundir, committed, task)
         mesh = distributed.make_mesh(v.config.devices)
         best = None
-        if v.state is not None and not _best_file_holds(rundir, v.state):
+        if v.state is not None and not _holds_best(committed.best, v.state):
             best = _best_text(v.state, task, committed.config)
         rundir.rewind(v.committed.offsets, best)
         total = v.generations if generations is None else generations
@@ -621,15 +622,15 @@ def _task_from_meta(meta: dict, rundir: RunDir) -> Task:
         raise RunDirError(f"{rundir.path / 'config.json'}: {e}") from None
 
 
-def _best_file_holds(rundir: RunDir, state: RunState) -> bool:
-    """Whether ``best.genome`` already holds the checkpoint's best (with or without a
-    header: a file from before headers is left as it is)."""
-    path = rundir.path / "best.genome"
+def _holds_best(text: str | None, state: RunState) -> bool:
+    """Whether ``best.genome``'s text (as `RunDir.read` read it) already holds the
+    checkpoint's best, with or without a header: a file from before headers is left as it
+    is."""
+    if text is None:
+        return False
     try:
-        if path.is_symlink() or not path.is_file():
-            return False
-        return GenomeFile.parse(path.read_text(encoding="utf-8")).genome == state.best().genome
-    except (OSError, UnicodeDecodeError, ValueError):
+        return GenomeFile.parse(text).genome == state.best().genome
+    except ValueError:
         return False
 
 

@@ -527,15 +527,6 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _compilation_cache() -> None:
-    """Keep compiled XLA programs between runs (the application's choice; the library never
-    touches global JAX settings): `eant2_jax.enable_compilation_cache`. EANT2_CACHE_DIR
-    overrides the place; an empty value turns the cache off."""
-    from eant2_jax.config import enable_compilation_cache
-
-    enable_compilation_cache()
-
-
 DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 
 
@@ -564,7 +555,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
     _deterministic_gpu()
-    _compilation_cache()
+    from eant2_jax.config import enable_compilation_cache
+
+    # Compiled programs kept between runs (the application's choice; the library never
+    # touches global JAX settings); EANT2_CACHE_DIR moves it, an empty value turns it off.
+    enable_compilation_cache()
     from eant2_jax.distributed import initialize
 
     initialize()  # joins a multi-process run when EANT2_COORDINATOR etc. are set

@@ -85,6 +85,7 @@ _STATIC_TYPES = {
     "prune_refit": int,
     "prune_reference": str,
     "prune_at_stop": bool,
+    "lazy_eigen": float,
 }
 DTYPES = ("float32", "float64")
 # The default bound on cond(C) by the dtype of the CMA-ES state: float32 resolves an
@@ -140,8 +141,8 @@ class ExploitConfig:
       prune_candidates: *static*. k, the best k candidates are evaluated in one batch (1 =
         the paper); see `eant2_jax.pruning.attempt`.
       prune_refit: *static*. CMA-ES iterations of the reduced structure after the shift,
-        before the acceptance test (0: none, the paper's literal rule); at most
-        ``max_iters``.
+        before the acceptance test (0: none, the paper's literal rule); at most what is left
+        of ``max_iters``, which they count against (at least 1).
       prune_refit_scale: the re-fit's initial step size, as a fraction of the shift's RMS
         length per kept coordinate (see `eant2_jax.pruning.attempt`).
       prune_reference: *static*. What the shifted (and re-fitted) cost is compared with:
@@ -151,6 +152,11 @@ class ExploitConfig:
         collapse, condition bound or the iteration budget): its CMA-ES has converged there,
         which is the paper's condition for trusting C. An accepted removal lets a structure
         stopped for any reason but the budget run on.
+
+      lazy_eigen: *static*. 0 (default) decomposes C every iteration. A factor f > 0
+        decomposes a structure's C only every ``f / (n (c_1 + c_mu))`` iterations (at least
+        1; `kernels.cmaes.eigen_interval`): Hansen's tutorial uses f = 0.1, pycma 0.5. A
+        pruning attempt always starts from a fresh decomposition.
 
     The defaults prune tentatively (re-fit, acceptance against the best cost, an attempt at
     every stop); `literal` gives the paper's rule as written. docs/pruning.md says why.
@@ -178,6 +184,7 @@ class ExploitConfig:
     prune_refit_scale: float = 0.3
     prune_reference: str = _static("best")
     prune_at_stop: bool = _static(True)
+    lazy_eigen: float = _static(0.0)
 
     def __post_init__(self):
         # JAX rebuilds this pytree with tracers (or other placeholders) as leaves when it
@@ -186,6 +193,8 @@ class ExploitConfig:
         leaves = [getattr(self, f.name) for f in dataclasses.fields(self)]
         if not all(v is None or isinstance(v, (int, float, str, np.number)) for v in leaves):
             return
+        if isinstance(self.lazy_eigen, int) and not isinstance(self.lazy_eigen, bool):
+            object.__setattr__(self, "lazy_eigen", float(self.lazy_eigen))
         for name, kind in _STATIC_TYPES.items():
             v = getattr(self, name)
             if not (isinstance(v, kind) and (kind is bool or not isinstance(v, bool))):
@@ -237,6 +246,11 @@ class ExploitConfig:
             ("prune_candidates", self.prune_candidates >= 1, ">= 1"),
             ("sigma_up", self.sigma_up > 1, "> 1"),
             ("prune_refit_scale", self.prune_refit_scale >= 0, ">= 0"),
+            (
+                "lazy_eigen",
+                self.lazy_eigen >= 0 and math.isfinite(self.lazy_eigen),
+                ">= 0 and finite",
+            ),
             ("bound_patience", self.bound_patience >= 1, ">= 1"),
             (
                 "prune_refit",

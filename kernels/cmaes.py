@@ -38,7 +38,18 @@ import numpy as np
 from flax import struct
 from jax.typing import DTypeLike
 
-__all__ = ["Params", "State", "ask", "default_params", "eigen", "init", "sqrt_cov", "tell"]
+__all__ = [
+    "Params",
+    "State",
+    "ask",
+    "decompose",
+    "default_params",
+    "eigen",
+    "eigen_interval",
+    "init",
+    "sqrt_cov",
+    "tell",
+]
 
 # evosax caps the dimension in c_1, c_mu and chi_n at floor(sqrt(int32 max)) so that
 # n**2 cannot overflow int32 (evosax/algorithms/base.py, ``max_num_dims_sq``).
@@ -241,6 +252,28 @@ def eigen(
     return C, B, D, valid_axes, cond, bounded
 
 
+def decompose(state: State, params: Params) -> State:
+    """``state`` with ``B``, ``D``, ``valid_axes``, ``cond`` and ``cond_bounded`` of its
+    ``C`` (clipped to ``params.max_condition``, as in `tell`)."""
+    p = _cast_params(params, state.C.dtype)
+    C, B, D, valid_axes, cond, bounded = eigen(state.C, state.mask, p.max_condition)
+    return state.replace(C=C, B=B, D=D, valid_axes=valid_axes, cond=cond, cond_bounded=bounded)
+
+
+def eigen_interval(params: Params, factor: float | jax.Array) -> jax.Array:
+    """Iterations between eigendecompositions under the lazy rule: ``factor / (n (c_1 +
+    c_mu))``, at least 1 (``[]`` float).
+
+    Hansen's tutorial (B.2) updates B and D every ``max(1, floor(1 / (10 n (c_1 + c_mu))))``
+    iterations (``factor`` 0.1, rounded down: at EANT2's sizes, n up to a few hundred, that is
+    every iteration); pycma's ``lazy_gap_evals`` uses 0.5 and decomposes once more than that
+    many iterations have passed, as here (a structure decomposes when the iterations since its
+    last decomposition reach the interval). The covariance learns at the rate ``c_1 + c_mu``
+    per iteration, so it moves by about ``factor / n`` of itself between two decompositions.
+    """
+    return jnp.maximum(factor / (params.n * (params.c_1 + params.c_mu)), 1.0)
+
+
 def sqrt_cov(state: State, inverse: bool = False) -> jax.Array:
     """Symmetric square root ``C^{1/2} = B diag(D) B^T`` (or ``C^{-1/2}``), ``[P, P]``.
 
@@ -352,7 +385,9 @@ def _rank_weights(cost: jax.Array, weights: jax.Array) -> tuple[jax.Array, jax.A
     return w, finite
 
 
-def tell(state: State, x: jax.Array, cost: jax.Array, params: Params) -> State:
+def tell(
+    state: State, x: jax.Array, cost: jax.Array, params: Params, *, decompose: bool = True
+) -> State:
     """One CMA-ES update from candidates and their costs (minimisation), Eq. (41)-(47).
 
     Args:
@@ -360,10 +395,14 @@ def tell(state: State, x: jax.Array, cost: jax.Array, params: Params) -> State:
       x: ``[popsize, P]`` candidates (padded coordinates are ignored).
       cost: ``[popsize]`` costs; NaN and +-inf rank after all finite costs.
       params: hyper-parameters from ``default_params(state.n, popsize)``.
+      decompose: *static*. Decompose the new ``C`` (default). False keeps ``B``, ``D``,
+        ``cond`` and ``cond_bounded`` of ``state`` (the lazy update of Hansen's tutorial,
+        B.2, and pycma): sampling and the paths go on with the last decomposition until
+        `decompose` is called.
 
     Returns:
-      The new state, with ``B``, ``D``, ``cond`` and ``cond_bounded`` of the new ``C``. If no
-      cost is finite, only ``generation`` and ``num_nonfinite`` change.
+      The new state, with ``B``, ``D``, ``cond`` and ``cond_bounded`` of the new ``C`` (with
+      ``decompose``). If no cost is finite, only ``generation`` and ``num_nonfinite`` change.
     """
     dtype = state.mean.dtype
     p = _cast_params(params, dtype)
@@ -410,7 +449,14 @@ def tell(state: State, x: jax.Array, cost: jax.Array, params: Params) -> State:
         + p.c_1 * jnp.outer(p_c, p_c)
         + p.c_mu * rank_mu
     )  # Eq. (47)
-    C, B, D, valid_axes, cond, bounded = eigen(C, mask, p.max_condition)
+    if decompose:
+        C, B, D, valid_axes, cond, bounded = eigen(C, mask, p.max_condition)
+    else:
+        # What `eigen` does to C before decomposing it, so that `decompose` later gives
+        # exactly what decompose=True would have given now.
+        C = jnp.where(mask[:, None] & mask[None, :], 0.5 * (C + C.T), 0)
+        B, D, valid_axes = state.B, state.D, state.valid_axes
+        cond, bounded = state.cond, state.cond_bounded
 
     # Best-so-far over finite costs.
     masked_cost = jnp.where(finite, cost, jnp.inf)

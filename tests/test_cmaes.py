@@ -324,6 +324,23 @@ def _stat_runner(algo: str, n: int):
             state = cmaes.init(mean0, sigma0, jnp.ones(n, bool), params)
             return _evals_to_target(step, state, seeds, target, max_gens)
 
+    elif algo.startswith("lazy"):
+        # The lazy eigendecomposition (ExploitConfig.lazy_eigen) with pycma's factor 0.5.
+        params = cmaes.default_params(n, popsize)
+        interval = cmaes.eigen_interval(params, float(algo[4:]))
+
+        def run(seeds, prob, mean0, sigma0, target, max_gens):
+            def step(carry, key):
+                state, age = carry
+                x, state = cmaes.ask(key, state, params)
+                state = cmaes.tell(state, x, cost(prob, x), params, decompose=False)
+                due = age + 1 >= interval
+                state = jax.lax.cond(due, cmaes.decompose, lambda s, p: s, state, params)
+                return (state, jnp.where(due, 0, age + 1)), state.best_cost
+
+            state = cmaes.init(mean0, sigma0, jnp.ones(n, bool), params)
+            return _evals_to_target(step, (state, 0), seeds, target, max_gens)
+
     else:
         es = evosax_cma(n, popsize)
 
@@ -379,6 +396,50 @@ def test_statistically_equivalent_to_evosax(case):
     msg = f"{kind} n={n}: median evaluations to target ours={ours:.0f} evosax={evo:.0f}"
     assert np.isfinite(ours) and np.isfinite(evo), msg
     assert abs(ours - evo) <= 0.10 * evo, msg
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", STAT_CASES, ids=[f"{c[0]}-{c[1]}" for c in STAT_CASES])
+def test_lazy_eigendecomposition_statistically_equivalent(case):
+    """Decomposing C only every 0.5 / (n (c_1 + c_mu)) iterations (pycma's rule) costs no
+    more evaluations to the target than decomposing it every iteration. Same seeds for both:
+    the streams agree until the first skipped decomposition."""
+    kind, n = case[:2]
+    seeds = jnp.arange(20)
+    eager = _median_evals("ours", *case, seeds=seeds)
+    lazy = _median_evals("lazy0.5", *case, seeds=seeds)
+    msg = f"{kind} n={n}: median evaluations to target lazy={lazy:.0f} eager={eager:.0f}"
+    assert np.isfinite(lazy) and np.isfinite(eager), msg
+    assert abs(lazy - eager) <= 0.10 * eager, msg
+
+
+def test_lazy_tell_then_decompose_equals_tell():
+    """tell(decompose=False) keeps the last decomposition, and decompose afterwards gives
+    exactly tell's state: the lazy path's decompositions are the eager ones, only fewer."""
+    n, P = 6, 9
+    params = cmaes.default_params(n, 10)
+    state = cmaes.init(jnp.zeros(P), 0.7, jnp.arange(P) < n, params)
+    quad = padded(shifted_ellipsoid(n, 1e3), P)
+    for i in range(5):
+        x, state = cmaes.ask(jax.random.fold_in(jax.random.key(3), i), state, params)
+        eager = cmaes.tell(state, x, quad(x), params)
+        lazy = cmaes.tell(state, x, quad(x), params, decompose=False)
+        for name in ("B", "D", "valid_axes", "cond", "cond_bounded"):
+            np.testing.assert_array_equal(getattr(lazy, name), getattr(state, name), name)
+        assert not np.array_equal(lazy.C, state.C)
+        lazy = cmaes.decompose(lazy, params)
+        for a, b in zip(jax.tree.leaves(lazy), jax.tree.leaves(eager), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        state = eager
+
+
+def test_eigen_interval_rule():
+    """The lazy interval is factor / (n (c_1 + c_mu)), never below one iteration."""
+    for n in (2, 10, 48, 160):
+        p = cmaes.default_params(n, default_popsize(n))
+        for factor in (0.1, 0.5, 2.0):
+            expected = max(factor / (n * float(p.c_1 + p.c_mu)), 1.0)
+            assert float(cmaes.eigen_interval(p, factor)) == pytest.approx(expected, rel=1e-6)
 
 
 # --------------------------------------------------------------------------------------------

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -126,6 +127,7 @@ def _run(args: argparse.Namespace) -> int:
         exploit["dtype"] = "float64"
     if args.max_iters is not None:
         exploit["max_iters"] = args.max_iters
+    exploit["lazy_eigen"] = args.lazy_eigen
     config = EANT2Config(
         population=args.population,
         devices=args.devices,
@@ -322,6 +324,13 @@ def _non_negative(text: str) -> int:
     return value
 
 
+def _factor(text: str) -> float:
+    value = float(text)
+    if not (value >= 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"must be >= 0 and finite, got {text}")
+    return value
+
+
 def _seed(text: str) -> int:
     """A run seed: JAX's 32-bit keys wrap seeds modulo 2**32, so only [0, 2**32) are
     distinct runs (2**32 would silently repeat seed 0)."""
@@ -399,6 +408,14 @@ def _parser() -> argparse.ArgumentParser:
         type=_positive,
         default=None,
         help="CMA-ES iteration budget per structure and generation",
+    )
+    run.add_argument(
+        "--lazy-eigen",
+        type=_factor,
+        default=0.0,
+        metavar="F",
+        help="decompose C only every F / (n (c1 + cmu)) iterations (pycma: 0.5; "
+        "default 0: every iteration)",
     )
     run.add_argument(
         "--devices",

@@ -46,7 +46,9 @@ def bench_generations(args, clock: CompileClock) -> list[dict]:
     tuning.compile_genomes = recording
     config = loop.EANT2Config(
         population=args.population,
-        exploit=ex.ExploitConfig(max_iters=args.max_iters, pruner=args.pruner),
+        exploit=ex.ExploitConfig(
+            max_iters=args.max_iters, pruner=args.pruner, lazy_eigen=args.lazy_eigen
+        ),
     )
     rows: list[dict] = []
     marks = {"compiles": clock.compiles, "t": time.perf_counter()}
@@ -181,6 +183,9 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", default="kinematic")
     p.add_argument("--task", default="servo", help="servo (default) or another registered task")
     p.add_argument("--pruner", default="covariance")
+    p.add_argument(
+        "--lazy-eigen", type=float, default=0.0, help="ExploitConfig.lazy_eigen (0: eager)"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--scaling-structures", type=int, nargs="+", default=[8, 20, 40, 80])
     p.add_argument("--scaling-moves", type=int, nargs="+", default=[256, 1023, 4092])

@@ -84,7 +84,7 @@ def _case(spec: str, args, deadline: float) -> dict[str, Any]:
         status, seconds, err = _cli(argv, cwd=tmp, env=environ,
                                     timeout=deadline - time.perf_counter())  # fmt: skip
         last = _last_generation(run_dir)
-        row.update(run=status, run_s=seconds)
+        row.update(run=status, run_s=seconds, run_log=err.strip().splitlines()[-8:])
         for key in ("generation", "evaluations", "best_cost", "best_size", "best_genome"):
             row[key] = last.get(key)
         if status == "failed":
@@ -95,7 +95,8 @@ def _case(spec: str, args, deadline: float) -> dict[str, Any]:
         status, seconds, err = _cli(["resume", str(run_dir)], cwd=tmp, env=environ,
                                     timeout=deadline - time.perf_counter())  # fmt: skip
         after = _last_generation(run_dir)
-        row.update(resume=status, resume_s=seconds, resume_best_cost=after.get("best_cost"),
+        row.update(resume=status, resume_s=seconds, resume_log=err.strip().splitlines()[-4:],
+                   resume_best_cost=after.get("best_cost"),
                    resume_generations=after.get("generation"))  # fmt: skip
         if status == "failed":
             row["error"] = err.strip().splitlines()[-1:] or ["?"]

@@ -30,7 +30,7 @@ from bench.common import BenchInputError, Column, environment, markdown_table
 
 CASES = (
     "inverted_pendulum --population 10 --max-iters 100 --generations 3 --target-cost -1000",
-    "hopper --population 10 --max-iters 20 --generations 1",
+    "hopper --population 10 --max-iters 20 --generations 0",
 )
 QUICK = ("inverted_pendulum --population 2 --max-iters 3 --generations 0 --no-prune "
          "--task-option max_steps=20",)  # fmt: skip

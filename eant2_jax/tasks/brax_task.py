@@ -48,7 +48,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from ..kernels import network as kn
-from .episodic import EpisodicTask, rollout
+from .episodic import EpisodicTask
 from .episodic import returns as returns
 
 __all__ = ["BACKENDS", "BraxTask", "brax", "calling_brax", "returns"]
@@ -127,11 +127,9 @@ class BraxTask(EpisodicTask):
       params: the environment's constructor arguments, as sorted ``(name, value)`` pairs
         (static).
       n_inputs, n_outputs: observation size and action size (static).
-      episodes: episodes per evaluation (static).
-      max_steps: steps per episode at most (static).
-      chunk: steps per block between the batch's early-exit checks (static).
-      hidden, output: activation names (static).
-      noisy: costs depend on the key (static; see `eant2_jax.tuning.tune`).
+
+    and `EpisodicTask`'s ``episodes``, ``max_steps``, ``chunk``, ``hidden``, ``output``
+    and ``noisy`` (keyword-only).
     """
 
     env_name: str = struct.field(pytree_node=False)
@@ -139,12 +137,6 @@ class BraxTask(EpisodicTask):
     params: tuple[tuple[str, Any], ...] = struct.field(pytree_node=False)
     n_inputs: int = struct.field(pytree_node=False)
     n_outputs: int = struct.field(pytree_node=False)
-    episodes: int = struct.field(pytree_node=False, default=1)
-    max_steps: int = struct.field(pytree_node=False, default=1000)
-    chunk: int = struct.field(pytree_node=False, default=50)
-    hidden: str = struct.field(pytree_node=False, default="tanh")
-    output: str = struct.field(pytree_node=False, default="tanh")
-    noisy: bool = struct.field(pytree_node=False, default=True)
 
     @property
     def env(self):
@@ -172,18 +164,7 @@ class BraxTask(EpisodicTask):
                 state = env.step(state, action)
             return state.obs, state, state.reward, state.done > 0
 
-        return rollout(
-            net,
-            key,
-            reset=reset,
-            step=step,
-            inputs=self.inputs,
-            action=self.action,
-            max_steps=self.max_steps,
-            chunk=self.chunk,
-            hidden=self.hidden,
-            output=self.output,
-        )
+        return self.play(net, key, reset, step)
 
 
 def brax(

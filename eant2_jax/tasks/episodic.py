@@ -3,7 +3,8 @@ adapters (`eant2_jax.tasks.gymnax_task`, `eant2_jax.tasks.brax_task`) share.
 
 An adapter says how to reset and step its environment and how observations become inputs
 and outputs become actions; `rollout` runs one episode of one network, and `EpisodicTask`
-turns episodes into the cost the engine minimises:
+(the base of the adapters' task classes) holds the episode settings, plays episodes with
+them (``play``) and turns episodes into the cost the engine minimises:
 
 * **recurrent state**: the network's neuron outputs are carried from step to step
   (`eant2_jax.kernels.network.step`), so recurrent jumpers see the previous step; they
@@ -29,6 +30,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
 from ..kernels import network as kn
 from .base import map_networks
@@ -93,14 +95,56 @@ def rollout(
     return ret, t
 
 
+@struct.dataclass(kw_only=True)
 class EpisodicTask:
-    """The cost of a task made of episodes: a mixin for a ``flax.struct`` task class that
-    defines ``episode(net, key) -> (return, steps)`` and a static field ``episodes``."""
+    """A task made of episodes: the base of the environment adapters' task classes, which
+    add their environment's fields and define ``inputs``, ``action`` and ``episode``
+    (usually through `play`). Its fields are keyword-only.
 
-    episodes: int
+    Attributes:
+      max_steps: steps per episode at most (static).
+      output: activation of output neurons (static).
+      episodes: episodes per evaluation (static).
+      chunk: steps per block between the batch's early-exit checks (static).
+      hidden: activation of hidden neurons (static).
+      noisy: costs depend on the key (static; see `eant2_jax.tuning.tune`).
+    """
+
+    max_steps: int = struct.field(pytree_node=False)
+    output: str = struct.field(pytree_node=False)
+    episodes: int = struct.field(pytree_node=False, default=1)
+    chunk: int = struct.field(pytree_node=False, default=50)
+    hidden: str = struct.field(pytree_node=False, default="tanh")
+    noisy: bool = struct.field(pytree_node=False, default=True)
+
+    def inputs(self, obs: Any) -> jax.Array:
+        """Network inputs ``[n_inputs]`` of one observation."""
+        raise NotImplementedError
+
+    def action(self, y: jax.Array) -> Any:
+        """The environment's action for network outputs ``y`` ``[n_outputs]``."""
+        raise NotImplementedError
 
     def episode(self, net: kn.Network, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Return (sum of rewards) and length of ONE episode of ONE network."""
         raise NotImplementedError
+
+    def play(
+        self, net: kn.Network, key: jax.Array, reset: Reset, step: Step
+    ) -> tuple[jax.Array, jax.Array]:
+        """`rollout` of ONE network with this task's inputs, action and settings."""
+        return rollout(
+            net,
+            key,
+            reset=reset,
+            step=step,
+            inputs=self.inputs,
+            action=self.action,
+            max_steps=self.max_steps,
+            chunk=self.chunk,
+            hidden=self.hidden,
+            output=self.output,
+        )
 
     def cost(self, key: jax.Array, nets: kn.Network) -> jax.Array:
         """``-mean return`` ``[*batch]`` over ``episodes`` episodes drawn from ``key``."""

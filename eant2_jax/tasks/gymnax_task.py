@@ -43,7 +43,7 @@ import numpy as np
 from flax import struct
 
 from ..kernels import network as kn
-from .episodic import EpisodicTask, rollout
+from .episodic import EpisodicTask
 from .episodic import returns as returns
 
 __all__ = ["GymnaxTask", "NORMALIZE", "gymnax", "returns"]
@@ -86,11 +86,9 @@ class GymnaxTask(EpisodicTask):
       n_inputs, n_outputs: network inputs (flattened observation) and outputs (static).
       discrete: argmax over outputs (True) or a continuous action (static).
       action_shape: shape of one continuous action (static).
-      episodes: episodes per evaluation (static).
-      max_steps: steps per episode at most (static).
-      chunk: steps per block between the batch's early-exit checks (static).
-      hidden, output: activation names (static).
-      noisy: costs depend on the key (static; see `eant2_jax.tuning.tune`).
+
+    and `EpisodicTask`'s ``episodes``, ``max_steps``, ``chunk``, ``hidden``, ``output``
+    and ``noisy`` (keyword-only).
     """
 
     env_params: Any
@@ -103,12 +101,6 @@ class GymnaxTask(EpisodicTask):
     n_outputs: int = struct.field(pytree_node=False)
     discrete: bool = struct.field(pytree_node=False)
     action_shape: tuple[int, ...] = struct.field(pytree_node=False)
-    episodes: int = struct.field(pytree_node=False, default=1)
-    max_steps: int = struct.field(pytree_node=False, default=500)
-    chunk: int = struct.field(pytree_node=False, default=50)
-    hidden: str = struct.field(pytree_node=False, default="tanh")
-    output: str = struct.field(pytree_node=False, default="identity")
-    noisy: bool = struct.field(pytree_node=False, default=True)
 
     @property
     def env(self):
@@ -129,6 +121,9 @@ class GymnaxTask(EpisodicTask):
         """Return (sum of rewards) and length of ONE episode of ONE network."""
         env, params = self.env, self.env_params
 
+        def reset(key):
+            return env.reset(key, params)
+
         def step(key, state, action):
             out = env.step(key, state, action, params)
             if len(out) == 6:  # gymnax >= 0.0.9: obs, state, reward, terminated, truncated, info
@@ -137,18 +132,7 @@ class GymnaxTask(EpisodicTask):
             obs, state, reward, done, _ = out  # older gymnax: obs, state, reward, done, info
             return obs, state, reward, done
 
-        return rollout(
-            net,
-            key,
-            reset=lambda k: env.reset(k, params),
-            step=step,
-            inputs=self.inputs,
-            action=self.action,
-            max_steps=self.max_steps,
-            chunk=self.chunk,
-            hidden=self.hidden,
-            output=self.output,
-        )
+        return self.play(net, key, reset, step)
 
 
 def _bounds(space: Any, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray] | None:

@@ -66,7 +66,8 @@ def rollout(
       action: ``action(y) -> action`` of the network's outputs ``y`` ``[n_out]``.
       max_steps: steps at most (static).
       chunk: steps per block between the batch's early-exit checks (static).
-      hidden, output: activation names.
+      hidden: activation name of hidden neurons.
+      output: activation name of output neurons.
 
     Returns:
       ``(return [], steps [] int32)``.

@@ -8,6 +8,8 @@ trace), scaling (over several devices), pycma (the batched engine against pycma 
 redundancy (pruning on networks of known redundancy), condition (the paper's V.A, float64),
 coldstart (wall time of ``eant2 run`` from process start, empty and warm compilation cache).
 fuzz_rundir (corrupted run directories and genome texts, issue 16).
+brax (``eant2 run brax:ENV`` and ``eant2 resume`` from process start, the best network's
+return on new episodes).
 Each writes JSON (device, versions, config, compile time apart from steady state) and a
 markdown table, and never over an existing result file unless ``--force`` is given;
 ``--help`` after the suite name lists its options.
@@ -32,6 +34,7 @@ SUITES = {
     "condition": "bench.bench_condition",
     "coldstart": "bench.bench_coldstart",
     "fuzz_rundir": "bench.bench_fuzz_rundir",
+    "brax": "bench.bench_brax",
 }
 
 

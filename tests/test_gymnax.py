@@ -16,14 +16,13 @@ import json
 import jax
 import numpy as np
 import pytest
-from compiles import count_compiles
+from episodes import batch_costs
 
 pytest.importorskip("gymnax")
 
 import eant2_jax  # noqa: E402
 from eant2_jax import tasks  # noqa: E402
 from eant2_jax.compiler import networks  # noqa: E402
-from eant2_jax.exploration import initial_genome  # noqa: E402
 from eant2_jax.tasks.gymnax_task import returns  # noqa: E402
 
 # Output 1 (push right) = theta + theta_dot (normalised): the textbook linear controller.
@@ -47,9 +46,6 @@ def test_cartpole_controllers_get_the_returns_they_should():
     assert cost[0] == -500.0 and -30 <= cost[1] <= -5
 
 
-_cost = jax.jit(lambda task, key, nets: task.cost(key, nets))
-
-
 @pytest.mark.parametrize(
     "name,options,n_in,n_out",
     [
@@ -58,17 +54,7 @@ _cost = jax.jit(lambda task, key, nets: task.cost(key, nets))
     ],
 )
 def test_a_batch_of_networks_gets_one_cost_each(name, options, n_in, n_out):
-    task = tasks.make(f"gymnax:{name}", **options)
-    assert (task.n_inputs, task.n_outputs) == (n_in, n_out)
-    rng = np.random.default_rng(0)
-    genomes = [initial_genome(rng, n_in, n_out, weight_scale=0.5) for _ in range(6)]
-    nets = jax.tree.map(lambda a: a.reshape(2, 3, *a.shape[1:]), networks(genomes, n_in))
-    cost = np.asarray(_cost(task, jax.random.key(0), nets))
-    assert cost.shape == (2, 3) and np.all(np.isfinite(cost))
-    again = tasks.make(f"gymnax:{name}", **options)
-    with count_compiles() as c:
-        _cost(again, jax.random.key(1), nets)
-    assert c.count == 0
+    task, _, _ = batch_costs(f"gymnax:{name}", options, n_in, n_out)
     if name == "Pendulum-v1":  # bounded observations normalised, the action mapped
         np.testing.assert_allclose(task.obs_scale, [1.0, 1.0, 1 / 8])
         np.testing.assert_allclose([task.act_low[0], task.act_high[0]], [-2.0, 2.0])

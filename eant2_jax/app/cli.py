@@ -371,7 +371,7 @@ def _parser() -> argparse.ArgumentParser:
         nargs="?",
         default=None,
         help="task: a name (xor, servo, dpv, dpnv), gymnax:ENV (e.g. gymnax:CartPole-v1), "
-        "module:factory or file.py:factory (docs/tasks-custom.md)",
+        "brax:ENV (e.g. brax:hopper), module:factory or file.py:factory (docs/tasks-custom.md)",
     )
     run.add_argument(
         "--task-file",

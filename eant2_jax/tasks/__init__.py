@@ -3,7 +3,7 @@
 ``make(spec, **options)`` builds a task from a spec, which is one of
 
 * a registered name (``xor``, ``servo``, ``dpv``, ``dpnv``; `names`);
-* ``NAMESPACE:NAME`` for a registered family of tasks (``gymnax:CartPole-v1``;
+* ``NAMESPACE:NAME`` for a registered family of tasks (``gymnax:CartPole-v1``, ``brax:hopper``;
   `namespaces`);
 * ``module.path:factory``, a factory in an importable module;
 * ``path/to/file.py:factory`` (or ``path/to/file.py``, factory ``make_task``), a factory in
@@ -222,7 +222,7 @@ register("xor", xor)
 
 
 def _lazy(module: str, attr: str) -> Callable[..., Task]:
-    """A factory that imports its module on first use (MJX, gymnax are slow to import);
+    """A factory that imports its module on first use (MJX, gymnax, brax are slow to import);
     ``resolve()`` returns the real factory (for its signature and docstring)."""
 
     def resolve() -> Callable[..., Task]:
@@ -240,3 +240,4 @@ register("servo", _lazy("servo", "servo"))
 register("dpv", _lazy("pole", "dpv"))
 register("dpnv", _lazy("pole", "dpnv"))
 register_namespace("gymnax", _lazy("gymnax_task", "gymnax"))
+register_namespace("brax", _lazy("brax_task", "brax"))

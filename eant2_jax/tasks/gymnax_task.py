@@ -17,16 +17,11 @@ A network controls the environment for one episode at a time:
   is the ``argmax`` (output activation ``identity``); a continuous (``Box``) one gets one
   output per action dimension, clipped to ``[-1, 1]`` and mapped linearly onto
   ``[low, high]`` (output activation ``tanh``).
-* **recurrent state**: the network's neuron outputs are carried from step to step
-  (`eant2_jax.kernels.network.step`), so recurrent jumpers see the previous step;
-  they start at zero in every episode.
-* **episode**: at most ``max_steps`` steps (the environment's own limit by default, 500 for
-  CartPole-v1); steps after the episode ends (terminated or truncated) are masked out, so
-  every episode of a batch runs the same program. Episodes run in blocks of ``chunk`` steps
-  inside a ``lax.while_loop`` that stops once every episode of the batch has ended.
-* **cost**: ``-mean return`` over ``episodes`` episodes; their start states and the
-  environment's noise come from the cost's key, the same draws for every network of the call
-  (common random numbers).
+* **episodes and cost** (`eant2_jax.tasks.episodic`, shared with the brax adapter): the
+  recurrent state is carried from step to step and starts at zero; an episode has at most
+  ``max_steps`` steps (the environment's own limit by default, 500 for CartPole-v1) and
+  ends when the environment says done (terminated or truncated); the cost is ``-mean
+  return`` over ``episodes`` episodes drawn from the cost's key.
 
 The task is ``noisy``: costs depend on the key, and the exploitation engine draws new
 episodes at every CMA-ES iteration, so the best cost a search has seen is optimistic.
@@ -48,7 +43,8 @@ import numpy as np
 from flax import struct
 
 from ..kernels import network as kn
-from .base import map_networks
+from .episodic import EpisodicTask
+from .episodic import returns as returns
 
 __all__ = ["GymnaxTask", "NORMALIZE", "gymnax", "returns"]
 
@@ -79,7 +75,7 @@ def _environment(name: str) -> tuple[Any, Any]:
 
 
 @struct.dataclass
-class GymnaxTask:
+class GymnaxTask(EpisodicTask):
     """A gymnax environment as a task (module docstring). Build with `gymnax`.
 
     Attributes:
@@ -90,11 +86,9 @@ class GymnaxTask:
       n_inputs, n_outputs: network inputs (flattened observation) and outputs (static).
       discrete: argmax over outputs (True) or a continuous action (static).
       action_shape: shape of one continuous action (static).
-      episodes: episodes per evaluation (static).
-      max_steps: steps per episode at most (static).
-      chunk: steps per block between the batch's early-exit checks (static).
-      hidden, output: activation names (static).
-      noisy: costs depend on the key (static; see `eant2_jax.tuning.tune`).
+
+    and `EpisodicTask`'s ``episodes``, ``max_steps``, ``chunk``, ``hidden``, ``output``
+    and ``noisy`` (keyword-only).
     """
 
     env_params: Any
@@ -107,12 +101,6 @@ class GymnaxTask:
     n_outputs: int = struct.field(pytree_node=False)
     discrete: bool = struct.field(pytree_node=False)
     action_shape: tuple[int, ...] = struct.field(pytree_node=False)
-    episodes: int = struct.field(pytree_node=False, default=1)
-    max_steps: int = struct.field(pytree_node=False, default=500)
-    chunk: int = struct.field(pytree_node=False, default=50)
-    hidden: str = struct.field(pytree_node=False, default="tanh")
-    output: str = struct.field(pytree_node=False, default="identity")
-    noisy: bool = struct.field(pytree_node=False, default=True)
 
     @property
     def env(self):
@@ -132,45 +120,19 @@ class GymnaxTask:
     def episode(self, net: kn.Network, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Return (sum of rewards) and length of ONE episode of ONE network."""
         env, params = self.env, self.env_params
-        reset_key, step_key = jax.random.split(key)
-        obs, state = env.reset(reset_key, params)
-        h0 = jnp.zeros(net.bias.shape, jnp.float32)
-        carry0 = (obs, state, h0, jnp.float32(0.0), jnp.bool_(True), jnp.int32(0))
 
-        def one(carry, _):
-            obs, state, h, ret, alive, t = carry
-            y, h = kn.step(net, self.inputs(obs), h, hidden=self.hidden, output=self.output)
-            out = env.step(jax.random.fold_in(step_key, t), state, self.action(y), params)
+        def reset(key):
+            return env.reset(key, params)
+
+        def step(key, state, action):
+            out = env.step(key, state, action, params)
             if len(out) == 6:  # gymnax >= 0.0.9: obs, state, reward, terminated, truncated, info
                 obs, state, reward, terminated, truncated, _ = out
-                done = jnp.logical_or(terminated, truncated)
-            else:  # older gymnax: obs, state, reward, done, info
-                obs, state, reward, done, _ = out
-            live = alive & (t < self.max_steps)
-            ret = ret + jnp.where(live, jnp.asarray(reward, jnp.float32), 0.0)
-            # A non-finite return (absurd weights) ends the episode as a failure.
-            alive = live & ~done & jnp.isfinite(ret)
-            return (obs, state, h, ret, alive, t + live.astype(jnp.int32)), None
+                return obs, state, reward, jnp.logical_or(terminated, truncated)
+            obs, state, reward, done, _ = out  # older gymnax: obs, state, reward, done, info
+            return obs, state, reward, done
 
-        def block(carry):
-            return jax.lax.scan(one, carry, None, length=min(self.chunk, self.max_steps))[0]
-
-        def going(carry):
-            return carry[4] & (carry[5] < self.max_steps)
-
-        _, _, _, ret, _, t = jax.lax.while_loop(going, block, carry0)
-        return ret, t
-
-    def cost(self, key: jax.Array, nets: kn.Network) -> jax.Array:
-        """``-mean return`` ``[*batch]`` over ``episodes`` episodes drawn from ``key``."""
-        keys = jax.random.split(key, self.episodes)
-
-        def one(net):
-            ret, _ = jax.vmap(self.episode, in_axes=(None, 0))(net, keys)
-            ret = jnp.where(jnp.isfinite(ret), ret, -jnp.inf)
-            return -jnp.mean(ret)
-
-        return map_networks(one, nets)
+        return self.play(net, key, reset, step)
 
 
 def _bounds(space: Any, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray] | None:
@@ -273,15 +235,3 @@ def gymnax(
         hidden=hidden,
         output=output,
     )
-
-
-@functools.partial(jax.jit, static_argnames=("episodes",))
-def _returns(task: GymnaxTask, nets: kn.Network, key: jax.Array, episodes: int):
-    keys = jax.random.split(key, episodes)
-    return map_networks(lambda net: jax.vmap(task.episode, in_axes=(None, 0))(net, keys)[0], nets)
-
-
-def returns(task: GymnaxTask, nets: kn.Network, *, key: jax.Array, episodes: int) -> np.ndarray:
-    """Returns ``[*batch, episodes]`` of networks on ``episodes`` new episodes (host side;
-    for checking a result on episodes it never saw: not counted as evaluations)."""
-    return np.asarray(_returns(task, nets, key, int(episodes)))

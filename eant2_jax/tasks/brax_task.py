@@ -1,0 +1,238 @@
+"""brax environments as EANT2 tasks: ``tasks.make("brax:inverted_pendulum")``.
+
+brax (Freeman et al. 2021, https://github.com/google/brax) provides MuJoCo-style
+locomotion and control environments (``ant``, ``halfcheetah``, ``hopper``,
+``inverted_pendulum``, ...) as pure JAX ``reset(key)`` / ``step(state, action)``. It is an
+optional extra: ``pip install "eant2-jax[brax]"``.
+
+A network controls the environment for one episode at a time:
+
+* **physics backend**: ``backend="generalized"`` by default, brax's own default for each
+  of its environments (so returns compare with brax's published ones); ``mjx`` (MuJoCo's
+  JAX port, the engine of the servo task), ``positional`` and ``spring`` can be chosen
+  instead. All four run with the project's mujoco/mujoco-mjx 3.17.0. On a 2-core CPU
+  (2026-11-23) ``generalized`` and ``mjx`` stepped ``inverted_pendulum`` and ``hopper`` at
+  about the same rate (within 15%), and ``generalized`` compiled an episode in 10 s
+  against 17 s for ``mjx``.
+* **observation -> inputs**: the observation vector as it is (float32). brax's trainers
+  normalise observations with running statistics; this adapter does not, for the reason
+  the gymnax adapter gives: a running normaliser changes the cost function while CMA-ES
+  searches it. brax's observations have no bounds to map from, and CMA-ES adapts its
+  covariance to the inputs' scales.
+* **outputs -> action**: one output per actuator (output activation ``tanh``), clipped to
+  ``[-1, 1]``, which brax's environments map onto the actuators' control ranges.
+* **episodes and cost** (`eant2_jax.tasks.episodic`, shared with the gymnax adapter): the
+  recurrent state is carried from step to step and starts at zero; an episode has at most
+  ``max_steps`` steps (1000 by default, brax's ``episode_length``) and ends early when the
+  environment sets its ``done`` flag (a fallen pendulum, an unhealthy hopper), the reward
+  of that last step included, as brax's evaluator counts it; the cost is ``-mean return``
+  over ``episodes`` episodes drawn from the cost's key.
+
+The task is ``noisy`` (random start states): `eant2_jax.tuning.tune` scores each tuned
+network once more on fresh episodes and reports that cost. One evaluation is one network's
+cost (all of its ``episodes``), as the engine counts.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import inspect
+import math
+import warnings
+from collections.abc import Iterator
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from ..kernels import network as kn
+from .episodic import EpisodicTask
+from .episodic import returns as returns
+
+__all__ = ["BACKENDS", "BraxTask", "brax", "calling_brax", "returns"]
+
+BACKENDS = ("generalized", "mjx", "positional", "spring")
+# Constructor arguments of brax's PipelineEnv that an environment passes on (**kwargs).
+_PIPELINE_OPTIONS = ("n_frames",)
+
+
+# What brax itself warns about, none of it the user's doing (each an error under the test
+# suite's warnings-as-errors): at import, that jaxopt is unmaintained; at every model load,
+# that brax is no longer actively maintained (said once in the docs instead); while tracing
+# a step, that it reads MJX fields through a deprecated path.
+_BRAX_WARNINGS = (
+    "JAXopt is no longer maintained",
+    "Brax System",
+    r"Accessing `\w+` directly from `\w+` is deprecated",
+)
+
+
+@contextlib.contextmanager
+def calling_brax() -> Iterator[None]:
+    """Context for calls into brax: its own warnings (above) silenced, and implicit rank
+    promotion allowed (MJX's pipeline relies on it; a caller may have made it an error)."""
+    with warnings.catch_warnings(), jax.numpy_rank_promotion("allow"):
+        for message in _BRAX_WARNINGS:
+            warnings.filterwarnings("ignore", message=message)
+        yield
+
+
+def _import_brax_envs():
+    from . import mjx_quiet  # noqa: F401  (brax imports MJX; drop its warp lines)
+
+    try:
+        with calling_brax():
+            from brax import envs
+    except ImportError as e:
+        raise ValueError(
+            f"brax tasks need the brax package ({e}): pip install 'eant2-jax[brax]'"
+        ) from None
+    return envs
+
+
+def _hashable(value: Any) -> Any:
+    """A JSON option value as a hashable one (lists become tuples)."""
+    if isinstance(value, list | tuple):
+        return tuple(_hashable(v) for v in value)
+    return value
+
+
+@functools.cache
+def _environment(name: str, backend: str, params: tuple[tuple[str, Any], ...]) -> Any:
+    """The brax environment, once per process and settings: tasks alike share one object,
+    so their compiled programs are shared too (the environment is a static part of them)."""
+    envs = _import_brax_envs()
+    with calling_brax():
+        return envs.get_environment(name, backend=backend, **dict(params))
+
+
+def _known_params(cls: type) -> list[str]:
+    names = [
+        p.name
+        for p in inspect.signature(cls.__init__).parameters.values()
+        if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) and p.name not in ("self", "backend")
+    ]
+    return sorted(names + list(_PIPELINE_OPTIONS))
+
+
+@struct.dataclass
+class BraxTask(EpisodicTask):
+    """A brax environment as a task (module docstring). Build with `brax`.
+
+    Attributes:
+      env_name: the brax environment name (static).
+      backend: the physics pipeline (static).
+      params: the environment's constructor arguments, as sorted ``(name, value)`` pairs
+        (static).
+      n_inputs, n_outputs: observation size and action size (static).
+
+    and `EpisodicTask`'s ``episodes``, ``max_steps``, ``chunk``, ``hidden``, ``output``
+    and ``noisy`` (keyword-only).
+    """
+
+    env_name: str = struct.field(pytree_node=False)
+    backend: str = struct.field(pytree_node=False)
+    params: tuple[tuple[str, Any], ...] = struct.field(pytree_node=False)
+    n_inputs: int = struct.field(pytree_node=False)
+    n_outputs: int = struct.field(pytree_node=False)
+
+    @property
+    def env(self):
+        return _environment(self.env_name, self.backend, self.params)
+
+    def inputs(self, obs: jax.Array) -> jax.Array:
+        """Network inputs ``[n_inputs]`` of one observation."""
+        return jnp.ravel(obs).astype(jnp.float32)
+
+    def action(self, y: jax.Array) -> jax.Array:
+        """The environment's action ``[n_outputs]`` (in ``[-1, 1]``) for outputs ``y``."""
+        return jnp.clip(y, -1.0, 1.0)
+
+    def episode(self, net: kn.Network, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Return (sum of rewards) and length of ONE episode of ONE network."""
+        env = self.env
+
+        def reset(key):
+            with calling_brax():
+                state = env.reset(key)
+            return state.obs, state
+
+        def step(_, state, action):  # brax's dynamics are deterministic: no key
+            with calling_brax():
+                state = env.step(state, action)
+            return state.obs, state, state.reward, state.done > 0
+
+        return self.play(net, key, reset, step)
+
+
+def brax(
+    name: str,
+    *,
+    episodes: int = 1,
+    max_steps: int = 1000,
+    backend: str = "generalized",
+    params: dict | None = None,
+    chunk: int = 50,
+    hidden: str = "tanh",
+    output: str = "tanh",
+) -> BraxTask:
+    """A brax environment as a task (``tasks.make("brax:NAME", ...)``).
+
+    Args:
+      name: the brax environment name, e.g. ``inverted_pendulum``, ``hopper``,
+        ``halfcheetah``.
+      episodes: episodes per evaluation (the cost is minus their mean return).
+      max_steps: steps per episode at most (brax's ``episode_length``; 1000 by default).
+      backend: the physics pipeline: ``generalized`` (brax's default), ``mjx``,
+        ``positional`` or ``spring``.
+      params: arguments of the environment's constructor, e.g.
+        ``{"ctrl_cost_weight": 0.01}`` for ``hopper``, or ``{"n_frames": 4}``.
+      chunk: steps per block of the episode loop (its early exit is checked per block).
+      hidden: activation of hidden neurons.
+      output: activation of output neurons (the action is the output clipped to [-1, 1]).
+
+    Returns:
+      The `BraxTask`.
+    """
+    envs = _import_brax_envs()
+    known = sorted(envs._envs)  # brax's registry (get_environment raises a bare KeyError)
+    if name not in known:
+        raise ValueError(f"unknown brax environment {name!r}; known: {', '.join(known)}")
+    if backend not in BACKENDS:
+        raise ValueError(f"brax:{name}: backend must be one of {', '.join(BACKENDS)}")
+    params = dict(params or {})
+    unknown = sorted(set(params) - set(_known_params(envs._envs[name])))
+    if unknown:
+        raise ValueError(
+            f"brax:{name}: unknown params {', '.join(unknown)}; "
+            f"known: {', '.join(_known_params(envs._envs[name]))}"
+        )
+    if int(episodes) < 1 or int(chunk) < 1:
+        raise ValueError(f"brax:{name}: episodes and chunk must be >= 1")
+    if int(max_steps) < 1:
+        raise ValueError(f"brax:{name}: max_steps must be >= 1, got {max_steps}")
+    kn.activation(hidden), kn.activation(output)
+    frozen = tuple(sorted((k, _hashable(v)) for k, v in params.items()))
+    try:
+        env = _environment(name, backend, frozen)
+    except (TypeError, ValueError) as e:
+        first = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ValueError(f"brax:{name}: cannot build the environment: {first}") from None
+    with calling_brax():
+        obs = jax.eval_shape(env.reset, jax.random.key(0)).obs
+    if not hasattr(obs, "shape"):
+        raise ValueError(f"brax:{name}: observations are {type(obs).__name__}, not one array")
+    return BraxTask(
+        env_name=name,
+        backend=backend,
+        params=frozen,
+        n_inputs=math.prod(obs.shape),
+        n_outputs=int(env.action_size),
+        episodes=int(episodes),
+        max_steps=int(max_steps),
+        chunk=int(chunk),
+        hidden=hidden,
+        output=output,
+    )

@@ -1,0 +1,27 @@
+"""The brax benchmark suite: a --quick run (a tiny run, its resume, new episodes) end to end;
+skipped when brax is not installed."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+
+import pytest
+
+if importlib.util.find_spec("brax") is None:
+    pytest.skip("brax is not installed", allow_module_level=True)
+
+
+@pytest.mark.slow
+def test_quick_run_resumes_and_plays_new_episodes(tmp_path, capsys):
+    from bench import bench_brax
+
+    out = tmp_path / "brax.json"
+    payload = bench_brax.main(["--quick", "--out", str(out)])
+    (row,) = payload["rows"]
+    assert (row["run"], row["resume"], row["generation"]) == ("ok", "ok", 0)
+    assert row["resume_best_cost"] == row["best_cost"]  # a finished run resumes to itself
+    assert row["new_episodes"] == 4 and 0 < row["new_return_min"] <= 20  # max_steps=20
+    assert json.loads(out.read_text())["rows"] == payload["rows"]
+    assert "| inverted_pendulum" in out.with_suffix(".md").read_text()
+    capsys.readouterr()

@@ -1,0 +1,167 @@
+"""The brax adapter on real brax environments (skipped when brax is not installed).
+
+* episode returns and lengths equal those of a plain Python loop over brax's own
+  ``env.reset`` / ``env.step`` driven by the NumPy genome interpreter (a recurrent
+  controller, so the state carried from step to step is checked too): the adapter's
+  inputs, action, done-masking and return are right, not just shaped right;
+* a hand-made linear controller balances ``inverted_pendulum`` for every step of every new
+  episode, and a zero action falls within a few dozen steps;
+* a batch of networks gets one cost each (one actuator and three), minus the mean of the
+  episodes' returns, and a second task built alike compiles nothing new;
+* options are checked with one line; an EANT2 run of a short episode resumes from the
+  command line.
+
+The default backend, ``generalized``, compiles fastest on a CPU; ``mjx`` is checked against
+the plain loop as well, in the slow lane (its compilation takes longer).
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import json
+
+import jax
+import numpy as np
+import pytest
+from episodes import batch_costs
+
+if importlib.util.find_spec("brax") is None:  # not imported here: the adapter imports it
+    pytest.skip("brax is not installed", allow_module_level=True)
+
+import eant2_jax  # noqa: E402
+from eant2_jax import tasks  # noqa: E402
+from eant2_jax.compiler import networks  # noqa: E402
+from eant2_jax.reference import interpret  # noqa: E402
+from eant2_jax.tasks.brax_task import calling_brax, returns  # noqa: E402
+
+# inverted_pendulum: inputs cart position, pole angle, cart velocity, pole angular velocity;
+# the one output pushes the cart. Push towards the side the pole leans to (a PD law), with a
+# recurrent jumper (R0) so that the carried state matters.
+BALANCE = "N0/5*1 I0*0.5 I1*5 I2*1 I3*1 R0*0.1"
+NOTHING = "N0/1*1 I0*0"  # action 0 every step
+SWING = "N0/2*1 I1*-3 R0*0.9"  # pushes the wrong way: falls, after a few steps
+
+
+def _nets(task, *genomes):
+    return networks([eant2_jax.Genome.parse(g) for g in genomes], task.n_inputs)
+
+
+@functools.cache
+def _jitted(env):
+    return jax.jit(env.reset), jax.jit(env.step)
+
+
+def _plain_returns(task, genome: str, key, episodes: int):
+    """Returns and lengths of episodes played one step at a time in Python: brax's reset
+    and step (jitted alone), the network by the NumPy reference, float64; the network sees
+    every observation so far (its recurrent state is rebuilt from them each step)."""
+    reset, step = _jitted(task.env)
+    g = eant2_jax.Genome.parse(genome)
+    out = []
+    for k in jax.random.split(key, episodes):
+        reset_key, _ = jax.random.split(k)  # as rollout splits an episode's key
+        with calling_brax():
+            state = reset(reset_key)
+        seen, ret, t = [], 0.0, 0
+        while t < task.max_steps:
+            seen.append(np.asarray(state.obs, np.float64))
+            y = interpret(g, np.asarray(seen)[:, None, :], hidden="tanh", output="tanh")[-1, 0]
+            with calling_brax():
+                state = step(state, np.clip(y, -1, 1).astype(np.float32))
+            ret, t = ret + float(state.reward), t + 1
+            if float(state.done) > 0:
+                break
+        out.append((ret, t))
+    return np.asarray(out)
+
+
+@functools.partial(jax.jit, static_argnames=("episodes",))
+def _episodes(task, nets, key, episodes):
+    """``(returns, steps)`` ``[networks, episodes]`` (what `returns` computes, with lengths)."""
+    keys = jax.random.split(key, episodes)
+    return jax.vmap(jax.vmap(task.episode, in_axes=(None, 0)), in_axes=(0, None))(nets, keys)
+
+
+@pytest.mark.parametrize("backend", ["generalized", pytest.param("mjx", marks=pytest.mark.slow)])
+def test_returns_equal_a_plain_loop_over_brax_steps(backend):
+    task = tasks.make("brax:inverted_pendulum", backend=backend, max_steps=60, chunk=16)
+    assert (task.n_inputs, task.n_outputs, task.backend) == (4, 1, backend)
+    key = jax.random.key(3)
+    genomes = (BALANCE, NOTHING, SWING)
+    nets = _nets(task, *genomes)
+    got, steps = map(np.asarray, _episodes(task, nets, key, 3))
+    for i, g in enumerate(genomes):
+        plain = _plain_returns(task, g, key, 3)
+        # float32 physics in both; the network's float32 vs float64 outputs differ by ~1e-7,
+        # which cannot flip a termination this far from the 0.2 rad limit: lengths exact.
+        np.testing.assert_array_equal(steps[i], plain[:, 1], err_msg=g)
+        np.testing.assert_allclose(got[i], plain[:, 0], rtol=1e-6, err_msg=g)
+    np.testing.assert_array_equal(got[0], 60.0)  # balances every step (reward 1 a step)
+    assert np.all(got[1] < 60) and np.all(got[2] < got[1]), got
+
+
+@pytest.mark.parametrize(
+    "name,options,n_in,n_out",
+    [
+        ("inverted_pendulum", {"max_steps": 30, "episodes": 2, "backend": "generalized"}, 4, 1),
+        pytest.param(
+            "hopper",
+            {"max_steps": 10, "backend": "spring"},
+            11,
+            3,
+            marks=pytest.mark.slow,
+        ),
+    ],
+)
+def test_a_batch_of_networks_gets_one_cost_each(name, options, n_in, n_out):
+    task, nets, cost = batch_costs(f"brax:{name}", options, n_in, n_out)
+    if name == "inverted_pendulum":  # (one more compilation: on one environment only)
+        # cost = -mean return over the task's episodes, drawn from the key.
+        flat = jax.tree.map(lambda a: a.reshape(6, *a.shape[2:]), nets)
+        r = returns(task, flat, key=jax.random.key(0), episodes=task.episodes)
+        np.testing.assert_allclose(cost.ravel(), -r.mean(axis=1), rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "spec,options,phrase",
+    [
+        ("brax:nope", {}, "unknown brax environment 'nope'; known: ant,"),
+        ("brax:hopper", {"backend": "warp"}, "backend must be one of generalized, mjx"),
+        ("brax:hopper", {"params": {"ctrl_cost_wieght": 1}}, "unknown params ctrl_cost_wieght"),
+        ("brax:hopper", {"episodes": 0}, "episodes and chunk must be >= 1"),
+        ("brax:hopper", {"max_steps": 0}, "max_steps must be >= 1"),
+        ("brax:hopper", {"hidden": "tanhh"}, "tanhh"),
+        ("brax:hopper", {"bogus": 1}, "bad options"),
+    ],
+)
+def test_bad_brax_options_are_one_line(spec, options, phrase):
+    with pytest.raises(ValueError) as e:
+        tasks.make(spec, **options)
+    assert phrase in str(e.value) and "\n" not in str(e.value)
+
+
+def test_params_reach_the_environment():
+    task = tasks.make("brax:hopper", backend="spring", params={"healthy_z_range": [0.5, 9.0]})
+    assert task.params == (("healthy_z_range", (0.5, 9.0)),)
+    assert task.env._healthy_z_range == (0.5, 9.0)
+
+
+@pytest.mark.slow
+def test_cli_runs_and_resumes_a_brax_task(tmp_path, capsys, monkeypatch):
+    from eant2_jax.app.cli import main
+
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")
+    out = tmp_path / "ip"
+    argv = ["run", "brax:inverted_pendulum", "--task-option", "max_steps=40"]
+    argv += ["--task-option", "backend=spring", "--generations", "0"]
+    argv += ["--population", "3", "--max-iters", "5", "--no-prune", "--out", str(out)]
+    assert main(argv) == 0
+    meta = json.loads((out / "config.json").read_text())
+    assert meta["task"] == "brax:inverted_pendulum"
+    assert meta["task_options"] == {"max_steps": 40, "backend": "spring"}
+    assert main(["resume", str(out), "--generations", "1"]) == 0
+    lines = (out / "generations.jsonl").read_text().splitlines()
+    assert [json.loads(x)["generation"] for x in lines] == [0, 1]
+    assert json.loads(lines[-1])["best_cost"] >= -40  # at most 40 steps of reward 1
+    capsys.readouterr()

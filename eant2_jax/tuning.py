@@ -198,8 +198,8 @@ def tune(
       on_compile: called before a program is compiled (see
         `eant2_jax.exploitation.run`).
       solution_test: a host-side test of a network (a genome with its weights): after each
-        chunk of ``config.chunk`` iterations, every structure whose best network has
-        changed is tested (in batch order); the first that passes halts every structure
+        chunk of ``config.chunk`` iterations, every structure whose best network is one
+        not tested yet is tested (in batch order); the first that passes halts every structure
         (`eant2_jax.exploitation.halted`) and is returned as ``Tuned.solution``. The
         evaluations are those spent until then; the test's own work is not counted.
 

@@ -2,35 +2,46 @@
 
 For each of ``--tasks`` (``dpv``: with velocities, balanced-steps fitness; ``dpnv``: without,
 Gruau's damping fitness) and each of ``--seeds`` seeds, one ``eant2_jax.loop.run`` (EANT2
-with covariance pruning) from the minimal network. After every generation the best genome is
-checked with :func:`eant2_jax.tasks.pole.solved` (100,000 steps; for dpnv also the 625-start
-generalisation test); the run stops at the first solved generation or when its evaluations
-pass ``--budget`` (a failure). Evaluations are counted as the task module says (every
-network run by the cost during evolution, CMA-ES candidates and pruning trials; the
-``solved`` checks are tests and are not counted), at generation granularity: a run that
-finds a solution mid-generation is charged the whole generation (its CMA-ES runs continue
-until their stop rules fire, at most ``patience`` iterations after the last improvement).
+with covariance pruning) with :func:`eant2_jax.tasks.pole.solved` as its ``solution_test``
+(100,000 steps; for dpnv also the 625-start generalisation test): the loop tests the best
+network of every structure it is tuning whenever that network improves, after every
+``--chunk`` CMA-ES iterations (default 1: every iteration), and stops at the first that
+passes. A run whose evaluations pass ``--budget`` at the end of a generation is a failure.
+The tasks in ``--recurrent-start`` (default dpnv) start from the recurrent-ready minimal
+network (``EANT2Config.init_recurrent``: the output neuron reads its own previous output
+through a weight-0 jumper).
+
+**Accounting** (as Gomez, Schmidhuber & Miikkulainen 2008 count, and NEAT and ESP): one
+evaluation = one network run by the task's cost during evolution: every CMA-ES candidate
+and every network a pruning attempt evaluates, of every structure in the batch (the
+structures of a generation are tuned together, in lock-step), up to and including the
+iteration after which the solution test passed. The solution test's own runs (the
+100,000-step run and the 625 starts) are not counted.
 
 Reported per task: success rate, mean and median evaluations over solved runs, the mean with
-failures charged the budget, and wall time per solved run (compilation included: the first
-seed pays most of it), next to Gomez, Schmidhuber & Miikkulainen (2008), tables 3-4.
+failures charged the budget, the generalisation scores (of 625) of the solutions, and wall
+time per solved run (compilation included: the first seed pays most of it), next to Gomez
+et al. (2008), tables 3-4.
 
-Seeds can be split over processes or machines (``--first-seed``) and the result files
-merged afterwards (``--merge``); a merge refuses files whose settings or devices differ, or
-that share a seed.
+Seeds can run concurrently (``--workers``: threads of one process, sharing the device and
+its compiled programs; a run's result does not depend on it), be split over processes or
+machines (``--first-seed``) and the result files merged afterwards (``--merge``); a merge
+refuses files whose settings or devices differ, or that share a seed.
 
 Run: ``python -m bench pole [--quick] [--seeds N] [--first-seed K] [--tasks dpv dpnv]
-[--out PATH]``, then ``python -m bench pole --merge A.json B.json ... --out PATH``.
+[--workers W] [--out PATH]``, then ``python -m bench pole --merge A.json B.json ... --out
+PATH``.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import concurrent.futures
 import json
 import statistics
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +55,7 @@ from eant2_jax.compiler import networks
 from eant2_jax.genome import Genome
 from eant2_jax.tasks import pole
 
-__all__ = ["PUBLISHED", "main", "solve_once"]
+__all__ = ["PUBLISHED", "main", "solution_test", "solve_once"]
 
 # Gomez, Schmidhuber & Miikkulainen (2008), JMLR 9: table 3 (DPV) and table 4 (DPNV, damping
 # fitness); mean evaluations to solve.
@@ -54,14 +65,47 @@ PUBLISHED = {
 }
 
 
-class _Solved(Exception):
+ACCOUNTING = (
+    "one evaluation = one network run by the task's cost during evolution (every CMA-ES "
+    "candidate and every network a pruning attempt evaluates, of every structure tuned in "
+    "lock-step with the solving one), up to the iteration after which the solution test "
+    "passed; the test's own runs (100,000 steps, 625 starts) are not counted (Gomez et al. "
+    "2008's rule)"
+)
+
+
+class _OverBudget(Exception):
     pass
 
 
+def solution_test(task, passed: list | None = None) -> Callable[[Genome], bool]:
+    """The bench's ``solution_test``: `pole.solved` of one genome, screened first.
+
+    The screen is `pole.solved` with a 1,000-step long run (the 625 starts included): a
+    network that fails it fails the full test, which then runs only for the rest (its
+    100,000-step run is the slow part, seconds on a GPU). Neither is counted as evaluations.
+    A genome that passes is appended to ``passed``.
+    """
+
+    def test(genome: Genome) -> bool:
+        net = jax.tree.map(lambda a: a[0], networks([genome], task.n_inputs))
+        ok = pole.solved(task, net, long_steps=1000)["solved"] and pole.solved(task, net)["solved"]
+        if ok and passed is not None:
+            passed.append(genome)
+        return ok
+
+    return test
+
+
 def solve_once(task, seed: int, config: loop.EANT2Config, budget: int) -> dict:
-    """One EANT2 run until ``solved`` or ``budget`` evaluations; its record."""
+    """One EANT2 run until its solution test passes or ``budget`` evaluations; its record.
+
+    A run is solved when a network passes the test with at most ``budget`` evaluations
+    spent; an unsolved run stops after the first generation that ends past the budget.
+    """
     t0 = time.perf_counter()
     info: dict[str, Any] = {"seed": seed, "solved": False, "evaluations": None, "generations": 0}
+    passed: list[Genome] = []
 
     def on_event(event):
         if event["event"] != "generation":
@@ -69,21 +113,25 @@ def solve_once(task, seed: int, config: loop.EANT2Config, budget: int) -> dict:
         info["generations"] = event["generation"]
         info["evaluations"] = event["evaluations"]
         info["best_cost"] = event["best_cost"]
-        genome = Genome.parse(event["best_genome"])
-        net = jax.tree.map(lambda a: a[0], networks([genome], task.n_inputs))
-        check = pole.solved(task, net)
-        if check["solved"]:
-            info.update(solved=True, genome=event["best_genome"], check=check)
-            raise _Solved
-        if event["evaluations"] >= budget:
-            raise _Solved
+        if event["evaluations"] >= budget and not passed:
+            raise _OverBudget
 
     try:
-        loop.run(
-            task, key=jax.random.key(seed), config=config, generations=10**6, callback=on_event
+        result = loop.run(
+            task,
+            key=jax.random.key(seed),
+            config=config,
+            generations=10**6,
+            callback=on_event,
+            solution_test=solution_test(task, passed),
         )
-    except _Solved:
-        pass
+    except _OverBudget:
+        result = None
+    if result is not None and result.solution is not None and info["evaluations"] <= budget:
+        genome = result.solution.genome
+        net = jax.tree.map(lambda a: a[0], networks([genome], task.n_inputs))
+        info.update(solved=True, genome=str(genome), check=pole.solved(task, net))
+        info["solution_cost"] = result.solution.cost
     info["wall_s"] = time.perf_counter() - t0
     return info
 
@@ -92,6 +140,7 @@ def _row(name: str, runs: list[dict], budget: int) -> dict:
     ok = [r for r in runs if r["solved"]]
     evals = [r["evaluations"] for r in ok]
     charged = [r["evaluations"] if r["solved"] else budget for r in runs]
+    gen = [r["check"]["generalisation"] for r in ok]
     return {
         "task": name,
         "seeds": len(runs),
@@ -102,6 +151,9 @@ def _row(name: str, runs: list[dict], budget: int) -> dict:
         "median_evals_failures_as_budget": statistics.median(charged),
         "wall_per_solved_s": (sum(r["wall_s"] for r in runs) / len(ok)) if ok else None,
         "median_wall_solved_s": statistics.median([r["wall_s"] for r in ok]) if ok else None,
+        "generalisation_mean": statistics.mean(gen) if gen else None,
+        "generalisation_min": min(gen) if gen else None,
+        "generalisation_max": max(gen) if gen else None,
         **{f"published_{k}": v for k, v in PUBLISHED[name].items()},
     }
 
@@ -113,6 +165,8 @@ COLUMNS = [
     Column("mean_evals_solved", "mean evals (solved)", "{:.0f}"),
     Column("median_evals_solved", "median evals (solved)", "{:.0f}"),
     Column("mean_evals_failures_as_budget", "mean evals (fail = budget)", "{:.0f}"),
+    Column("generalisation_mean", "generalisation (mean, of 625)", "{:.0f}"),
+    Column("generalisation_min", "generalisation (min)"),
     Column("wall_per_solved_s", "wall s / solved run", "{:.1f}"),
     Column("published_NEAT", "NEAT"),
     Column("published_ESP", "ESP"),
@@ -126,10 +180,32 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--first-seed", type=int, default=0, help="seeds K, K+1, ...")
     p.add_argument("--tasks", nargs="+", default=["dpv", "dpnv"], choices=["dpv", "dpnv"])
     p.add_argument("--budget", type=int, default=40_000, help="evaluations before failure")
-    p.add_argument("--population", type=int, default=10)
+    p.add_argument("--population", type=int, default=10, help="EANT2Config.population")
+    p.add_argument(
+        "--offspring", type=int, default=None, help="EANT2Config.offspring (default: population)"
+    )
+    p.add_argument(
+        "--recurrent-start",
+        nargs="*",
+        default=["dpnv"],
+        choices=["dpv", "dpnv"],
+        help="tasks that start from the recurrent-ready minimal network "
+        "(EANT2Config.init_recurrent; default: dpnv)",
+    )
+    p.add_argument("--popsize", type=int, default=16, help="CMA-ES candidates per iteration")
+    p.add_argument("--sigma0", type=float, default=1.0, help="CMA-ES initial step size")
     p.add_argument("--max-iters", type=int, default=50)
     p.add_argument("--patience", type=int, default=10)
     p.add_argument("--prune-window", type=int, default=30)
+    p.add_argument(
+        "--chunk",
+        type=int,
+        default=1,
+        help="CMA-ES iterations between solution tests (ExploitConfig.chunk; default 1)",
+    )
+    p.add_argument(
+        "--workers", type=int, default=1, help="runs in flight at once (threads; default 1)"
+    )
     p.add_argument(
         "--merge",
         nargs="+",
@@ -147,10 +223,11 @@ def _prepare(args: argparse.Namespace) -> None:
     elif args.quick:
         args.seeds, args.budget, args.tasks = 1, 50, ["dpv"]
         args.population, args.max_iters, args.patience, args.prune_window = 2, 3, 2, 2
+        args.popsize = 4
 
 
 # Settings that may differ between the files of one merge.
-_PER_PART = ("seeds", "first_seed", "tasks", "out", "merge")
+_PER_PART = ("seeds", "first_seed", "tasks", "out", "merge", "workers")
 
 
 def merge(paths: Sequence[str]) -> tuple[dict, dict[str, list[dict]]]:
@@ -173,7 +250,7 @@ def merge(paths: Sequence[str]) -> tuple[dict, dict[str, list[dict]]]:
     first = payloads[0]
 
     def settings(p: dict) -> dict:
-        return {k: v for k, v in p["config"].items() if k not in _PER_PART}
+        return {k: v for k, v in p["config"].items() if k not in (*_PER_PART, "eant2")}
 
     runs: dict[str, list[dict]] = {}
     for path, p in zip(paths, payloads, strict=True):
@@ -182,6 +259,10 @@ def merge(paths: Sequence[str]) -> tuple[dict, dict[str, list[dict]]]:
         if settings(p) != settings(first):
             diff = sorted(k for k in settings(p) if settings(p)[k] != settings(first).get(k))
             raise BenchInputError(f"{path} differs from {paths[0]} in its settings: {diff}")
+        # The EANT2 configurations (derived from the settings) of the tasks both files ran.
+        ours, theirs = p["config"].get("eant2", {}), first["config"].get("eant2", {})
+        if any(ours[t] != theirs[t] for t in set(ours) & set(theirs)):
+            raise BenchInputError(f"{path} differs from {paths[0]} in its EANT2 configuration")
         if p["device_kind"] != first["device_kind"]:
             raise BenchInputError(
                 f"{path} ran on {p['device_kind']!r}, {paths[0]} on {first['device_kind']!r}"
@@ -205,27 +286,22 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
         args.seeds, args.tasks = sum(len(r) for r in merged.values()), list(merged)
     else:
         merged = None
-    config = loop.EANT2Config(
-        population=args.population,
-        exploit=ex.ExploitConfig(
-            pruner="covariance",
-            max_iters=args.max_iters,
-            patience=args.patience,
-            prune_window=args.prune_window,
-            chunk=min(10, args.max_iters),
-        ),
-    )
     rows, runs = [], {}
 
     # A merge keeps the environment (device, versions, date) of the runs it merges.
     env = environment() if merged is None else {k: first[k] for k in environment()}
+    configs = {name: task_config(args, name) for name in args.tasks}
 
     def payload() -> dict:
         return {
             **env,
             "suite": "pole",
-            "config": {**harness.settings(args, "merge"), "eant2": config.to_dict()},
+            "config": {
+                **harness.settings(args, "merge"),
+                "eant2": {name: c.to_dict() for name, c in configs.items()},
+            },
             "published_source": "Gomez, Schmidhuber & Miikkulainen 2008 (JMLR 9), tables 3-4",
+            "accounting": ACCOUNTING,
             "rows": rows,
             "runs": runs,
         }
@@ -234,23 +310,47 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
         runs.update(merged)
         rows[:] = [_row(n, r, args.budget) for n, r in runs.items()]
         return payload()
-    # Results are saved after every seed, so a run cut off by a time limit keeps them.
+    # Results are saved after every run, so a run cut off by a time limit keeps them.
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    jobs = [(name, s) for name in args.tasks for s in seeds]
+    tasks = {name: pole.dpv() if name == "dpv" else pole.dpnv() for name in args.tasks}
     for name in args.tasks:
-        task = pole.dpv() if name == "dpv" else pole.dpnv()
-        task_config = config
-        if name == "dpv":
-            # dpv's cost is -(steps balanced): a candidate at -max_steps balanced the whole
-            # trial, so its CMA-ES stops there (pycma's ftarget) instead of running more
-            # 100,000-step trials until its patience runs out. Evaluations are unchanged up
-            # to that point; the solution check then runs as before.
-            exploit = dataclasses.replace(config.exploit, target_cost=-float(task.max_steps))
-            task_config = dataclasses.replace(config, exploit=exploit)
         runs[name] = []
-        for s in range(args.first_seed, args.first_seed + args.seeds):
-            runs[name].append(solve_once(task, s, task_config, args.budget))
-            rows[:] = [_row(n, r, args.budget) for n, r in runs.items()]
+    lock = threading.Lock()
+
+    def one(job):
+        name, s = job
+        info = solve_once(tasks[name], s, configs[name], args.budget)
+        with lock:
+            runs[name].append(info)
+            runs[name].sort(key=lambda r: r["seed"])
+            rows[:] = [_row(n, r, args.budget) for n, r in runs.items() if r]
             save(payload())
+
+    t0 = time.perf_counter()
+    with concurrent.futures.ThreadPoolExecutor(max(1, args.workers)) as pool:
+        for f in [pool.submit(one, job) for job in jobs]:
+            f.result()
+    env["wall_total_s"] = time.perf_counter() - t0
     return payload()
+
+
+def task_config(args: argparse.Namespace, name: str) -> loop.EANT2Config:
+    """The EANT2 configuration of one task from the suite's options."""
+    return loop.EANT2Config(
+        population=args.population,
+        offspring=args.offspring,
+        init_recurrent=name in args.recurrent_start,
+        exploit=ex.ExploitConfig(
+            pruner="covariance",
+            popsize=args.popsize,
+            sigma0=args.sigma0,
+            max_iters=args.max_iters,
+            patience=args.patience,
+            prune_window=args.prune_window,
+            chunk=min(args.chunk, args.max_iters),
+        ),
+    )
 
 
 def render(payload: dict[str, Any]) -> str:
@@ -258,7 +358,16 @@ def render(payload: dict[str, Any]) -> str:
     return (
         f"EANT2 (covariance pruning) to solve double pole balancing; seeds per task: {seeds}; "
         f"budget {payload['config']['budget']} evaluations (failures charged the budget in the "
-        "fail = budget column). Published columns: mean evaluations, Gomez et al. 2008.\n\n"
+        "fail = budget column). Published columns: mean evaluations, Gomez et al. 2008. "
+        f"Accounting: {payload.get('accounting', 'see bench_pole.py')}. Generalisation: "
+        "starts of 625 that the solutions balance for 1,000 steps."
+        + (
+            f" Whole suite: {payload['wall_total_s']:.0f} s wall with "
+            f"{payload['config'].get('workers', 1)} run(s) in flight."
+            if "wall_total_s" in payload
+            else ""
+        )
+        + "\n\n"
         + markdown_table(payload["rows"], COLUMNS)
     )
 

@@ -323,6 +323,7 @@ _EANT2_TYPES = {
     "offspring": ("int", "None"),
     "init_connectivity": ("float",),
     "init_weight_scale": ("float",),
+    "init_recurrent": ("bool",),
     "input_fraction": ("float",),
     "new_weight_scale": ("float",),
     "reexploit": ("bool",),
@@ -335,6 +336,11 @@ _EANT2_TYPES = {
 }
 
 
+# Fields added after the run-directory format 2 was fixed: a file written before them lacks
+# them, and their defaults are what that version did, so ``complete`` does not require them.
+_ADDED_LATER = ("init_recurrent",)
+
+
 @dataclasses.dataclass(frozen=True)
 class EANT2Config:
     """Configuration of an EANT2 run (JSON round-trips through ``to_dict``/``from_dict``).
@@ -344,6 +350,9 @@ class EANT2Config:
       offspring: new structures made per generation (None: ``population``).
       init_connectivity: probability that an initial output neuron reads each input.
       init_weight_scale: std of the initial weights.
+      init_recurrent: recurrent-ready start: each initial output neuron also reads its own
+        previous output through a recurrent jumper of weight 0 (same function as the plain
+        minimal start; `exploration.initial_genome`). Default False (the paper's start).
       input_fraction: probability that a new hidden neuron reads each input (paper: ~50%).
       new_weight_scale: std of a new hidden neuron's inner weights.
       operator_weights: relative frequency of each operator in ``exploration.OPERATORS``.
@@ -365,6 +374,7 @@ class EANT2Config:
     offspring: int | None = None
     init_connectivity: float = 1.0
     init_weight_scale: float = 0.1
+    init_recurrent: bool = False
     input_fraction: float = 0.5
     new_weight_scale: float = 0.5
     operator_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)
@@ -475,7 +485,9 @@ class EANT2Config:
                 (ExploitConfig, exploit, "ExploitConfig"),
             ):
                 missing = sorted(
-                    {f.name for f in dataclasses.fields(kind)} - set(given) - {"exploit"}
+                    {f.name for f in dataclasses.fields(kind)}
+                    - set(given)
+                    - {"exploit", *_ADDED_LATER}
                 )
                 if missing:
                     raise ValueError(f"{name} option(s) missing: {', '.join(missing)}")

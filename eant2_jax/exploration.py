@@ -64,19 +64,31 @@ def initial_genome(
     *,
     connectivity: float = 1.0,
     weight_scale: float = 0.1,
+    recurrent: bool = False,
 ) -> Genome:
     """A minimal network: one neuron per output (ids 0..n_out-1), no hidden neurons.
 
     Each output neuron reads each input with probability ``connectivity`` (at least one);
     weights are drawn from N(0, weight_scale^2), the output neurons' own weights are 1.
+
+    With ``recurrent`` the start is *recurrent-ready*: each output neuron ``o`` also reads
+    its own previous output through a recurrent jumper ``R<o>`` of weight 0 (its last
+    input). The network computes exactly the function of the plain minimal start, but the
+    jumper's weight is a parameter like any other, so CMA-ES can give the output a memory
+    from generation 0 on (a task without velocity inputs needs one: docs/pole.md). The
+    paper's minimal networks have no recurrent connections (section III); this option is
+    off by default. The random draws are those of the plain start: with the same ``rng``
+    both starts have the same weights.
     """
     genes = []
     for o in range(n_outputs):
         chosen = [j for j in range(n_inputs) if rng.random() < connectivity]
         if not chosen:
             chosen = [int(rng.integers(n_inputs))]
-        genes.append(Gene(GeneKind.NEURON, o, 1.0, len(chosen)))
+        genes.append(Gene(GeneKind.NEURON, o, 1.0, len(chosen) + recurrent))
         genes += [Gene(GeneKind.INPUT, j, float(rng.normal(0, weight_scale))) for j in chosen]
+        if recurrent:
+            genes.append(Gene(GeneKind.RECURRENT, o, 0.0))
     return Genome(genes)
 
 

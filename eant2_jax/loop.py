@@ -167,12 +167,15 @@ class RunResult(NamedTuple):
       best: the best genome.
       generations: one `GenerationRecord` per generation.
       pruning: one `PruneAttempt` per pruning attempt.
+      solution: the network that passed ``solution_test`` (the run stopped there; it need
+        not be the best by cost), or None.
     """
 
     population: list[Individual]
     best: Genome
     generations: list[GenerationRecord]
     pruning: list[PruneAttempt]
+    solution: Individual | None = None
 
 
 def _key_data(key: jax.Array) -> tuple[int, ...]:
@@ -208,6 +211,7 @@ def _initialise(task: Task, key: jax.Array, config: EANT2Config) -> tuple[list[G
             task.n_outputs,
             connectivity=config.init_connectivity,
             weight_scale=config.init_weight_scale,
+            recurrent=config.init_recurrent,
         )
         # Identical structures are not evaluated twice (with full connectivity, all are).
         if g.structure_key() not in seen:
@@ -304,9 +308,11 @@ def _generation(
     callback,
     mesh=None,
     bucket: Bucket | None = None,
-) -> tuple[RunState, GenerationRecord, list[PruneAttempt], Bucket | None]:
-    """One generation (generation 0 initialises); returns the new state, its records and
-    the bucket it compiled into (`grow_bucket` of ``bucket``)."""
+    solution_test: Callable[[Genome], bool] | None = None,
+) -> tuple[RunState, GenerationRecord, list[PruneAttempt], Bucket | None, Individual | None]:
+    """One generation (generation 0 initialises); returns the new state, its records, the
+    bucket it compiled into (`grow_bucket` of ``bucket``) and the new structure whose best
+    network passed ``solution_test`` (None if none did)."""
     t0 = time.perf_counter()
     gen = 0 if state is None else state.generation + 1
     gkey = jax.random.fold_in(key, gen)
@@ -347,15 +353,17 @@ def _generation(
             # Every generation's batch gets the same number of rows: one program per bucket.
             min_rows=(config.offspring or config.population)
             + (config.population if config.reexploit else 0),
+            solution_test=solution_test,
         )
         new = [
             Individual(g, c, ind.origin)
             for g, c, ind in zip(res.genomes, res.costs, new, strict=True)
         ]
+        solution = None if res.solution is None else new[res.solution]
         evals = sum(res.evaluations)
         prune = [dataclasses.replace(r, generation=gen) for r in res.pruning]
     else:
-        evals, prune = 0, []
+        evals, prune, solution = 0, [], None
     pool = parents + new
     keep = select(
         [ind.genome for ind in pool],
@@ -375,7 +383,7 @@ def _generation(
         key=_key_data(key) if state is None else state.key,
         wall_s=(0.0 if state is None else state.wall_s) + dt,
     )
-    return state, _generation_record(state, len(new), prune, dt), prune, bucket
+    return state, _generation_record(state, len(new), prune, dt), prune, bucket, solution
 
 
 def run(
@@ -387,6 +395,7 @@ def run(
     out: str | None = None,
     callback: Callable[[dict], None] | None = None,
     meta: dict | None = None,
+    solution_test: Callable[[Genome], bool] | None = None,
 ) -> RunResult:
     """Run EANT2 on a task.
 
@@ -405,6 +414,14 @@ def run(
       meta: extra JSON fields for ``config.json``. A task built by
         `eant2_jax.tasks.make` records its spec and options there by itself, so that
         `resume` can rebuild it.
+      solution_test: for a task with a success test of its own, separate from its cost
+        (e.g. `eant2_jax.tasks.pole.solved`): ``solution_test(genome) -> bool``, called on
+        the best network of each newly exploited structure whenever it improves (after each
+        chunk of ``config.exploit.chunk`` CMA-ES iterations, see `eant2_jax.tuning.tune`).
+        The first that passes stops the exploitation and the run after that generation is
+        completed (selected, committed, reported); it is `RunResult.solution`, and a
+        ``solution`` event follows the generation's. The generation's evaluations are
+        those spent until then; the test's own work is not counted.
 
     Returns:
       `RunResult`.
@@ -420,7 +437,10 @@ def run(
     mesh = distributed.make_mesh(config.devices)  # every check before anything is created
     key = _key_from_data(_key_data(key))
     if out is None:
-        return _loop(task, None, key, config, generations, None, callback, mesh, meta)
+        return _loop(
+            task, None, key, config, generations, None, callback, mesh, meta,
+            solution_test=solution_test,
+        )  # fmt: skip
     with RunDir.create(
         out,
         {
@@ -430,7 +450,10 @@ def run(
             "config": config.to_dict(),
         },
     ) as rundir:
-        return _loop(task, None, key, config, generations, rundir, callback, mesh, meta)
+        return _loop(
+            task, None, key, config, generations, rundir, callback, mesh, meta,
+            solution_test=solution_test,
+        )  # fmt: skip
 
 
 def resume(
@@ -439,6 +462,7 @@ def resume(
     *,
     generations: int | None = None,
     callback: Callable[[dict], None] | None = None,
+    solution_test: Callable[[Genome], bool] | None = None,
 ) -> RunResult:
     """Continue a run directory from its last complete generation.
 
@@ -452,6 +476,9 @@ def resume(
         ``module:factory`` or ``file.py:factory``).
       generations: new total number of generations (default: the one in ``config.json``).
       callback: progress events, as for `run`.
+      solution_test: as for `run`. The checkpoint's population is tested first (best
+        first): a run that stopped on a solution, resumed with the same test, stops again
+        at once if its solution survived selection.
 
     Raises:
       RunDirError: not a run directory, a corrupt one, or no task given and none recorded.
@@ -474,7 +501,7 @@ def resume(
         total = v.generations if generations is None else generations
         return _loop(
             task, v.state, v.key, v.config, total, rundir, callback, mesh, committed.config,
-            v.records, v.pruning,
+            v.records, v.pruning, solution_test,
         )  # fmt: skip
 
 
@@ -645,15 +672,20 @@ def _best_text(state: RunState, task: Task, meta: dict) -> str:
 
 def _loop(
     task, state, key, config, generations, rundir, callback, mesh, meta,
-    gen_records=(), prune_records=(),
+    gen_records=(), prune_records=(), solution_test=None,
 ) -> RunResult:  # fmt: skip
     gen_records, prune_records = list(gen_records), list(prune_records)
     bucket = None  # grows, never shrinks: one program for as long as the genomes fit
-    while state is None or state.generation < generations:
+    solution = None
+    if state is not None and solution_test is not None:  # resumed: test what it holds
+        solution = next((ind for ind in state.population if solution_test(ind.genome)), None)
+    while solution is None and (state is None or state.generation < generations):
         if state is not None and config.target_cost is not None:
             if state.best().cost <= config.target_cost:
                 break
-        state, record, prune, bucket = _generation(task, state, key, config, callback, mesh, bucket)
+        state, record, prune, bucket, solution = _generation(
+            task, state, key, config, callback, mesh, bucket, solution_test
+        )
         gen_records.append(record)
         prune_records.extend(prune)
         if rundir is not None:
@@ -665,4 +697,15 @@ def _loop(
             )
         if callback is not None:
             callback({"event": "generation", **record.to_json()})
-    return RunResult(list(state.population), state.best().genome, gen_records, prune_records)
+            if solution is not None:
+                callback(
+                    {
+                        "event": "solution",
+                        "generation": state.generation,
+                        "evaluations": state.evaluations,
+                        **solution.to_json(),
+                    }
+                )
+    return RunResult(
+        list(state.population), state.best().genome, gen_records, prune_records, solution
+    )

@@ -123,6 +123,8 @@ class Tuned:
       state: the engine's final state (on device).
       search_costs: the best cost each search saw (equal to ``costs`` on a task that is
         not noisy).
+      solution: the index of the structure whose best network passed ``solution_test``
+        (its entry in ``genomes`` is that network), or None.
     """
 
     genomes: list[Genome]
@@ -133,6 +135,35 @@ class Tuned:
     pruning: list[PruneAttempt]
     state: ex.ExploitState
     search_costs: list[float]
+    solution: int | None = None
+
+
+class _Watch:
+    """The ``halt`` of `exploitation.run` that tests each structure's best network whenever
+    it is one not tested yet (after each chunk of iterations; a rejected pruning attempt
+    restores an earlier best) and halts the search at the first that passes ``test``, in
+    batch order."""
+
+    def __init__(self, genomes: Sequence[Genome], test: Callable[[Genome], bool]):
+        self.genomes, self.test = genomes, test
+        self.tested: list[set[bytes]] = [set() for _ in genomes]
+        self.found: tuple[int, Genome, float] | None = None
+
+    def __call__(self, st: ex.ExploitState) -> bool:
+        best_x, best_cost, mask = distributed.gather((st.cma.best_x, st.cma.best_cost, st.cma.mask))
+        best_x, best_cost = np.asarray(best_x, np.float64), np.asarray(best_cost, np.float64)
+        mask = np.asarray(mask)
+        for i, g in enumerate(self.genomes):
+            n = g.n_params
+            seen = best_x[i, :n].tobytes() + mask[i, :n].tobytes()
+            if not np.isfinite(best_cost[i]) or seen in self.tested[i]:
+                continue
+            self.tested[i].add(seen)
+            network = prune_genome(g, mask[i, :n], best_x[i, :n])
+            if self.test(network):
+                self.found = (i, network, float(best_cost[i]))
+                return True
+        return False
 
 
 def tune(
@@ -148,6 +179,7 @@ def tune(
     on_chunk: Callable[[dict], None] | None = None,
     mesh: jax.sharding.Mesh | None = None,
     on_compile: Callable[[dict], None] | None = None,
+    solution_test: Callable[[Genome], bool] | None = None,
 ) -> Tuned:
     """Tune (and prune) a batch of structures together: ONE batched CMA-ES run.
 
@@ -165,6 +197,11 @@ def tune(
       mesh: split the structures over these devices (see `eant2_jax.distributed`).
       on_compile: called before a program is compiled (see
         `eant2_jax.exploitation.run`).
+      solution_test: a host-side test of a network (a genome with its weights): after each
+        chunk of ``config.chunk`` iterations, every structure whose best network is one
+        not tested yet is tested (in batch order); the first that passes halts every structure
+        (`eant2_jax.exploitation.halted`) and is returned as ``Tuned.solution``. The
+        evaluations are those spent until then; the test's own work is not counted.
 
     Returns:
       `Tuned`.
@@ -183,6 +220,7 @@ def tune(
         pad_count=pad_count,
         multiple_of=distributed.size(mesh),
     )
+    watch = None if solution_test is None else _Watch(genomes, solution_test)
     st, hist = ex.run(
         prep.state,
         prep.batch.layout,
@@ -193,6 +231,7 @@ def tune(
         on_chunk=on_chunk,
         mesh=mesh,
         on_compile=on_compile,
+        halt=watch,
     )
     best_x, best_cost, mask, spent, stop = distributed.gather(
         (st.cma.best_x, st.cma.best_cost, st.cma.mask, st.evals, st.stop)
@@ -207,6 +246,12 @@ def tune(
         else:  # never saw a finite cost: keep the structure, rank it last
             tuned.append(g)
             costs.append(float("inf"))
+    solution = None
+    if watch is not None and watch.found is not None:
+        # The network that passed: a structure halted in a pruning re-fit is otherwise
+        # returned as it was before the attempt.
+        solution, network, cost_found = watch.found
+        tuned[solution], costs[solution] = network, cost_found
     count = len(genomes)
     evaluations = [int(e) for e in spent[:count]]
     search_costs = list(costs)
@@ -235,6 +280,7 @@ def tune(
         pruning=attempt_records(hist.prune, genomes, config.pruner),
         state=st,
         search_costs=search_costs,
+        solution=solution,
     )
 
 

@@ -17,6 +17,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from strategies import genomes
 
+import eant2_jax
 from eant2_jax import interpret
 from eant2_jax.exploration import (
     OPERATORS,
@@ -118,6 +119,37 @@ def test_initial_genome_weights_and_determinism():
     b = initial_genome(np.random.default_rng(7), 4, 2, weight_scale=0.3)
     c = initial_genome(np.random.default_rng(7), 4, 2, weight_scale=0.3)
     assert b == c and str(b) == str(c)
+
+
+@pytest.mark.parametrize("n_in,n_out,connectivity", [(1, 1, 1.0), (3, 1, 1.0), (6, 3, 0.5)])
+def test_recurrent_start_computes_the_plain_start(n_in, n_out, connectivity):
+    """The recurrent-ready start is the plain start plus one weight-0 self-jumper per
+    output neuron (its last input), with the same weights from the same draws: the same
+    outputs at every step, through the reference interpreter (exactly) and the compiled
+    network (float32, ~1e-6)."""
+    for seed in range(3):
+        kw = {"connectivity": connectivity, "weight_scale": 0.7}
+        plain = initial_genome(np.random.default_rng(seed), n_in, n_out, **kw)
+        ready = initial_genome(np.random.default_rng(seed), n_in, n_out, recurrent=True, **kw)
+        assert ready.n_params == plain.n_params + n_out
+        assert ready.neuron_ids == plain.neuron_ids and ready.depth() == plain.depth()
+        for root, o in zip(ready.roots, range(n_out), strict=True):
+            last = ready[ready.children(root)[-1]]
+            assert (last.kind, last.ref, last.weight) == (GeneKind.RECURRENT, o, 0.0)
+        stripped = [g for g in ready if g.kind != GeneKind.RECURRENT]
+        assert [(g.kind, g.ref, g.weight) for g in stripped] == [
+            (g.kind, g.ref, g.weight) for g in plain
+        ]
+        x = np.random.default_rng(seed + 100).normal(0, 2, (6, 4, n_in))  # [T, M, n_in]
+        np.testing.assert_array_equal(interpret(ready, x), interpret(plain, x))
+        fast = [np.asarray(eant2_jax.evaluate(g, x)) for g in (ready, plain)]
+        np.testing.assert_allclose(fast[0], fast[1], rtol=1e-6, atol=1e-6)
+        # A non-zero self-weight changes the outputs from the second step on.
+        w = ready.weights.copy()
+        w[[i for i, g in enumerate(ready) if g.kind == GeneKind.RECURRENT]] = 0.5
+        moved = interpret(ready.with_weights(w), x)
+        np.testing.assert_array_equal(moved[0], interpret(plain, x)[0])
+        assert not np.allclose(moved[1:], interpret(plain, x)[1:])
 
 
 # -------------------------------------------------------------------------------- mutation

@@ -626,3 +626,94 @@ def test_bucket_grows_with_headroom_and_is_kept_while_it_fits():
     deep = Genome.parse("N0/1*1 N1/1*1 N2/1*1 I0*1")  # depth 3: a new, larger bucket
     grown = grow_bucket([deep, small], first)
     assert grown.sweeps == 4 and grown.neurons >= 4 and grown.genes >= 8
+
+
+# --------------------------------------------------------------------- the solution test
+@pytest.mark.slow
+def test_solution_test_stops_the_run_at_the_first_pass(xor_run, tmp_path):
+    """The loop tests the best network of each structure it tunes whenever it has changed
+    and stops at the first that passes: generation 0 (a linear unit) never passes XOR, so
+    it is exactly the reference's; the run ends in the generation that finds a solution,
+    with no more evaluations than the reference spent there."""
+    reference, _, _ = xor_run
+    tested, events = [], []
+
+    def test(genome):
+        tested.append(str(genome))
+        return solves_xor(genome)
+
+    run_dir = tmp_path / "run"
+    result = eant2_jax.run(
+        tasks.make("xor"),
+        key=jax.random.key(SEED),
+        config=CONFIG,
+        generations=GENERATIONS_API + 5,
+        callback=events.append,
+        solution_test=test,
+        out=str(run_dir),
+    )
+    ref = _json(reference.generations)
+    gens = _json(result.generations)
+    assert result.solution is not None and solves_xor(result.solution.genome)
+    assert len(gens) == GENERATIONS_API + 1  # the reference solves XOR in its last generation
+    assert _without_wall(gens[:1]) == _without_wall(ref[:1])
+    assert gens[-1]["evaluations"] <= ref[-1]["evaluations"]
+    assert result.solution.origin != "init"
+    # No network is tested twice (unchanged bests are skipped).
+    assert len(set(tested)) == len(tested) and str(result.solution.genome) == tested[-1]
+    # The solution event follows the last generation's event.
+    assert [e["event"] for e in events if e["event"] in ("generation", "solution")][-2:] == [
+        "generation",
+        "solution",
+    ]
+    assert events[-1] == {
+        "event": "solution",
+        "generation": GENERATIONS_API,
+        "evaluations": gens[-1]["evaluations"],
+        **result.solution.to_json(),
+    }
+    # Resumed with the same test, the run stops at once: its solution survived selection.
+    again = eant2_jax.resume(str(run_dir), generations=GENERATIONS_API + 5, solution_test=test)
+    assert again.solution is not None and solves_xor(again.solution.genome)
+    assert len(_jsonl(run_dir, GENERATIONS)) == GENERATIONS_API + 1
+
+
+def test_solution_test_halts_every_structure_and_counts_only_evaluations():
+    """Through `tune`: the test halts the whole batch after the chunk in which a network
+    passes; the evaluations are those spent until then (the test's work is not counted)."""
+    from eant2_jax.tuning import tune
+
+    genomes = [Genome.parse("N0/2*1 I0*0.1 I1*-0.1"), Genome.parse("N0/3*1 B*0 I0*0.1 I1*0")]
+    config = ExploitConfig(max_iters=40, chunk=5, patience=1000, popsize=6)
+    full = tune(genomes, tasks.make("xor"), key=jax.random.key(3), config=config)
+    assert full.solution is None and full.evaluations == [240, 240]
+    calls = []
+
+    def test(genome):
+        calls.append(genome)
+        return len(calls) == 3  # passes on the third network tested
+
+    res = tune(genomes, tasks.make("xor"), key=jax.random.key(3), config=config, solution_test=test)
+    # Both structures improve in the first chunk: tests 1 and 2, then 3 after chunk 2.
+    assert res.solution == 0 and res.genomes[0] == calls[2]
+    assert res.stop_reasons == ["halted", "halted"]
+    assert res.evaluations == [10 * 6, 10 * 6]
+
+
+def test_recurrent_start_option():
+    config = EANT2Config(init_recurrent=True)
+    assert EANT2Config.from_dict(config.to_dict(), complete=True) == config
+    # A configuration written before the option existed reads as the plain start.
+    old = CONFIG.to_dict()
+    del old["init_recurrent"]
+    assert EANT2Config.from_dict(old, complete=True) == CONFIG
+    with pytest.raises(ValueError, match="init_recurrent must be bool"):
+        EANT2Config(init_recurrent=1)
+    from eant2_jax.loop import _initialise
+
+    genomes, _ = _initialise(tasks.make("xor"), jax.random.key(0), config)
+    assert [str(g).split()[-1] for g in genomes] == ["R0*0.0"]
+    from eant2_jax.app.cli import _parser
+
+    args = _parser().parse_args(["run", "xor", "--recurrent-start"])
+    assert args.recurrent_start and not _parser().parse_args(["run", "xor"]).recurrent_start

@@ -130,6 +130,7 @@ def _run(args: argparse.Namespace) -> int:
     exploit["lazy_eigen"] = args.lazy_eigen
     config = EANT2Config(
         population=args.population,
+        init_recurrent=args.recurrent_start,
         devices=args.devices,
         target_cost=args.target_cost,
         exploit=ExploitConfig(**exploit),
@@ -400,6 +401,12 @@ def _parser() -> argparse.ArgumentParser:
         help="generations after the initial one (default 15)",
     )
     run.add_argument("--population", type=_positive, default=20, help="population size")
+    run.add_argument(
+        "--recurrent-start",
+        action="store_true",
+        help="recurrent-ready minimal start: each output neuron also reads its own previous "
+        "output through a weight-0 recurrent jumper (same function; for tasks that need memory)",
+    )
     run.add_argument(
         "--seed", type=_seed, default=0, help="seed of the run's PRNG key, in [0, 2**32)"
     )

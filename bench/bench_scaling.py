@@ -55,7 +55,7 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     task = tasks.make("servo", n_starts=args.moves)
     config = ex.ExploitConfig(
         max_iters=args.iters, chunk=args.iters, patience=10**6, sigma_tol=0.0,
-        pruner="covariance", prune_window=50,
+        tolfun=None, pruner="covariance", prune_window=50,
     )  # fmt: skip
     rows = []
     for kind in ("weak", "strong"):

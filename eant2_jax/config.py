@@ -114,6 +114,11 @@ class ExploitConfig:
       chunk: *static*. Iterations per compiled call (the host checks for early exit between
         chunks).
       sigma_tol: stop when ``sigma * max(D) < sigma_tol`` (the search has collapsed).
+      tolfun: stop ("flat cost") when every candidate's cost has stayed within ``tolfun`` of
+        the best cost so far for ``10 + ceil(30 n / popsize)`` iterations in a row (CMA-ES's
+        TolFun, Hansen's tutorial B.3: nothing is left to learn, e.g. a perfect fit at cost
+        0 or a plateau); None never stops for it. Run directories written before this rule
+        existed resume with None, as they ran.
       patience: stop after this many iterations without improving the best cost.
       improve_rtol, improve_atol: an improvement must beat the best cost by
         ``improve_rtol * |best| + improve_atol`` (the absolute part ends runs whose cost
@@ -167,6 +172,7 @@ class ExploitConfig:
     max_iters: int = 1000
     chunk: int = _static(50)
     sigma_tol: float = 1e-8
+    tolfun: float | None = 1e-12
     patience: int = 300
     improve_rtol: float = 1e-7
     improve_atol: float = 1e-12
@@ -219,6 +225,8 @@ class ExploitConfig:
                 object.__setattr__(self, f.name, v)
         if self.target_cost is None:
             object.__setattr__(self, "target_cost", -math.inf)
+        if self.tolfun is None:
+            object.__setattr__(self, "tolfun", -math.inf)
         if self.dtype not in DTYPES:
             raise ValueError(
                 f"ExploitConfig.dtype must be one of {', '.join(DTYPES)}, got {self.dtype!r}"
@@ -231,6 +239,11 @@ class ExploitConfig:
             ("max_iters", self.max_iters >= 1, ">= 1"),
             ("chunk", self.chunk >= 1, ">= 1"),
             ("sigma_tol", self.sigma_tol >= 0, ">= 0"),
+            (
+                "tolfun",
+                self.tolfun == -math.inf or (self.tolfun >= 0 and math.isfinite(self.tolfun)),
+                ">= 0 and finite (or None)",
+            ),
             ("patience", self.patience >= 1, ">= 1"),
             ("improve_rtol", self.improve_rtol >= 0, ">= 0"),
             ("improve_atol", self.improve_atol >= 0, ">= 0"),
@@ -293,10 +306,12 @@ class ExploitConfig:
         )
 
     def to_dict(self) -> dict:
-        """JSON-ready fields (a target of ``-inf`` is written as None, its meaning)."""
+        """JSON-ready fields (a target or tolfun of ``-inf`` is written as None, its
+        meaning)."""
         d = dataclasses.asdict(self)
-        if d["target_cost"] == -math.inf:
-            d["target_cost"] = None
+        for name in ("target_cost", "tolfun"):
+            if d[name] == -math.inf:
+                d[name] = None
         return d
 
     @classmethod
@@ -325,6 +340,7 @@ _EANT2_TYPES = {
     "init_connectivity": ("float",),
     "init_weight_scale": ("float",),
     "init_recurrent": ("bool",),
+    "init_mutations": ("int",),
     "input_fraction": ("float",),
     "new_weight_scale": ("float",),
     "reexploit": ("bool",),
@@ -338,8 +354,10 @@ _EANT2_TYPES = {
 
 
 # Fields added after the run-directory format 2 was fixed: a file written before them lacks
-# them, and their defaults are what that version did, so ``complete`` does not require them.
-_ADDED_LATER = ("init_recurrent",)
+# them, so ``complete`` does not require them and fills in the value that reproduces what
+# that version did (not necessarily today's default).
+_ADDED_LATER = {"init_recurrent": False, "init_mutations": 0}
+_EXPLOIT_ADDED_LATER = {"lazy_eigen": 0.0, "tolfun": None}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -354,6 +372,11 @@ class EANT2Config:
       init_recurrent: recurrent-ready start: each initial output neuron also reads its own
         previous output through a recurrent jumper of weight 0 (same function as the plain
         minimal start; `exploration.initial_genome`). Default False (the paper's start).
+      init_mutations: a diverse generation 0: each initial genome also gets this many
+        structural mutations (operators drawn with ``operator_weights``, new genes joining
+        at weight 0, so every start still computes a minimal network's function), and
+        structures already drawn are drawn again. Default 0: the paper's minimal starts
+        (with full connectivity, one structure).
       input_fraction: probability that a new hidden neuron reads each input (paper: ~50%).
       new_weight_scale: std of a new hidden neuron's inner weights.
       operator_weights: relative frequency of each operator in ``exploration.OPERATORS``.
@@ -376,6 +399,7 @@ class EANT2Config:
     init_connectivity: float = 1.0
     init_weight_scale: float = 0.1
     init_recurrent: bool = False
+    init_mutations: int = 0
     input_fraction: float = 0.5
     new_weight_scale: float = 0.5
     operator_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)
@@ -429,6 +453,7 @@ class EANT2Config:
             ),
             ("init_connectivity", 0 < self.init_connectivity <= 1, "in (0, 1]"),
             ("init_weight_scale", self.init_weight_scale >= 0, ">= 0"),
+            ("init_mutations", 0 <= self.init_mutations <= 1000, "in [0, 1000]"),
             ("input_fraction", 0 < self.input_fraction <= 1, "in (0, 1]"),
             ("new_weight_scale", self.new_weight_scale >= 0, ">= 0"),
             (
@@ -474,24 +499,24 @@ class EANT2Config:
         d = dict(d)
         if not isinstance(d.get("exploit"), dict):
             raise ValueError("the configuration has no 'exploit' object")
-        exploit = d.pop("exploit")
+        exploit = dict(d.pop("exploit"))
         _check_keys(cls, d, "EANT2Config")
         _check_keys(ExploitConfig, exploit, "ExploitConfig")
         for name, v in exploit.items():  # the pytree skips validation of non-number leaves
             if v is not None and not isinstance(v, bool | int | float | str):
                 raise ValueError(f"ExploitConfig.{name} must be a number or name, got {v!r:.40}")
         if complete:
-            for kind, given, name in (
-                (cls, d, "EANT2Config"),
-                (ExploitConfig, exploit, "ExploitConfig"),
+            for kind, given, name, later in (
+                (cls, d, "EANT2Config", _ADDED_LATER),
+                (ExploitConfig, exploit, "ExploitConfig", _EXPLOIT_ADDED_LATER),
             ):
                 missing = sorted(
-                    {f.name for f in dataclasses.fields(kind)}
-                    - set(given)
-                    - {"exploit", *_ADDED_LATER}
+                    {f.name for f in dataclasses.fields(kind)} - set(given) - {"exploit", *later}
                 )
                 if missing:
                     raise ValueError(f"{name} option(s) missing: {', '.join(missing)}")
+                for field, old in later.items():
+                    given.setdefault(field, old)
         if isinstance(d.get("operator_weights"), list):
             d["operator_weights"] = tuple(d["operator_weights"])
         return cls(**d, exploit=ExploitConfig(**exploit))

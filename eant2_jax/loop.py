@@ -202,22 +202,46 @@ def _key_from_data(data: Sequence[int]) -> jax.Array:
 
 
 def _initialise(task: Task, key: jax.Array, config: EANT2Config) -> tuple[list[Genome], int]:
+    """Generation 0's genomes and the next free neuron id: ``population`` minimal starts,
+    each with ``init_mutations`` structural mutations (a diverse start when asked)."""
     rng = np.random.default_rng(_key_data(key))
-    genomes, seen = [], set()
+    p = np.asarray(config.operator_weights) / sum(config.operator_weights)
+    genomes, seen, next_id = [], set(), task.n_outputs
+    # Without mutations one draw per slot, as before (with full connectivity every draw is
+    # the same structure); with them, a slot draws again (20 times at most) when it meets a
+    # structure already drawn.
+    tries = 20 if config.init_mutations else 1
     for _ in range(config.population):
-        g = initial_genome(
-            rng,
-            task.n_inputs,
-            task.n_outputs,
-            connectivity=config.init_connectivity,
-            weight_scale=config.init_weight_scale,
-            recurrent=config.init_recurrent,
-        )
-        # Identical structures are not evaluated twice (with full connectivity, all are).
-        if g.structure_key() not in seen:
-            seen.add(g.structure_key())
-            genomes.append(g)
-    return genomes, task.n_outputs
+        for _ in range(tries):
+            g = initial_genome(
+                rng,
+                task.n_inputs,
+                task.n_outputs,
+                connectivity=config.init_connectivity,
+                weight_scale=config.init_weight_scale,
+                recurrent=config.init_recurrent,
+            )
+            used = 0
+            for _ in range(config.init_mutations):
+                op = OPERATORS[int(rng.choice(len(OPERATORS), p=p))]
+                child = mutate(
+                    rng,
+                    g,
+                    op,
+                    n_inputs=task.n_inputs,
+                    next_id=next_id + used,
+                    input_fraction=config.input_fraction,
+                    weight_scale=config.new_weight_scale,
+                )
+                if child is not None:
+                    g, used = child, used + (op == "add_subnetwork")
+            # Identical structures are not evaluated twice.
+            if g.structure_key() not in seen:
+                seen.add(g.structure_key())
+                genomes.append(g)
+                next_id += used
+                break
+    return genomes, next_id
 
 
 def _explore(

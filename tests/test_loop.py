@@ -14,6 +14,7 @@ pays for compilation). The subprocess runs share a persistent compilation cache
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -29,7 +30,7 @@ import pytest
 import eant2_jax
 from eant2_jax import EANT2Config, ExploitConfig, tasks
 from eant2_jax.app.cli import main
-from eant2_jax.genome import Genome
+from eant2_jax.genome import GeneKind, Genome
 from eant2_jax.genomefile import GenomeFile
 from eant2_jax.rundir import CHECKPOINT, GENERATIONS, PRUNING, RunDirError
 
@@ -717,3 +718,46 @@ def test_recurrent_start_option():
 
     args = _parser().parse_args(["run", "xor", "--recurrent-start"])
     assert args.recurrent_start and not _parser().parse_args(["run", "xor"]).recurrent_start
+
+
+def test_diverse_start_option():
+    """``init_mutations``: generation 0 holds distinct structures, each a minimal start with
+    K structural mutations that compute its function (new genes join at weight 0), new neuron
+    ids unique across the population; 0 keeps the paper's start, and the same key gives the
+    same genomes."""
+    from eant2_jax.app.cli import _parser
+    from eant2_jax.loop import _initialise
+    from eant2_jax.reference import interpret
+
+    task = tasks.make("servo", mode="kinematic", n_starts=4)
+    plain, next_plain = _initialise(task, jax.random.key(3), EANT2Config(population=8))
+    assert len(plain) == 1 and next_plain == task.n_outputs
+    config = EANT2Config(population=8, init_mutations=3)
+    genomes, next_id = _initialise(task, jax.random.key(3), config)
+    again, _ = _initialise(task, jax.random.key(3), config)
+    assert [str(g) for g in genomes] == [str(g) for g in again]
+    assert len({g.structure_key() for g in genomes}) == len(genomes) == 8
+    assert any(g.n_neurons > task.n_outputs for g in genomes)  # some grew hidden neurons
+    hidden = [i for g in genomes for i in g.neuron_ids if i >= task.n_outputs]
+    assert len(hidden) == len(set(hidden)) and next_id == task.n_outputs + len(hidden)
+    assert all(i < next_id for i in hidden)
+    # Every start computes a minimal network's function: what joined did so at weight 0, so
+    # the outputs equal those of the output neurons with their direct inputs only.
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(2, 5, task.n_inputs)).astype(np.float32)
+    for g in genomes:
+        parent = g.parent
+        minimal = []
+        for i, gene in enumerate(g.genes):
+            if parent[i] == -1:
+                kept = [
+                    c for j, c in enumerate(g.genes) if parent[j] == i and c.kind == GeneKind.INPUT
+                ]
+                minimal += [dataclasses.replace(gene, arity=len(kept)), *kept]
+        np.testing.assert_allclose(interpret(g, x), interpret(Genome(minimal), x), rtol=1e-6)
+    old = CONFIG.to_dict()
+    del old["init_mutations"]
+    assert EANT2Config.from_dict(old, complete=True) == CONFIG
+    with pytest.raises(ValueError, match="init_mutations must be in"):
+        EANT2Config(init_mutations=-1)
+    assert _parser().parse_args(["run", "xor", "--init-mutations", "2"]).init_mutations == 2

@@ -131,6 +131,7 @@ def _run(args: argparse.Namespace) -> int:
     config = EANT2Config(
         population=args.population,
         init_recurrent=args.recurrent_start,
+        init_mutations=args.init_mutations,
         devices=args.devices,
         target_cost=args.target_cost,
         exploit=ExploitConfig(**exploit),
@@ -406,6 +407,13 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="recurrent-ready minimal start: each output neuron also reads its own previous "
         "output through a weight-0 recurrent jumper (same function; for tasks that need memory)",
+    )
+    run.add_argument(
+        "--init-mutations",
+        type=_non_negative,
+        default=0,
+        metavar="K",
+        help="a diverse generation 0: K structural mutations of each minimal start (default 0)",
     )
     run.add_argument(
         "--seed", type=_seed, default=0, help="seed of the run's PRNG key, in [0, 2**32)"

@@ -123,6 +123,7 @@ def condition_experiment(
         chunk=min(iters, 500),
         patience=iters,
         sigma_tol=0.0,
+        tolfun=None,
         sigma_up=1e30,
         bound_patience=iters + 1,
         max_condition=max_condition,
@@ -162,7 +163,7 @@ def _from_evolved(genome, pruned, task, key, config, inits, warmup, sigma0) -> d
     kept = _kept_genes(genome, pruned)
     w = np.zeros(genome.n_params)
     w[kept] = pruned.weights
-    warm = config.replace(sigma0=sigma0, max_iters=warmup, patience=warmup + 1)
+    warm = config.replace(sigma0=sigma0, max_iters=warmup, patience=warmup + 1, tolfun=None)
     # Row i and row inits + i share their key: the same evolution up to the branch, the
     # same random numbers after it.
     keys = jax.random.split(key, inits)

@@ -68,9 +68,13 @@ def problems(output: str, n: int = N_SAMPLES) -> dict[str, tuple]:
     }  # fmt: skip
 
 
-def one(task, genome: str, may_go: set, must_stay: set, seed: int, pruner: str, mode: str):
+def one(task, genome: str, may_go: set, must_stay: set, seed: int, pruner: str, mode: str,
+        base: tuning.OptimizeResult | None = None):  # fmt: skip
+    """One seed of one case; ``base``: the unpruned run of this seed, if already made (it
+    depends on the case and seed only, not on the pruner)."""
     key = jax.random.key(seed)
-    base = tuning.optimize(genome, task, key=key)
+    if base is None:
+        base = tuning.optimize(genome, task, key=key)
     options = LITERAL if mode == "literal" else {}
     t0 = time.perf_counter()
     res = tuning.optimize(genome, task, key=key, pruner=pruner, **options)
@@ -113,6 +117,7 @@ def _prepare(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     runs, rows = [], []
+    unpruned = {}  # (output, problem, seed) -> the unpruned run, shared by every arm
     payload = {"environment": environment(), "config": harness.settings(args)}
     for pruner in args.pruners:
         for mode in args.modes:
@@ -121,11 +126,17 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
                     if args.problems and name not in args.problems:
                         continue
                     task = tasks.regression(x, y, hidden="tanh", output=output)
-                    case = [
-                        {"pruner": pruner, "mode": mode, "output": output, "problem": name,
-                         "seed": s, **one(task, genome, may_go, must_stay, s, pruner, mode)}
-                        for s in range(args.seeds)
-                    ]  # fmt: skip
+                    case = []
+                    for s in range(args.seeds):
+                        base = unpruned.get((output, name, s))
+                        if base is None:
+                            base = tuning.optimize(genome, task, key=jax.random.key(s))
+                            unpruned[output, name, s] = base
+                        case.append(
+                            {"pruner": pruner, "mode": mode, "output": output, "problem": name,
+                             "seed": s,
+                             **one(task, genome, may_go, must_stay, s, pruner, mode, base)}
+                        )  # fmt: skip
                     runs += case
                     rows.append(
                         {

@@ -63,7 +63,10 @@ def _prepare(args: argparse.Namespace) -> None:
 
 def _records(d: Path) -> tuple[list, list, dict]:
     v = eant2_jax.loop.validate(str(d), tasks.make("xor"))
-    strip = [{k: x for k, x in r.to_json().items() if k != "wall_s"} for r in v.records]
+    strip = [
+        {k: x for k, x in r.to_json().items() if k not in eant2_jax.loop.RUN_DEPENDENT}
+        for r in v.records
+    ]
     state = None if v.state is None else v.state.to_json()
     return strip, [p.to_json() for p in v.pruning], state
 
@@ -270,12 +273,12 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
         # the uninterrupted run of GENERATIONS_ + 1 generations, committed bytes kept.
         full = eant2_jax.run(task, key=jax.random.key(0), config=CONFIG_,
                              generations=GENERATIONS_ + 1)  # fmt: skip
-        want = [{k: x for k, x in r.to_json().items() if k not in ("wall_s", "generation_s")}
+        want = [{k: x for k, x in r.to_json().items() if k not in eant2_jax.loop.RUN_DEPENDENT}
                 for r in full.generations]  # fmt: skip
         resumed = []
         for d in accepted_dirs:
             res = eant2_jax.resume(str(d), task, generations=GENERATIONS_ + 1)
-            got = [{k: x for k, x in r.to_json().items() if k not in ("wall_s", "generation_s")}
+            got = [{k: x for k, x in r.to_json().items() if k not in eant2_jax.loop.RUN_DEPENDENT}
                    for r in res.generations]  # fmt: skip
             kept = all(
                 (d / n).read_bytes().startswith(base_bytes[n]) for n in (GENERATIONS, PRUNING)

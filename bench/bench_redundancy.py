@@ -119,8 +119,9 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     runs, rows = [], []
     unpruned = {}  # (output, problem, seed) -> the unpruned run, shared by every arm
     payload = {"environment": environment(), "config": harness.settings(args)}
-    for pruner in args.pruners:
-        for mode in args.modes:
+    # Every pruner's default rule first, then the literal ones (a partial run has whole arms).
+    for mode in args.modes:
+        for pruner in args.pruners:
             for output in ("identity", "tanh"):
                 for name, (x, y, genome, may_go, must_stay) in problems(output).items():
                     if args.problems and name not in args.problems:

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import distributed
+from . import compilestats, distributed
 from .compiler import GENE_FLOOR, NEURON_FLOOR, Bucket, bucket_size
 from .config import EANT2Config
 from .exploration import OPERATORS, initial_genome, mutate, select
@@ -134,6 +134,11 @@ class GenerationRecord:
       wall_s: wall time of the run so far; generation_s: of this generation.
       prune_attempts, prune_accepted: pruning attempts in this generation, and accepted ones.
       population: individuals kept; exploited: structures tuned in this generation.
+      compiles, compile_s, cache_hits, cache_misses: this generation's XLA programs
+        compiled (or loaded from the persistent cache), the seconds spent tracing, lowering
+        and compiling them, and the persistent cache's hits and misses
+        (`eant2_jax.compilestats`; 0 in records written before they existed). Like the wall
+        times they depend on the process, not on the run: ``RUN_DEPENDENT`` names them.
     """
 
     generation: int
@@ -149,6 +154,10 @@ class GenerationRecord:
     exploited: int
     generation_s: float
     best_genome: str
+    compiles: int = 0
+    compile_s: float = 0.0
+    cache_hits: int = 0
+    cache_misses: int = 0
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -157,6 +166,11 @@ class GenerationRecord:
     def from_json(cls, d: dict) -> GenerationRecord:
         """The record as `to_json` wrote it; a ValueError names a bad field."""
         return cls(**typed_fields(cls, d, "a generation record"))
+
+
+# The record fields that depend on the process and machine (timing, compilation), not on
+# the run: two runs of one key and config agree on every other field.
+RUN_DEPENDENT = ("wall_s", "generation_s", "compiles", "compile_s", "cache_hits", "cache_misses")
 
 
 class RunResult(NamedTuple):
@@ -280,7 +294,11 @@ def _explore(
 
 
 def _generation_record(
-    state: RunState, evaluated: int, prune: list[PruneAttempt], t: float
+    state: RunState,
+    evaluated: int,
+    prune: list[PruneAttempt],
+    t: float,
+    compiled: compilestats.CompileStats,
 ) -> GenerationRecord:
     best = state.best()
     sizes = [ind.genome.n_params for ind in state.population]
@@ -297,6 +315,10 @@ def _generation_record(
         population=len(state.population),
         exploited=evaluated,
         generation_s=t,
+        compiles=compiled.programs,
+        compile_s=compiled.seconds,
+        cache_hits=compiled.cache_hits,
+        cache_misses=compiled.cache_misses,
         best_genome=str(best.genome),
     )
 
@@ -338,6 +360,7 @@ def _generation(
     bucket it compiled into (`grow_bucket` of ``bucket``) and the new structure whose best
     network passed ``solution_test`` (None if none did)."""
     t0 = time.perf_counter()
+    compiled = compilestats.snapshot()
     gen = 0 if state is None else state.generation + 1
     gkey = jax.random.fold_in(key, gen)
     mut_key, exp_key = jax.random.split(gkey)
@@ -407,7 +430,8 @@ def _generation(
         key=_key_data(key) if state is None else state.key,
         wall_s=(0.0 if state is None else state.wall_s) + dt,
     )
-    return state, _generation_record(state, len(new), prune, dt), prune, bucket, solution
+    record = _generation_record(state, len(new), prune, dt, compilestats.snapshot() - compiled)
+    return state, record, prune, bucket, solution
 
 
 def run(

@@ -27,7 +27,12 @@ _FENCE = re.compile(r"```(\w+)\n(.*?)```", re.S)
 _MASKS = [
     (re.compile(r"[\d,]+(\.\d+)?/s\b"), "N/s"),
     (re.compile(r"\b\d+(\.\d+)? s\b"), "T s"),
-    (re.compile(r'("(?:wall_s|generation_s)": )[-\d.e]+'), r"\1T"),
+    (
+        re.compile(
+            r'("(?:wall_s|generation_s|compiles|compile_s|cache_hits|cache_misses)": )[-\d.e]+'
+        ),
+        r"\1T",
+    ),
 ]
 
 

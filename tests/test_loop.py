@@ -45,7 +45,8 @@ RECORD_FIELDS = (
     "prune_attempts",
     "prune_accepted",
 )
-WALL_FIELDS = ("wall_s", "generation_s")  # the only fields that may differ between runs
+# The only fields that may differ between runs: wall times and compilation statistics.
+WALL_FIELDS = eant2_jax.loop.RUN_DEPENDENT
 XOR_IN = np.array([[[0.0, 0.0], [0.0, 1.0], [1.0, 0.0], [1.0, 1.0]]])
 XOR_OUT = np.array([False, True, True, False])
 
@@ -327,6 +328,11 @@ def test_cli_kill_and_resume_is_exact(cli_reference, cli_cache, tmp_path, capsys
     proc.send_signal(signal.SIGKILL)
     rc, _, _ = _finish(proc)
     assert rc == -signal.SIGKILL
+    # Generation 0 of this run came from a process that found the reference's programs in
+    # the persistent cache; the reference's own generation 0 compiled them.
+    warm, cold = _jsonl(out, GENERATIONS)[0], _jsonl(cli_reference, GENERATIONS)[0]
+    assert warm["cache_hits"] >= 1 and cold["cache_misses"] >= 1
+    assert cold["compiles"] >= 1 and cold["compile_s"] > 0
     rc, _, err = _finish(_eant2("resume", str(out), cache=cli_cache))
     assert rc == 0, err
     _assert_same_run(out, cli_reference)
@@ -761,3 +767,36 @@ def test_diverse_start_option():
     with pytest.raises(ValueError, match="init_mutations must be in"):
         EANT2Config(init_mutations=-1)
     assert _parser().parse_args(["run", "xor", "--init-mutations", "2"]).init_mutations == 2
+
+
+def test_compile_statistics_count_this_process_compilations():
+    """`compilestats`: a new program counts once with its seconds, a second call of it (the
+    in-memory cache) counts nothing; records written before the fields existed load as 0."""
+    import jax.numpy as jnp
+
+    from eant2_jax import compilestats
+    from eant2_jax.loop import GenerationRecord
+
+    f = jax.jit(lambda x: jnp.cos(x) * 3.0 - 0.25)  # a program no other test compiles
+    x = jnp.asarray(np.arange(7.0, dtype=np.float32))  # made before: arange compiles too
+    before = compilestats.snapshot()
+    f(x).block_until_ready()
+    first = compilestats.snapshot() - before
+    assert first.programs == 1 and first.seconds > 0
+    again = compilestats.snapshot()
+    f(x).block_until_ready()
+    assert compilestats.snapshot() - again == compilestats.CompileStats()
+    old = {k: v for k, v in _record_json().items() if k not in ("compiles", "compile_s")}
+    del old["cache_hits"], old["cache_misses"]
+    record = GenerationRecord.from_json(old)
+    stats = (record.compiles, record.compile_s, record.cache_hits, record.cache_misses)
+    assert stats == (0, 0, 0, 0)
+
+
+def _record_json() -> dict:
+    return {
+        "generation": 0, "best_cost": 0.5, "best_size": 3, "mean_size": 3.0, "best_neurons": 1,
+        "evaluations": 10, "wall_s": 0.1, "prune_attempts": 0, "prune_accepted": 0,
+        "population": 1, "exploited": 1, "generation_s": 0.1, "best_genome": "N0/1*1 I0*1",
+        "compiles": 2, "compile_s": 1.5, "cache_hits": 1, "cache_misses": 1,
+    }  # fmt: skip

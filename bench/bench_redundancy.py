@@ -69,12 +69,10 @@ def problems(output: str, n: int = N_SAMPLES) -> dict[str, tuple]:
 
 
 def one(task, genome: str, may_go: set, must_stay: set, seed: int, pruner: str, mode: str,
-        base: tuning.OptimizeResult | None = None):  # fmt: skip
-    """One seed of one case; ``base``: the unpruned run of this seed, if already made (it
-    depends on the case and seed only, not on the pruner)."""
+        base: tuning.OptimizeResult):  # fmt: skip
+    """One seed of one case; ``base``: the unpruned run of this seed (it depends on the case
+    and seed only, not on the pruner)."""
     key = jax.random.key(seed)
-    if base is None:
-        base = tuning.optimize(genome, task, key=key)
     options = LITERAL if mode == "literal" else {}
     t0 = time.perf_counter()
     res = tuning.optimize(genome, task, key=key, pruner=pruner, **options)

@@ -19,6 +19,7 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
+from eant2_jax import compilestats
 from eant2_jax.genome import Gene, GeneKind, Genome
 
 __all__ = [
@@ -78,30 +79,22 @@ def default_out(name: str) -> Path:
 
 
 # ------------------------------------------------------------------------------ compiling
-_COMPILE_EVENTS = {
-    "/jax/core/compile/jaxpr_trace_duration": "trace_s",
-    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
-    "/jax/core/compile/backend_compile_duration": "compile_s",
-}
-
-
 class CompileClock:
     """Counts XLA compilations and sums the seconds JAX spends tracing, lowering and compiling
-    them (all programs, any caller) while alive."""
+    them (all programs, any caller) since it was made (the library's `eant2_jax.compilestats`
+    counters, read relative to that moment)."""
 
     def __init__(self):
-        self.totals = dict.fromkeys(_COMPILE_EVENTS.values(), 0.0)
-        self.compiles = 0
-        jax.monitoring.register_event_duration_secs_listener(self._listen)
+        self._start = compilestats.snapshot()
 
-    def _listen(self, name: str, duration: float, **kwargs) -> None:
-        field = _COMPILE_EVENTS.get(name)
-        if field is not None:
-            self.totals[field] += duration
-            self.compiles += field == "compile_s"
+    @property
+    def compiles(self) -> int:
+        return (compilestats.snapshot() - self._start).programs
 
     def snapshot(self) -> dict[str, float]:
-        return {"compiles": self.compiles, **self.totals}
+        d = compilestats.snapshot() - self._start
+        return {"compiles": d.programs, "trace_s": d.trace_s, "lower_s": d.lower_s,
+                "compile_s": d.compile_s}  # fmt: skip
 
 
 # ----------------------------------------------------------------------------------- timing

@@ -26,11 +26,11 @@ __all__ = ["CompileStats", "snapshot"]
 
 # Emitted once per program XLA compiles (a persistent-cache load included; an in-memory
 # cache hit emits nothing), and for its tracing and lowering.
-_DURATIONS = (
-    "/jax/core/compile/jaxpr_trace_duration",
-    "/jax/core/compile/jaxpr_to_mlir_module_duration",
-    "/jax/core/compile/backend_compile_duration",
-)
+_DURATIONS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace_s",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
+    "/jax/core/compile/backend_compile_duration": "compile_s",
+}
 _PROGRAM = "/jax/core/compile/backend_compile_duration"
 _HIT = "/jax/compilation_cache/cache_hits"
 _MISS = "/jax/compilation_cache/cache_misses"
@@ -42,35 +42,44 @@ class CompileStats:
 
     Attributes:
       programs: programs XLA compiled or loaded from the persistent cache.
-      seconds: seconds spent tracing, lowering and compiling (or loading) them.
+      trace_s, lower_s, compile_s: seconds spent tracing, lowering and compiling (or
+        loading) them.
       cache_hits, cache_misses: persistent-cache lookups that found a program and that did
         not (both 0 while the cache is off).
     """
 
     programs: int = 0
-    seconds: float = 0.0
+    trace_s: float = 0.0
+    lower_s: float = 0.0
+    compile_s: float = 0.0
     cache_hits: int = 0
     cache_misses: int = 0
 
+    @property
+    def seconds(self) -> float:
+        """Tracing, lowering and compiling together."""
+        return self.trace_s + self.lower_s + self.compile_s
+
     def __sub__(self, other: CompileStats) -> CompileStats:
         return CompileStats(
-            self.programs - other.programs,
-            self.seconds - other.seconds,
-            self.cache_hits - other.cache_hits,
-            self.cache_misses - other.cache_misses,
+            **{
+                f.name: getattr(self, f.name) - getattr(other, f.name)
+                for f in dataclasses.fields(self)
+            }
         )
 
 
 _lock = threading.Lock()
-_totals = {"programs": 0, "seconds": 0.0, "cache_hits": 0, "cache_misses": 0}
+_totals = {f.name: f.default for f in dataclasses.fields(CompileStats)}
 _listening = False
 
 
 def _on_duration(name: str, seconds: float, **kwargs) -> None:
     del kwargs
-    if name in _DURATIONS:
+    field = _DURATIONS.get(name)
+    if field is not None:
         with _lock:
-            _totals["seconds"] += seconds
+            _totals[field] += seconds
             _totals["programs"] += name == _PROGRAM
 
 

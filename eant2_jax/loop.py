@@ -219,7 +219,6 @@ def _initialise(task: Task, key: jax.Array, config: EANT2Config) -> tuple[list[G
     """Generation 0's genomes and the next free neuron id: ``population`` minimal starts,
     each with ``init_mutations`` structural mutations (a diverse start when asked)."""
     rng = np.random.default_rng(_key_data(key))
-    p = np.asarray(config.operator_weights) / sum(config.operator_weights)
     genomes, seen, next_id = [], set(), task.n_outputs
     # Without mutations one draw per slot, as before (with full connectivity every draw is
     # the same structure); with them, a slot draws again (20 times at most) when it meets a
@@ -237,16 +236,7 @@ def _initialise(task: Task, key: jax.Array, config: EANT2Config) -> tuple[list[G
             )
             used = 0
             for _ in range(config.init_mutations):
-                op = OPERATORS[int(rng.choice(len(OPERATORS), p=p))]
-                child = mutate(
-                    rng,
-                    g,
-                    op,
-                    n_inputs=task.n_inputs,
-                    next_id=next_id + used,
-                    input_fraction=config.input_fraction,
-                    weight_scale=config.new_weight_scale,
-                )
+                child, op = _mutate_once(rng, g, task, next_id + used, config)
                 if child is not None:
                     g, used = child, used + (op == "add_subnetwork")
             # Identical structures are not evaluated twice.
@@ -256,6 +246,25 @@ def _initialise(task: Task, key: jax.Array, config: EANT2Config) -> tuple[list[G
                 next_id += used
                 break
     return genomes, next_id
+
+
+def _mutate_once(
+    rng: np.random.Generator, genome: Genome, task: Task, next_id: int, config: EANT2Config
+) -> tuple[Genome | None, str]:
+    """One structural mutation with an operator drawn by ``operator_weights``; returns the
+    child (None if the operator had nothing to act on) and the operator."""
+    p = np.asarray(config.operator_weights) / sum(config.operator_weights)
+    op = OPERATORS[int(rng.choice(len(OPERATORS), p=p))]
+    child = mutate(
+        rng,
+        genome,
+        op,
+        n_inputs=task.n_inputs,
+        next_id=next_id,
+        input_fraction=config.input_fraction,
+        weight_scale=config.new_weight_scale,
+    )
+    return child, op
 
 
 def _explore(
@@ -268,22 +277,12 @@ def _explore(
     """Make offspring by structural mutation; duplicates of existing structures are dropped."""
     want = config.offspring or config.population
     seen = {ind.genome.structure_key() for ind in population}
-    p = np.asarray(config.operator_weights) / sum(config.operator_weights)
     children: list[Individual] = []
     for _ in range(20 * want):  # give up on duplicates after a while
         if len(children) == want:
             break
         parent = population[int(rng.integers(len(population)))]
-        op = OPERATORS[int(rng.choice(len(OPERATORS), p=p))]
-        child = mutate(
-            rng,
-            parent.genome,
-            op,
-            n_inputs=task.n_inputs,
-            next_id=next_id,
-            input_fraction=config.input_fraction,
-            weight_scale=config.new_weight_scale,
-        )
+        child, op = _mutate_once(rng, parent.genome, task, next_id, config)
         if child is None or child.structure_key() in seen:
             continue
         if op == "add_subnetwork":

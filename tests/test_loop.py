@@ -800,24 +800,3 @@ def _record_json() -> dict:
         "population": 1, "exploited": 1, "generation_s": 0.1, "best_genome": "N0/1*1 I0*1",
         "compiles": 2, "compile_s": 1.5, "cache_hits": 1, "cache_misses": 1,
     }  # fmt: skip
-
-
-def test_ctrl_c_swallowed_by_a_finalizer_still_stops_the_run():
-    """The CLI's SIGINT handler flags the press: if its KeyboardInterrupt lands in code that
-    swallows it (a ``__del__``), the next progress event raises it again."""
-    from eant2_jax.app.cli import _Interruptible
-
-    seen = []
-    callback = _Interruptible(seen.append)
-    _Interruptible.pressed = False
-    try:
-        callback({"event": "exploit"})  # not pressed: passes the event on
-        try:
-            _Interruptible.handler(signal.SIGINT, None)
-        except KeyboardInterrupt:
-            pass  # what a finalizer does with it
-        with pytest.raises(KeyboardInterrupt):
-            callback({"event": "generation"})
-        assert [e["event"] for e in seen] == ["exploit", "generation"]
-    finally:
-        _Interruptible.pressed = False

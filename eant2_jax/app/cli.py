@@ -5,9 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import signal
 import sys
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -147,9 +145,7 @@ def _run(args: argparse.Namespace) -> int:
         config=config,
         generations=args.generations,
         out=str(out),
-        callback=_Interruptible(
-            ProgressReporter(args.generations, header=f"eant2 run {spec}: writing {out}")
-        ),
+        callback=ProgressReporter(args.generations, header=f"eant2 run {spec}: writing {out}"),
         meta=meta,
     )
     return _finish(result, out)
@@ -172,7 +168,7 @@ def _resume(args: argparse.Namespace) -> int:
     result = eant2_jax.resume(
         args.dir,
         generations=args.generations,
-        callback=_Interruptible(ProgressReporter(total, header=f"eant2 resume {args.dir}")),
+        callback=ProgressReporter(total, header=f"eant2 resume {args.dir}"),
     )
     return _finish(result, Path(args.dir))
 
@@ -587,53 +583,9 @@ def _deterministic_gpu(environ=None) -> bool:
     return True
 
 
-class _Interruptible:
-    """A progress callback that raises KeyboardInterrupt once Ctrl-C has been pressed.
-
-    Python raises KeyboardInterrupt in whatever code runs when SIGINT arrives; if that is a
-    finalizer (``__del__``, a weakref callback: JAX has many), the interpreter prints
-    "Exception ignored" and the run goes on, which a CI run of the Ctrl-C test once showed.
-    `main`'s handler also sets a flag, and every progress event checks it, so a Ctrl-C stops
-    the run within the current generation however it was first raised.
-    """
-
-    pressed = False
-
-    def __init__(self, callback):
-        self.callback = callback
-
-    def __call__(self, event: dict) -> None:
-        self.callback(event)
-        if _Interruptible.pressed:
-            raise KeyboardInterrupt
-
-    @staticmethod
-    def handler(signum, frame) -> None:
-        del signum, frame
-        _Interruptible.pressed = True
-        raise KeyboardInterrupt
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
-    _Interruptible.pressed = False
-    # Only where Python's own Ctrl-C handler is in place (the main thread, SIGINT not
-    # ignored as in a background job, no handler of the embedding program's).
-    ours = (
-        threading.current_thread() is threading.main_thread()
-        and signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    )
-    if ours:
-        signal.signal(signal.SIGINT, _Interruptible.handler)
-    try:
-        return _main(args)
-    finally:
-        if ours:
-            signal.signal(signal.SIGINT, signal.default_int_handler)
-
-
-def _main(args: argparse.Namespace) -> int:
     _deterministic_gpu()
     from eant2_jax.config import enable_compilation_cache
 

@@ -254,10 +254,20 @@ def test_rewind_refuses_a_log_shorter_than_its_checkpoint(tmp_path):
 
 
 # ------------------------------------------------------------------------- command line
+# `eant2`, with Python's Ctrl-C handler whatever this process does with SIGINT: a test suite
+# started as a background job ignores SIGINT, a child inherits that, and Python then leaves
+# it ignored (as it should for a user's background run), so the Ctrl-C test's signal would
+# be lost. Not a `preexec_fn`: unsafe in a process with threads (JAX's).
+_CLI = (
+    "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+    "sys.argv[0] = 'eant2'; runpy.run_module('eant2_jax.app.cli', run_name='__main__')"
+)
+
+
 def _eant2(*args: str, cache: Path, **kw) -> subprocess.Popen:
     env = {**os.environ, "EANT2_CACHE_DIR": str(cache), "PYTHONUNBUFFERED": "1"}
     return subprocess.Popen(
-        [sys.executable, "-m", "eant2_jax.app.cli", *args],
+        [sys.executable, "-c", _CLI, *args],
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

@@ -349,6 +349,7 @@ _EANT2_TYPES = {
     "size_tolerance": ("float",),
     "size_atol": ("float",),
     "target_cost": ("float", "None"),
+    "max_evaluations": ("int", "None"),
     "devices": ("int", "str", "None"),
 }
 
@@ -356,7 +357,7 @@ _EANT2_TYPES = {
 # Fields added after the run-directory format 2 was fixed: a file written before them lacks
 # them, so ``complete`` does not require them and fills in the value that reproduces what
 # that version did (not necessarily today's default).
-_ADDED_LATER = {"init_recurrent": False, "init_mutations": 0}
+_ADDED_LATER = {"init_recurrent": False, "init_mutations": 0, "max_evaluations": None}
 _EXPLOIT_ADDED_LATER = {"lazy_eigen": 0.0, "tolfun": None}
 
 
@@ -389,6 +390,10 @@ class EANT2Config:
       exploit: the CMA-ES / pruning configuration (its ``pruner`` turns pruning on).
       target_cost: stop the run once the best cost is at or below this (None: run all
         generations). A stopped run's directory holds fewer generations than asked.
+      max_evaluations: stop the run once it has spent at least this many cost evaluations
+        (None: no limit). Checked between generations, like ``target_cost``: the generation
+        that reaches it is completed, so the run may overshoot by part of one generation
+        (its records say by how much). For comparisons at an equal evaluation budget.
       devices: where exploitation runs: None (the default device), ``"all"`` or a count N —
         the structures are split over a 1-D mesh of those devices (every process's, in a
         multi-process run). Placement only: the results are identical.
@@ -409,6 +414,7 @@ class EANT2Config:
     size_tolerance: float = 1e-3
     size_atol: float = 1e-9
     target_cost: float | None = None
+    max_evaluations: int | None = None
     devices: int | str | None = None
     exploit: ExploitConfig = dataclasses.field(
         default_factory=lambda: ExploitConfig(pruner="covariance")
@@ -462,6 +468,11 @@ class EANT2Config:
                 f"{len(OPERATORS)} non-negative numbers, not all 0 (order: {', '.join(OPERATORS)})",
             ),
             ("similar_limit", self.similar_limit >= 1, ">= 1"),
+            (
+                "max_evaluations",
+                self.max_evaluations is None or self.max_evaluations >= 1,
+                ">= 1 (or None)",
+            ),
             ("size_tolerance", self.size_tolerance >= 0, ">= 0"),
             ("size_atol", self.size_atol >= 0, ">= 0"),
             (

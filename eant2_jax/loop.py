@@ -730,6 +730,9 @@ def _loop(
         if state is not None and config.target_cost is not None:
             if state.best().cost <= config.target_cost:
                 break
+        if state is not None and config.max_evaluations is not None:
+            if state.evaluations >= config.max_evaluations:
+                break
         state, record, prune, bucket, solution = _generation(
             task, state, key, config, callback, mesh, bucket, solution_test
         )

@@ -695,6 +695,32 @@ def test_solution_test_stops_the_run_at_the_first_pass(xor_run, tmp_path):
     assert len(_jsonl(run_dir, GENERATIONS)) == GENERATIONS_API + 1
 
 
+def test_max_evaluations_stops_after_the_generation_that_reaches_it(xor_run, tmp_path):
+    """An evaluation budget ends the run after the generation in which it is reached: the
+    generations up to there are exactly the reference's, and a resume asked for more
+    generations does nothing more."""
+    reference, _, _ = xor_run
+    ref = _json(reference.generations)
+    budget = ref[1]["evaluations"] - 1  # reached within generation 1, not before
+    run_dir = tmp_path / "run"
+    result = eant2_jax.run(
+        tasks.make("xor"),
+        key=jax.random.key(SEED),
+        config=dataclasses.replace(CONFIG, max_evaluations=budget),
+        generations=GENERATIONS_API + 3,
+        out=str(run_dir),
+    )
+    gens = _json(result.generations)
+    assert _without_wall(gens) == _without_wall(ref[:2])
+    assert gens[0]["evaluations"] < budget <= gens[-1]["evaluations"]
+    again = eant2_jax.resume(str(run_dir), generations=GENERATIONS_API + 5)
+    assert len(again.generations) == 2 and len(_jsonl(run_dir, GENERATIONS)) == 2
+    with pytest.raises(ValueError, match="max_evaluations"):
+        EANT2Config(max_evaluations=0)
+    loaded = EANT2Config.from_dict(CONFIG.to_dict() | {"max_evaluations": 7})
+    assert loaded.max_evaluations == 7
+
+
 def test_solution_test_halts_every_structure_and_counts_only_evaluations():
     """Through `tune`: the test halts the whole batch after the chunk in which a network
     passes; the evaluations are those spent until then (the test's work is not counted)."""

@@ -520,6 +520,7 @@ def test_report_of_malformed_records_is_one_line(tmp_path, capsys, monkeypatch):
         (["run", "xor", "--seed", "1" * 5000], "--seed"),
         (["run", "xor", "--devices", "99"], "device"),
         (["run", "xor", "--target-cost", "nan"], "target_cost"),
+        (["run", "xor", "--max-evaluations", "0"], "max_evaluations"),
         (["run", "xor", "--population", "99999999999999999999999"], "population"),
     ],
 )

@@ -134,6 +134,7 @@ def _run(args: argparse.Namespace) -> int:
         init_mutations=args.init_mutations,
         devices=args.devices,
         target_cost=args.target_cost,
+        max_evaluations=args.max_evaluations,
         exploit=ExploitConfig(**exploit),
     )
     out = Path(args.out) if args.out else _free_dir(spec, args.seed)
@@ -448,6 +449,13 @@ def _parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         help="stop once the best cost is at or below this",
+    )
+    run.add_argument(
+        "--max-evaluations",
+        type=int,
+        default=None,
+        metavar="N",
+        help="stop after the generation in which the run's evaluations reach N",
     )
     run.add_argument(
         "--task-option",

@@ -10,6 +10,7 @@ coldstart (wall time of ``eant2 run`` from process start, empty and warm compila
 fuzz_rundir (corrupted run directories and genome texts, issue 16).
 brax (``eant2 run brax:ENV`` and ``eant2 resume`` from process start, the best network's
 return on new episodes).
+field (eant2_jax against TensorNEAT on gymnax and brax environments, issue 18).
 Each writes JSON (device, versions, config, compile time apart from steady state) and a
 markdown table, and never over an existing result file unless ``--force`` is given;
 ``--help`` after the suite name lists its options.
@@ -35,6 +36,7 @@ SUITES = {
     "coldstart": "bench.bench_coldstart",
     "fuzz_rundir": "bench.bench_fuzz_rundir",
     "brax": "bench.bench_brax",
+    "field": "bench.bench_field",
 }
 
 

@@ -1,0 +1,503 @@
+"""The neuro-evolution field: eant2_jax against TensorNEAT on gymnax and brax environments.
+
+Every (environment, seed, method) is one run **in a fresh process** with no persistent
+compilation cache (cold on both sides), timed from just before that process starts. A run
+stops after the generation in which it has spent ``--budget`` evaluations (or the
+environment's default budget), or at ``--deadline-s`` seconds from its start.
+
+* ``eant2``: this project, ``eant2_jax.run`` on ``tasks.make("gymnax:NAME")`` or
+  ``tasks.make("brax:NAME")`` with covariance pruning, ``max_evaluations`` = the budget.
+  Its settings per environment are in ``ENVS`` (``--population``/``--max-iters`` override).
+* ``tensorneat``: TensorNEAT (EMI-Group/tensorneat; its source is fetched, never vendored:
+  ``--tensorneat SRC``, the folder that holds the ``tensorneat`` package), NEAT with the
+  settings of its own examples (``examples/gymnax/cartpole.py``, ``examples/brax/hopper.py``:
+  population 1000, 20 species, survival threshold 0.1, compatibility threshold 1.0, tanh
+  bias nodes with sum aggregation, no initial hidden layer), driven generation by generation
+  through ``Pipeline.step`` (what ``Pipeline.auto_run`` jits). One generation = 1000
+  evaluations.
+
+**The same evaluation on both sides.** One evaluation is one network's mean return over the
+environment's ``episodes`` episodes (TensorNEAT's ``repeat_times``), at most ``max_steps``
+steps each, ended when the environment says done; the environment's own reward. Each
+method keeps its own input and output conventions: eant2_jax maps bounded observation
+dimensions to [-1, 1] (docs/tasks-custom.md), TensorNEAT feeds raw observations; a discrete
+action is the argmax of one output per action on both; a continuous one is ``tanh`` of the
+outputs scaled onto the action bounds on both. brax runs the same ``--backend`` on both.
+
+**What is compared.** After each generation a method has a champion: for eant2_jax the best
+individual after selection, for TensorNEAT the genome of the highest training fitness seen
+so far (what ``Pipeline`` keeps as ``best_genome``). Training fitness is optimistic on noisy
+environments (the best of many candidates on a few episodes), so after the run every
+distinct champion also plays ``--test-episodes`` new episodes (keys no run drew; not counted
+as evaluations or wall time): the **test return**, the number every table and curve shows.
+Per environment and seed the report gives each method's test return at the budget, its
+network size (weights: connections plus biases), and the evaluations and wall time (from
+process start) at which eant2_jax's champion first reached TensorNEAT's final test return.
+
+Run: ``python -m bench field --tensorneat SRC [--envs cartpole acrobot ...] [--seeds 3]``;
+``--methods eant2`` alone needs no TensorNEAT.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench import harness
+from bench.common import BenchInputError, Column, environment, markdown_table
+
+__all__ = ["ENVS", "METHODS", "Env", "first_reaching", "main", "summarise"]
+
+METHODS = ("eant2", "tensorneat")
+
+
+@dataclasses.dataclass(frozen=True)
+class Env:
+    """One environment of the suite.
+
+    Attributes:
+      family, name: ``gymnax`` or ``brax``, and the environment's id there.
+      n_inputs, n_outputs: observation size, and actions (discrete) or action size.
+      discrete: argmax over outputs (True) or a continuous action.
+      action_scale: continuous actions are ``action_scale * tanh(y)`` (the action bounds).
+      episodes: episodes per evaluation, both methods.
+      max_steps: steps per episode at most.
+      budget: default evaluation budget per run.
+      population, max_iters: eant2_jax's settings for it.
+      solved: the return the environment counts as solved (None: none defined).
+    """
+
+    family: str
+    name: str
+    n_inputs: int
+    n_outputs: int
+    discrete: bool
+    action_scale: float
+    episodes: int
+    max_steps: int
+    budget: int
+    population: int
+    max_iters: int
+    solved: float | None = None
+
+
+ENVS = {
+    "cartpole": Env("gymnax", "CartPole-v1", 4, 2, True, 1.0, 5, 500, 20_000, 10, 100, 500.0),
+    "acrobot": Env("gymnax", "Acrobot-v1", 6, 3, True, 1.0, 5, 500, 20_000, 10, 100),
+    "pendulum": Env("gymnax", "Pendulum-v1", 3, 1, False, 2.0, 5, 200, 50_000, 10, 200),
+    "hopper": Env("brax", "hopper", 11, 3, False, 1.0, 1, 1000, 50_000, 10, 100),
+    "halfcheetah": Env("brax", "halfcheetah", 17, 6, False, 1.0, 1, 1000, 50_000, 10, 100),
+}
+TENSORNEAT_POP = 1000
+QUICK = {"seeds": 1, "budget": 300, "deadline_s": 240.0,
+         "test_episodes": 3, "population": 2, "max_iters": 8, "tensorneat_pop": 100}  # fmt: skip
+
+
+# ---------------------------------------------------------------------------- the workers
+class _Deadline(Exception):
+    pass
+
+
+def _task(env: Env, args: argparse.Namespace, episodes: int):
+    from eant2_jax import tasks
+
+    if env.family == "gymnax":
+        return tasks.make(f"gymnax:{env.name}", episodes=episodes, max_steps=env.max_steps)
+    return tasks.make(
+        f"brax:{env.name}", episodes=episodes, max_steps=env.max_steps, backend=args.backend
+    )
+
+
+class _Log:
+    """A worker's result file, rewritten after every generation (a killed run keeps what it
+    measured): the curve, then the test returns."""
+
+    def __init__(self, path: str, t0: float, meta: dict):
+        self.path, self.t0, self.data = Path(path), t0, {**meta, "curve": [], "done": False}
+
+    def wall(self) -> float:
+        return time.time() - self.t0
+
+    def point(self, **point: Any) -> None:
+        self.data["curve"].append({"wall_s": self.wall(), **point})
+        self.write()
+
+    def write(self) -> None:
+        tmp = self.path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.data))
+        os.replace(tmp, self.path)
+
+
+def _worker_eant2(env: Env, args: argparse.Namespace, log: _Log) -> None:
+    import jax
+
+    import eant2_jax
+    from eant2_jax.compiler import networks
+    from eant2_jax.genome import Genome
+    from eant2_jax.tasks.episodic import returns
+
+    task = _task(env, args, env.episodes)
+    config = eant2_jax.EANT2Config(
+        population=args.population or env.population,
+        max_evaluations=args.budget,
+        exploit=eant2_jax.ExploitConfig(
+            pruner="covariance", max_iters=args.max_iters or env.max_iters
+        ),
+    )
+    log.data["settings"] = config.to_dict()
+
+    def on_event(e: dict) -> None:
+        if e["event"] != "generation":
+            return
+        log.point(evaluations=e["evaluations"], train_return=-e["best_cost"],
+                  size=e["best_size"], champion=e["best_genome"])  # fmt: skip
+        if log.wall() > args.deadline_s:
+            raise _Deadline
+
+    try:
+        eant2_jax.run(task, key=jax.random.key(args.seed), config=config,
+                      generations=10**9, callback=on_event)  # fmt: skip
+    except _Deadline:
+        log.data["deadline"] = True
+    test = _task(env, args, 1)
+    scores: dict[str, float] = {}
+    for p in log.data["curve"]:
+        text = p["champion"]
+        if text not in scores:
+            nets = networks([Genome.parse(text)], task.n_inputs)
+            r = returns(test, nets, key=_test_key(args.seed), episodes=args.test_episodes)
+            scores[text] = float(np.mean(r[0]))
+        p["test_return"] = scores[text]
+
+
+def _test_key(seed: int):
+    import jax
+
+    # fold_in 2**31 - 1: a stream of keys no run (split from its seed) ever drew.
+    return jax.random.fold_in(jax.random.key(seed), 2**31 - 1)
+
+
+def _tensorneat_problem(env: Env, args: argparse.Namespace, repeat: int):
+    if env.family == "gymnax":
+        from tensorneat.problem.rl import GymNaxEnv
+
+        class Gymnax(GymNaxEnv):
+            """TensorNEAT's GymNaxEnv for gymnax >= 0.0.9, whose ``step`` returns
+            (obs, state, reward, terminated, truncated, info): TensorNEAT's loop expects
+            the older (obs, state, reward, done, info). Nothing else changes."""
+
+            def env_step(self, randkey, env_state, action):
+                out = self.env.step(randkey, env_state, action, self.env_params)
+                if len(out) == 6:
+                    obs, st, reward, terminated, truncated, info = out
+                    return obs, st, reward, terminated | truncated, info
+                return out
+
+        return Gymnax(env.name, max_step=env.max_steps, repeat_times=repeat)
+    from tensorneat.problem.rl import BraxEnv
+
+    return BraxEnv(env.name, backend=args.backend, max_step=env.max_steps, repeat_times=repeat)
+
+
+def _worker_tensorneat(env: Env, args: argparse.Namespace, log: _Log) -> None:
+    sys.path.insert(0, str(Path(args.tensorneat).resolve()))
+    import jax
+    import jax.numpy as jnp
+    from tensorneat.algorithm.neat import NEAT
+    from tensorneat.common import ACT, AGG
+    from tensorneat.genome import BiasNode, DefaultGenome
+    from tensorneat.pipeline import Pipeline
+
+    if env.discrete:
+        out = jnp.argmax
+    else:
+        scale = env.action_scale
+
+        def out(y):
+            return scale * jnp.tanh(y)
+
+    pop = args.tensorneat_pop
+    algorithm = NEAT(
+        pop_size=pop, species_size=20, survival_threshold=0.1, compatibility_threshold=1.0,
+        genome=DefaultGenome(
+            num_inputs=env.n_inputs, num_outputs=env.n_outputs, init_hidden_layers=(),
+            node_gene=BiasNode(activation_options=ACT.tanh, aggregation_options=AGG.sum),
+            output_transform=out,
+        ),
+    )  # fmt: skip
+    generations = max(1, math.ceil(args.budget / pop))
+    pipeline = Pipeline(algorithm=algorithm, problem=_tensorneat_problem(env, args, env.episodes),
+                        seed=args.seed, generation_limit=generations,
+                        fitness_target=math.inf)  # fmt: skip
+    log.data["settings"] = {"pop_size": pop, "species_size": 20, "survival_threshold": 0.1,
+                            "compatibility_threshold": 1.0, "generations": generations}  # fmt: skip
+    state = pipeline.setup()
+    # As Pipeline.auto_run compiles it: ahead of time, once (a plain jit retraced the step
+    # after its first call, the state's types having changed).
+    step = jax.jit(pipeline.step).lower(state).compile()
+    best, champion, champions = -math.inf, None, []
+    for g in range(generations):
+        state, population, fitness = step(state)
+        fitness = np.asarray(jax.device_get(fitness))
+        i = int(np.argmax(fitness))
+        if fitness[i] > best or champion is None:
+            best = float(fitness[i])
+            champion = (np.asarray(population[0][i]), np.asarray(population[1][i]))
+            champions.append(champion)
+        log.point(evaluations=(g + 1) * pop, train_return=best,
+                  size=_tensorneat_size(champion, env.n_inputs), champion=len(champions) - 1)  # fmt: skip
+        if log.wall() > args.deadline_s:
+            log.data["deadline"] = True
+            break
+    test = _tensorneat_problem(env, args, args.test_episodes)
+    state = test.setup(state)
+
+    @jax.jit
+    def score(nodes, conns):
+        t = algorithm.transform(state, (nodes, conns))
+        return test.evaluate(state, _test_key(args.seed), algorithm.forward, t)
+
+    scores = [float(score(*c)) for c in champions]
+    for p in log.data["curve"]:
+        p["test_return"] = scores[p["champion"]]
+
+
+def _tensorneat_size(genome: tuple[np.ndarray, np.ndarray], n_inputs: int) -> int:
+    """Weights of a TensorNEAT genome: its connections plus the biases of its non-input
+    nodes (unused rows of the padded node and connection arrays are NaN)."""
+    nodes, conns = genome
+    used_nodes = int(np.sum(~np.isnan(nodes[:, 0])))
+    return int(np.sum(~np.isnan(conns[:, 0]))) + used_nodes - n_inputs
+
+
+def worker(argv: list[str]) -> int:
+    """``python -m bench.bench_field worker ...``: one run, in this (fresh) process."""
+    p = argparse.ArgumentParser(prog="python -m bench.bench_field worker")
+    p.add_argument("--method", choices=METHODS, required=True)
+    p.add_argument("--env", choices=sorted(ENVS), required=True)
+    p.add_argument("--seed", type=int, required=True)
+    p.add_argument("--budget", type=int, required=True)
+    p.add_argument("--deadline-s", type=float, required=True)
+    p.add_argument("--t0", type=float, required=True, help="time.time() at process start")
+    p.add_argument("--out", required=True)
+    p.add_argument("--test-episodes", type=int, default=20)
+    p.add_argument("--backend", default="spring")
+    p.add_argument("--population", type=int, default=None)
+    p.add_argument("--max-iters", type=int, default=None)
+    p.add_argument("--tensorneat", default=None)
+    p.add_argument("--tensorneat-pop", type=int, default=TENSORNEAT_POP)
+    args = p.parse_args(argv)
+    env = ENVS[args.env]
+    log = _Log(args.out, args.t0, {"method": args.method, "env": args.env, "seed": args.seed,
+                                   "budget": args.budget})  # fmt: skip
+    log.data["start_s"] = log.wall()  # process start to the first line of Python here
+    (_worker_eant2 if args.method == "eant2" else _worker_tensorneat)(env, args, log)
+    log.data["done"] = True
+    log.write()
+    return 0
+
+
+# ---------------------------------------------------------------------------- the parent
+def first_reaching(curve: list[dict], target: float) -> dict | None:
+    """The first point of a curve whose test return is at least ``target`` (None: none)."""
+    return next((p for p in curve if p.get("test_return", -math.inf) >= target), None)
+
+
+def _at_budget(curve: list[dict], budget: int) -> dict | None:
+    """The last point within ``budget`` evaluations (else the first point)."""
+    within = [p for p in curve if p["evaluations"] <= budget]
+    return within[-1] if within else (curve[0] if curve else None)
+
+
+def summarise(runs: list[dict]) -> list[dict]:
+    """Per environment and seed: each method's final test return and size, and where
+    eant2_jax's champion first reached TensorNEAT's final test return."""
+    rows = []
+    keys = sorted({(r["env"], r["seed"]) for r in runs})
+    for env, seed in keys:
+        by = {r["method"]: r for r in runs if r["env"] == env and r["seed"] == seed}
+        row: dict[str, Any] = {"env": env, "seed": seed}
+        for m in METHODS:
+            r = by.get(m)
+            last = r["curve"][-1] if r and r["curve"] else None
+            row[f"{m}_return"] = None if last is None else last.get("test_return")
+            row[f"{m}_evals"] = None if last is None else last["evaluations"]
+            row[f"{m}_wall_s"] = None if last is None else last["wall_s"]
+            row[f"{m}_size"] = None if last is None else last["size"]
+            row[f"{m}_status"] = _status(r)
+        tn, ea = by.get("tensorneat"), by.get("eant2")
+        target = row["tensorneat_return"]
+        hit = first_reaching(ea["curve"], target) if ea and target is not None else None
+        row["eant2_evals_to_tn"] = None if hit is None else hit["evaluations"]
+        row["eant2_wall_to_tn_s"] = None if hit is None else hit["wall_s"]
+        if tn and ea and tn["curve"]:
+            same = _at_budget(ea["curve"], tn["curve"][-1]["evaluations"])
+            row["eant2_return_at_tn_evals"] = None if same is None else same.get("test_return")
+            tn_hit = first_reaching(tn["curve"], target)
+            row["tn_wall_to_own_s"] = None if tn_hit is None else tn_hit["wall_s"]
+        rows.append(row)
+    return rows
+
+
+def _status(run: dict | None) -> str:
+    if run is None:
+        return "not run"
+    if run.get("error"):
+        return "failed"
+    if not run.get("done"):
+        return "killed"
+    return "deadline" if run.get("deadline") else "ok"
+
+
+def _spawn(method: str, env: str, seed: int, args: argparse.Namespace, budget: int,
+           work: Path) -> dict:  # fmt: skip
+    out = work / f"{env}-{method}-s{seed}.json"
+    cmd = [sys.executable, "-m", "bench.bench_field", "worker", "--method", method, "--env", env,
+           "--seed", str(seed), "--budget", str(budget), "--deadline-s", str(args.deadline_s),
+           "--out", str(out), "--test-episodes", str(args.test_episodes),
+           "--backend", args.backend, "--tensorneat-pop", str(args.tensorneat_pop)]  # fmt: skip
+    for flag, v in (("--population", args.population), ("--max-iters", args.max_iters),
+                    ("--tensorneat", args.tensorneat)):  # fmt: skip
+        if v is not None:
+            cmd += [flag, str(v)]
+    environ = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR",)}
+    environ["EANT2_CACHE_DIR"] = ""  # cold: no persistent compilation cache on either side
+    environ["PYTHONPATH"] = os.pathsep.join(
+        [str(Path(__file__).resolve().parents[1]), environ.get("PYTHONPATH", "")]
+    ).rstrip(os.pathsep)
+    t0 = time.time()
+    cmd += ["--t0", repr(t0)]
+    err = ""
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=environ,
+                              timeout=args.deadline_s + args.grace_s)  # fmt: skip
+        if proc.returncode != 0:
+            err = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
+            err = err[0]
+    except subprocess.TimeoutExpired:
+        err = ""  # killed past its deadline: what it wrote is kept, marked "killed"
+    total = time.time() - t0
+    run = json.loads(out.read_text()) if out.is_file() else {
+        "method": method, "env": env, "seed": seed, "budget": budget, "curve": []}  # fmt: skip
+    run["process_s"] = total
+    if err:
+        run["error"] = err
+    return run
+
+
+def _options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--envs", nargs="+", choices=sorted(ENVS), default=None,
+                   help="default: all (with --quick: cartpole)")  # fmt: skip
+    p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
+    p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--budget", type=int, default=None,
+                   help="evaluations per run (default: each environment's, ENVS)")  # fmt: skip
+    p.add_argument("--deadline-s", type=float, default=600.0,
+                   help="wall seconds per run from its process start")  # fmt: skip
+    p.add_argument("--grace-s", type=float, default=300.0,
+                   help="after its deadline a run gets this long to test its champions")  # fmt: skip
+    p.add_argument("--test-episodes", type=int, default=20)
+    p.add_argument("--backend", default="spring", help="brax physics backend, both methods")
+    p.add_argument("--population", type=int, default=None, help="eant2 population override")
+    p.add_argument("--max-iters", type=int, default=None, help="eant2 CMA-ES iterations override")
+    p.add_argument("--tensorneat", default=None,
+                   help="folder holding TensorNEAT's tensorneat package (its src/)")  # fmt: skip
+    p.add_argument("--tensorneat-pop", type=int, default=TENSORNEAT_POP)
+
+
+def _prepare(args: argparse.Namespace) -> None:
+    if args.quick:
+        for k, v in QUICK.items():
+            setattr(args, k, v)
+    if args.envs is None:
+        args.envs = ["cartpole"] if args.quick else list(ENVS)
+    if "tensorneat" in args.methods:
+        src = Path(args.tensorneat or "")
+        if not args.tensorneat or not (src / "tensorneat" / "pipeline.py").is_file():
+            raise BenchInputError(
+                "--tensorneat must name the folder holding TensorNEAT's tensorneat package "
+                f"(its src/), got {args.tensorneat!r}; or leave tensorneat out of --methods"
+            )
+    for name in ("seeds", "test_episodes", "tensorneat_pop"):
+        if getattr(args, name) < 1:
+            raise BenchInputError(f"--{name.replace('_', '-')} must be at least 1")
+    if args.budget is not None and args.budget < 1:
+        raise BenchInputError("--budget must be at least 1")
+
+
+def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
+    payload: dict[str, Any] = {"environment": environment(),
+                               "config": harness.settings(args), "runs": []}  # fmt: skip
+    with tempfile.TemporaryDirectory(prefix="eant2-field-") as work:
+        for env in args.envs:
+            budget = args.budget or ENVS[env].budget
+            for seed in range(args.seeds):
+                for method in args.methods:
+                    harness.log(f"field: {env} seed {seed} {method} (budget {budget})")
+                    r = _spawn(method, env, seed, args, budget, Path(work))
+                    payload["runs"].append(r)
+                    payload["summary"] = summarise(payload["runs"])
+                    save(payload)
+    return payload
+
+
+def _fmt(v: Any, digits: int = 4) -> str:
+    if v is None:
+        return "—"
+    if isinstance(v, float):
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+def _pair(a: str, b: str, digits: int = 4):
+    """A column value "a / b" of two row fields."""
+    return lambda r: f"{_fmt(r.get(a), digits)} / {_fmt(r.get(b), digits)}"
+
+
+def render(payload: dict[str, Any]) -> str:
+    rows = payload.get("summary") or summarise(payload.get("runs", []))
+    cols = [
+        Column("env", "env"),
+        Column("seed", "seed"),
+        Column(_pair("eant2_return", "tensorneat_return"), "test return (eant2 / TN)"),
+        Column(lambda r: _fmt(r.get("eant2_return_at_tn_evals")), "eant2 at TN's evals"),
+        Column(_pair("eant2_evals", "tensorneat_evals"), "evals (eant2 / TN)"),
+        Column(lambda r: _fmt(r.get("eant2_evals_to_tn")), "eant2 evals to TN's return"),
+        Column(_pair("eant2_wall_to_tn_s", "tn_wall_to_own_s", 3),
+               "wall s to TN's return (eant2 / TN)"),
+        Column(_pair("eant2_size", "tensorneat_size"), "weights (eant2 / TN)"),
+        Column(_pair("eant2_status", "tensorneat_status"), "status (eant2 / TN)"),
+    ]  # fmt: skip
+    cfg = payload.get("config", {})
+    note = (
+        f"Test return: mean over {cfg.get('test_episodes', '?')} new episodes of the champion "
+        f"at the end of the run. Wall time from process start, cold compilation cache. brax "
+        f"backend {cfg.get('backend', '?')}; TensorNEAT population {cfg.get('tensorneat_pop')}."
+    )
+    return markdown_table(rows, cols) + "\n" + note + "\n"
+
+
+SUITE = harness.Suite(name="field", title="The field: eant2_jax and TensorNEAT",
+                      description=__doc__, options=_options, run=run, render=render,
+                      prepare=_prepare)  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    return SUITE.main(argv)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "worker":
+        sys.exit(worker(sys.argv[2:]))
+    main(sys.argv[1:])

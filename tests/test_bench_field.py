@@ -1,0 +1,93 @@
+"""The field benchmark (bench/bench_field.py): its bookkeeping on made-up runs, its input
+checks, and a --quick eant2 run on gymnax CartPole in a fresh process (skipped without
+gymnax). TensorNEAT itself is not installed here: its worker runs in the GPU bench."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+
+import numpy as np
+import pytest
+
+from bench import bench_field
+from bench.common import BenchInputError
+
+
+def _run(method, curve, *, env="cartpole", seed=0, done=True, **extra):
+    points = [
+        {"evaluations": e, "wall_s": w, "test_return": r, "size": s} for e, w, r, s in curve
+    ]
+    return {"method": method, "env": env, "seed": seed, "curve": points, "done": done, **extra}
+
+
+def test_summary_compares_at_tensorneats_final_return_and_budget():
+    eant2 = _run("eant2", [(100, 5.0, 50.0, 9), (300, 6.0, 420.0, 9), (900, 9.0, 500.0, 7)])
+    tn = _run("tensorneat", [(1000, 20.0, 300.0, 30), (2000, 25.0, 410.0, 31)])
+    (row,) = bench_field.summarise([eant2, tn])
+    assert row["tensorneat_return"] == 410.0 and row["eant2_return"] == 500.0
+    # eant2's first champion at or above 410 is the one at 300 evaluations (420).
+    assert (row["eant2_evals_to_tn"], row["eant2_wall_to_tn_s"]) == (300, 6.0)
+    # At TensorNEAT's 2000 evaluations eant2's last point within them is the one at 900.
+    assert row["eant2_return_at_tn_evals"] == 500.0
+    # TensorNEAT reached its own final return at its last point.
+    assert row["tn_wall_to_own_s"] == 25.0
+    assert (row["eant2_size"], row["tensorneat_size"]) == (7, 31)
+    assert (row["eant2_status"], row["tensorneat_status"]) == ("ok", "ok")
+
+
+def test_summary_says_never_reached_killed_and_not_run():
+    eant2 = _run("eant2", [(100, 5.0, 10.0, 9)], done=False)
+    tn = _run("tensorneat", [(1000, 20.0, 300.0, 30)], deadline=True)
+    (row,) = bench_field.summarise([eant2, tn])
+    assert row["eant2_evals_to_tn"] is None and row["eant2_wall_to_tn_s"] is None
+    assert (row["eant2_status"], row["tensorneat_status"]) == ("killed", "deadline")
+    (alone,) = bench_field.summarise([_run("eant2", [(100, 5.0, 10.0, 9)], seed=3)])
+    assert alone["tensorneat_status"] == "not run" and alone["eant2_evals_to_tn"] is None
+    assert bench_field.first_reaching(eant2["curve"], -math.inf) == eant2["curve"][0]
+    md = bench_field.render({"runs": [eant2, tn], "config": {"test_episodes": 20}})
+    assert "| cartpole | 0 | 10 / 300 |" in md and "killed / deadline" in md
+
+
+def test_tensorneat_size_counts_connections_and_non_input_biases():
+    nodes = np.full((8, 5), np.nan)
+    nodes[:5, 0] = np.arange(5)  # 3 inputs, 1 output, 1 hidden
+    conns = np.full((10, 3), np.nan)
+    conns[:4] = 1.0
+    assert bench_field._tensorneat_size((nodes, conns), n_inputs=3) == 4 + 2
+
+
+@pytest.mark.parametrize(
+    "argv,phrase",
+    [
+        (["--methods", "tensorneat"], "--tensorneat"),
+        (["--tensorneat", "/nonexistent"], "--tensorneat"),
+        (["--methods", "eant2", "--seeds", "0"], "--seeds"),
+        (["--methods", "eant2", "--budget", "0"], "--budget"),
+    ],
+)
+def test_bad_arguments_are_one_clear_error(argv, phrase, tmp_path):
+    with pytest.raises(BenchInputError, match=phrase):
+        bench_field.main([*argv, "--out", str(tmp_path / "f.json")])
+    assert not (tmp_path / "f.json").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("gymnax") is None, reason="gymnax not installed")
+def test_quick_eant2_run_in_a_fresh_process(tmp_path, capsys):
+    out = tmp_path / "field.json"
+    payload = bench_field.main(["--quick", "--methods", "eant2", "--out", str(out)])
+    (run,) = payload["runs"]
+    assert run["done"] and not run.get("error") and run["env"] == "cartpole"
+    curve = run["curve"]
+    evals = [p["evaluations"] for p in curve]
+    assert evals == sorted(evals) and evals[-1] >= bench_field.QUICK["budget"]
+    assert all(p["evaluations"] < bench_field.QUICK["budget"] for p in curve[:-1])
+    walls = [p["wall_s"] for p in curve]
+    assert walls == sorted(walls) and 0 < run["start_s"] < walls[0] <= run["process_s"]
+    # CartPole-v1 returns are episode lengths: 1 .. 500.
+    assert all(1 <= p["test_return"] <= 500 for p in curve)
+    assert json.loads(out.read_text())["runs"][0]["curve"] == curve
+    assert "| cartpole | 0 |" in out.with_suffix(".md").read_text()
+    capsys.readouterr()

@@ -255,8 +255,9 @@ def _worker_tensorneat(env: Env, args: argparse.Namespace, log: _Log) -> None:
             best = float(fitness[i])
             champion = (np.asarray(population[0][i]), np.asarray(population[1][i]))
             champions.append(champion)
-        log.point(evaluations=(g + 1) * pop, train_return=best,
-                  size=_tensorneat_size(champion, env.n_inputs), champion=len(champions) - 1)  # fmt: skip
+        size = _tensorneat_size(champion, env.n_inputs)
+        log.point(evaluations=(g + 1) * pop, train_return=best, size=size,
+                  champion=len(champions) - 1)  # fmt: skip
         if log.wall() > args.deadline_s:
             log.data["deadline"] = True
             break
@@ -406,7 +407,7 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--deadline-s", type=float, default=600.0,
                    help="wall seconds per run from its process start")  # fmt: skip
     p.add_argument("--grace-s", type=float, default=300.0,
-                   help="after its deadline a run gets this long to test its champions")  # fmt: skip
+                   help="after its deadline a run has this long to test its champions")  # fmt: skip
     p.add_argument("--test-episodes", type=int, default=20)
     p.add_argument("--backend", default="spring", help="brax physics backend, both methods")
     p.add_argument("--population", type=int, default=None, help="eant2 population override")

@@ -16,9 +16,7 @@ from bench.common import BenchInputError
 
 
 def _run(method, curve, *, env="cartpole", seed=0, done=True, **extra):
-    points = [
-        {"evaluations": e, "wall_s": w, "test_return": r, "size": s} for e, w, r, s in curve
-    ]
+    points = [{"evaluations": e, "wall_s": w, "test_return": r, "size": s} for e, w, r, s in curve]
     return {"method": method, "env": env, "seed": seed, "curve": points, "done": done, **extra}
 
 

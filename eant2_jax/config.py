@@ -344,6 +344,7 @@ _EANT2_TYPES = {
     "input_fraction": ("float",),
     "new_weight_scale": ("float",),
     "reexploit": ("bool",),
+    "inherit_search": ("bool",),
     "similar_limit": ("int",),
     "prefer_smaller": ("bool",),
     "size_tolerance": ("float",),
@@ -357,7 +358,12 @@ _EANT2_TYPES = {
 # Fields added after the run-directory format 2 was fixed: a file written before them lacks
 # them, so ``complete`` does not require them and fills in the value that reproduces what
 # that version did (not necessarily today's default).
-_ADDED_LATER = {"init_recurrent": False, "init_mutations": 0, "max_evaluations": None}
+_ADDED_LATER = {
+    "init_recurrent": False,
+    "init_mutations": 0,
+    "max_evaluations": None,
+    "inherit_search": False,
+}
 _EXPLOIT_ADDED_LATER = {"lazy_eigen": 0.0, "tolfun": None}
 
 
@@ -384,6 +390,13 @@ class EANT2Config:
       reexploit: also run CMA-ES again on surviving parents each generation, continuing from
         their tuned weights (default False: a parent was already tuned to convergence when it
         was new; its structure has not changed since).
+      inherit_search: every individual keeps the CMA-ES search its tuning ended with (step
+        size and covariance, in the run directory too); a child's search then starts from
+        its parent's covariance on the genes it kept (scaled to a mean eigenvalue of 1) and
+        the identity on its new genes, with step size ``exploit.sigma0``
+        (`eant2_jax.tuning.inherited`), and a re-exploited parent (``reexploit``) continues
+        from its own step size and covariance. Default False: every search starts at
+        ``sigma0`` and ``C = I`` (the paper).
       similar_limit: at most this many similar structures survive (paper: 2).
       prefer_smaller: of two costs within ``size_tolerance`` the smaller network ranks first.
       size_tolerance, size_atol: relative and absolute cost tolerance of that rule.
@@ -409,6 +422,7 @@ class EANT2Config:
     new_weight_scale: float = 0.5
     operator_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)
     reexploit: bool = False
+    inherit_search: bool = False
     similar_limit: int = 2
     prefer_smaller: bool = True
     size_tolerance: float = 1e-3

@@ -40,7 +40,7 @@ from .rundir import Committed, RunDir, RunDirError, as_float, dumps, typed_field
 from .tasks import check_task, spec_of
 from .tasks import make as make_task
 from .tasks.base import Task
-from .tuning import tune
+from .tuning import Search, inherited, tune
 
 __all__ = [
     "EANT2Config",
@@ -62,18 +62,27 @@ class Individual:
     genome: Genome
     cost: float
     origin: str = "init"  # the operator that made it, or "init"
+    # With EANT2Config.inherit_search: the final CMA-ES search of its tuning, on its genes.
+    search: Search | None = dataclasses.field(default=None, compare=False, repr=False)
 
     def to_json(self) -> dict:
-        return {"genome": str(self.genome), "cost": self.cost, "origin": self.origin}
+        d = {"genome": str(self.genome), "cost": self.cost, "origin": self.origin}
+        if self.search is not None:
+            d["search"] = self.search.to_json()
+        return d
 
     @classmethod
     def from_json(cls, d: dict) -> Individual:
         if not isinstance(d, dict) or not isinstance(d.get("genome"), str):
             raise ValueError("an individual is not an object with a genome text")
-        if not isinstance(d.get("origin", "init"), str) or set(d) - {"genome", "cost", "origin"}:
+        fields = {"genome", "cost", "origin", "search"}
+        if not isinstance(d.get("origin", "init"), str) or set(d) - fields:
             raise ValueError(f"an individual has bad fields {sorted(d)}")
         genome = Genome.parse(d["genome"])
-        return cls(genome, as_float(d.get("cost"), "cost"), d.get("origin", "init"))
+        search = None
+        if "search" in d:
+            search = Search.from_json(d["search"], genome.n_params, "an individual's search")
+        return cls(genome, as_float(d.get("cost"), "cost"), d.get("origin", "init"), search)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -274,10 +283,12 @@ def _explore(
     next_id: int,
     config: EANT2Config,
 ) -> tuple[list[Individual], int]:
-    """Make offspring by structural mutation; duplicates of existing structures are dropped."""
+    """Make offspring by structural mutation; duplicates of existing structures are dropped.
+    Returns the children, the next free neuron id and each child's parent."""
     want = config.offspring or config.population
     seen = {ind.genome.structure_key() for ind in population}
     children: list[Individual] = []
+    parents: list[Individual] = []
     for _ in range(20 * want):  # give up on duplicates after a while
         if len(children) == want:
             break
@@ -289,7 +300,8 @@ def _explore(
             next_id += 1
         seen.add(child.structure_key())
         children.append(Individual(child, parent.cost, op))
-    return children, next_id
+        parents.append(parent)
+    return children, next_id, parents
 
 
 def _generation_record(
@@ -372,6 +384,7 @@ def _generation(
         if callback is not None:
             callback({"event": "compiling", "generation": gen, **info})
 
+    starts: list[Search | None] = []
     if state is None:
         genomes, next_id = _initialise(task, mut_key, config)
         parents: list[Individual] = []
@@ -380,10 +393,17 @@ def _generation(
     else:
         rng = np.random.default_rng(_key_data(mut_key))
         parents = list(state.population)
-        new, next_id = _explore(rng, parents, task, state.next_id, config)
+        new, next_id, made_from = _explore(rng, parents, task, state.next_id, config)
         evaluations = state.evaluations
+        if config.inherit_search:
+            sigma0 = config.exploit.sigma0
+            starts = [
+                None if p.search is None else inherited(p.genome, p.search, c.genome, sigma0)
+                for c, p in zip(new, made_from, strict=True)
+            ]
         if config.reexploit:
             new = parents + new
+            starts = [p.search for p in parents] + starts  # their own C and sigma go on
             parents = []
     if new:
         bucket = grow_bucket([ind.genome for ind in new], bucket)
@@ -400,10 +420,13 @@ def _generation(
             min_rows=(config.offspring or config.population)
             + (config.population if config.reexploit else 0),
             solution_test=solution_test,
+            start=starts if any(w is not None for w in starts) else None,
+            keep_search=config.inherit_search,
         )
+        searches = res.searches or [None] * len(new)
         new = [
-            Individual(g, c, ind.origin)
-            for g, c, ind in zip(res.genomes, res.costs, new, strict=True)
+            Individual(g, c, ind.origin, w)
+            for g, c, ind, w in zip(res.genomes, res.costs, new, searches, strict=True)
         ]
         solution = None if res.solution is None else new[res.solution]
         evals = sum(res.evaluations)

@@ -19,6 +19,7 @@ tests — goes through `tune`, which does the whole round trip once:
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
@@ -36,6 +37,7 @@ from .tasks.base import Task, check_costs, check_task
 
 __all__ = [
     "OptimizeResult",
+    "Search",
     "Tuned",
     "check_task",
     "cost",
@@ -44,6 +46,92 @@ __all__ = [
     "prepare",
     "tune",
 ]
+
+
+class Search(NamedTuple):
+    """A CMA-ES search distribution of one structure, in its genome's parameter order: a
+    warm start for `tune` and what `tune` hands back (``Tuned.searches``).
+
+    Attributes:
+      sigma: the step size.
+      cov: ``[n, n]`` covariance matrix C (symmetric, positive definite), ``n`` the genome's
+        number of parameters; the search is ``N(weights, sigma^2 C)``.
+    """
+
+    sigma: float
+    cov: np.ndarray
+
+    def check(self, n: int, what: str) -> None:
+        """Raise one ValueError naming ``what`` unless this is a search of ``n`` parameters."""
+        cov = np.asarray(self.cov)
+        if not (isinstance(self.sigma, int | float) and math.isfinite(self.sigma)
+                and self.sigma > 0):  # fmt: skip
+            raise ValueError(f"{what}: sigma must be a finite number > 0, got {self.sigma!r:.40}")
+        if cov.shape != (n, n) or not np.all(np.isfinite(cov)):
+            raise ValueError(
+                f"{what}: cov must be a finite {n} x {n} matrix (one row per parameter of its "
+                f"genome), got shape {cov.shape}"
+            )
+        if not np.allclose(cov, cov.T, rtol=1e-5, atol=1e-12 * max(1.0, np.abs(cov).max())):
+            raise ValueError(f"{what}: cov is not symmetric")
+
+    def to_json(self) -> dict:
+        return {"sigma": float(self.sigma), "cov": np.asarray(self.cov, np.float64).tolist()}
+
+    @classmethod
+    def from_json(cls, d: Any, n: int, what: str) -> Search:
+        """`to_json`'s dict of a search of ``n`` parameters; one ValueError if it is not."""
+        if not isinstance(d, dict) or set(d) != {"sigma", "cov"}:
+            raise ValueError(f"{what}: a search is an object with sigma and cov")
+        try:
+            cov = np.asarray(d["cov"], np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{what}: cov is not a matrix of numbers") from None
+        sigma = d["sigma"]
+        out = cls(float(sigma) if isinstance(sigma, int | float) else sigma, cov)
+        out.check(n, what)
+        return out
+
+
+def inherited(parent: Genome, search: Search, child: Genome, sigma0: float) -> Search:
+    """A child's warm start from its parent's final search: the parent's covariance on the
+    genes the child kept, the identity on its new genes, step size ``sigma0``.
+
+    The parent's C is scaled to a mean eigenvalue of 1 (trace n): its shape, the
+    correlations and relative scales the parent learned, is inherited, not the scale at which
+    the parent's search converged (``sigma`` carries that, and a converged ``sigma`` would
+    leave the new genes, which join at weight 0, no room to move). Genes are matched by
+    aligning the two gene lists (`align`)."""
+    match = align(parent, child)
+    cov = np.asarray(search.cov, np.float64)
+    n_p = cov.shape[0]
+    scale = n_p / np.trace(cov) if n_p and np.trace(cov) > 0 else 1.0
+    n = child.n_params
+    out = np.eye(n)
+    kept = [j for j in range(n) if match[j] is not None]
+    src = [match[j] for j in kept]
+    out[np.ix_(kept, kept)] = cov[np.ix_(src, src)] * scale
+    return Search(float(sigma0), out)
+
+
+def align(parent: Genome, child: Genome) -> list[int | None]:
+    """For each gene of ``child``, the index of the same gene in ``parent`` (None: new).
+
+    Structural mutation inserts and deletes genes but never reorders them, and copies the
+    genes it keeps with their weights; so the genes that two genomes share are the longest
+    common subsequence of their ``(kind, ref, weight)`` lists (a neuron gene's arity may
+    differ: a connection was added to or removed from it)."""
+    import difflib
+
+    def sig(g: Genome):
+        return [(gene.kind, gene.ref, float(gene.weight)) for gene in g.genes]
+
+    out: list[int | None] = [None] * len(child.genes)
+    sm = difflib.SequenceMatcher(None, sig(parent), sig(child), autojunk=False)
+    for block in sm.get_matching_blocks():
+        for k in range(block.size):
+            out[block.b + k] = block.a + k
+    return out
 
 
 def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch) -> int:
@@ -78,11 +166,14 @@ def prepare(
     min_rows: int = 1,
     pad_count: bool = True,
     multiple_of: int = 1,
+    start: Sequence[Search | None] | None = None,
 ) -> Prepared:
     """Compile, choose the popsize, build the tables and start the engine (no iteration).
 
     Args: as for `tune`; ``multiple_of`` rounds the rows up for a device mesh.
     """
+    if start is not None and len(start) != len(genomes):
+        raise ValueError(f"start: {len(start)} searches for {len(genomes)} genomes")
     batch = compile_genomes(
         genomes,
         task.n_inputs,
@@ -98,9 +189,20 @@ def prepare(
     elif keys.shape[0] != rows:
         raise ValueError(f"keys: {keys.shape[0]} keys for a batch of {rows} rows")
     active = jnp.arange(rows) < batch.count
+    cov = sigma = None
+    if start is not None and any(w is not None for w in start):
+        width = batch.weights.shape[-1]
+        cov = np.broadcast_to(np.eye(width), (rows, width, width)).copy()
+        sigma = np.full(rows, config.sigma0)
+        for i, (g, w) in enumerate(zip(genomes, start, strict=True)):
+            if w is not None:
+                w.check(g.n_params, f"start[{i}]")
+                cov[i, : g.n_params, : g.n_params] = w.cov
+                sigma[i] = w.sigma
     st = ex.init(
-        keys, batch.weights, batch.layout.gene_mask, config, popsize=popsize, active=active
-    )
+        keys, batch.weights, batch.layout.gene_mask, config, popsize=popsize, active=active,
+        cov=cov, sigma=sigma,
+    )  # fmt: skip
     return Prepared(batch, st, tables_for(genomes, batch.bucket.genes, rows), popsize)
 
 
@@ -125,6 +227,9 @@ class Tuned:
         not noisy).
       solution: the index of the structure whose best network passed ``solution_test``
         (its entry in ``genomes`` is that network), or None.
+      searches: with ``keep_search``, each structure's final search distribution on the
+        genes of its entry in ``genomes`` (None where no cost was finite, or where the
+        network is the solution found mid-search); else None.
     """
 
     genomes: list[Genome]
@@ -136,6 +241,7 @@ class Tuned:
     state: ex.ExploitState
     search_costs: list[float]
     solution: int | None = None
+    searches: list[Search | None] | None = None
 
 
 class _Watch:
@@ -180,6 +286,8 @@ def tune(
     mesh: jax.sharding.Mesh | None = None,
     on_compile: Callable[[dict], None] | None = None,
     solution_test: Callable[[Genome], bool] | None = None,
+    start: Sequence[Search | None] | None = None,
+    keep_search: bool = False,
 ) -> Tuned:
     """Tune (and prune) a batch of structures together: ONE batched CMA-ES run.
 
@@ -202,6 +310,9 @@ def tune(
         not tested yet is tested (in batch order); the first that passes halts every structure
         (`eant2_jax.exploitation.halted`) and is returned as ``Tuned.solution``. The
         evaluations are those spent until then; the test's own work is not counted.
+      start: optional warm starts, one per genome (None: ``sigma0`` and ``C = I``): each
+        search starts at ``N(weights, sigma^2 cov)`` (`Search`; e.g. `inherited`).
+      keep_search: also return each structure's final search (``Tuned.searches``).
 
     Returns:
       `Tuned`.
@@ -219,6 +330,7 @@ def tune(
         min_rows=min_rows,
         pad_count=pad_count,
         multiple_of=distributed.size(mesh),
+        start=start,
     )
     watch = None if solution_test is None else _Watch(genomes, solution_test)
     st, hist = ex.run(
@@ -246,12 +358,26 @@ def tune(
         else:  # never saw a finite cost: keep the structure, rank it last
             tuned.append(g)
             costs.append(float("inf"))
+    searches = None
+    if keep_search:
+        cov, sigma = distributed.gather((st.cma.C, st.cma.sigma))
+        cov, sigma = np.asarray(cov, np.float64), np.asarray(sigma, np.float64)
+        searches = []
+        for i, g in enumerate(genomes):
+            keep = np.flatnonzero(np.asarray(mask[i, : g.n_params]))
+            ok = np.isfinite(best_cost[i]) and np.isfinite(sigma[i]) and sigma[i] > 0
+            c = cov[i][np.ix_(keep, keep)]
+            c = 0.5 * (c + c.T)
+            ok = ok and bool(np.all(np.isfinite(c)))
+            searches.append(Search(float(sigma[i]), c) if ok else None)
     solution = None
     if watch is not None and watch.found is not None:
         # The network that passed: a structure halted in a pruning re-fit is otherwise
         # returned as it was before the attempt.
         solution, network, cost_found = watch.found
         tuned[solution], costs[solution] = network, cost_found
+        if searches is not None:  # the search went on past that network, or was restored
+            searches[solution] = None
     count = len(genomes)
     evaluations = [int(e) for e in spent[:count]]
     search_costs = list(costs)
@@ -281,6 +407,7 @@ def tune(
         state=st,
         search_costs=search_costs,
         solution=solution,
+        searches=searches,
     )
 
 

@@ -132,6 +132,8 @@ def _run(args: argparse.Namespace) -> int:
         population=args.population,
         init_recurrent=args.recurrent_start,
         init_mutations=args.init_mutations,
+        reexploit=args.reexploit,
+        inherit_search=args.inherit_search,
         devices=args.devices,
         target_cost=args.target_cost,
         max_evaluations=args.max_evaluations,
@@ -415,6 +417,17 @@ def _parser() -> argparse.ArgumentParser:
         default=0,
         metavar="K",
         help="a diverse generation 0: K structural mutations of each minimal start (default 0)",
+    )
+    run.add_argument(
+        "--reexploit",
+        action="store_true",
+        help="tune the surviving parents again every generation, with the offspring",
+    )
+    run.add_argument(
+        "--inherit-search",
+        action="store_true",
+        help="children start CMA-ES from their parent's covariance (identity on new genes); "
+        "re-exploited parents continue from their own step size and covariance",
     )
     run.add_argument(
         "--seed", type=_seed, default=0, help="seed of the run's PRNG key, in [0, 2**32)"

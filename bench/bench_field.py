@@ -1,4 +1,5 @@
-"""The neuro-evolution field: eant2_jax against TensorNEAT on gymnax and brax environments.
+"""The neuro-evolution field: eant2_jax against TensorNEAT on gymnax and brax environments,
+and on the paper's servo task.
 
 Every (environment, seed, method) is one run **in a fresh process** with no persistent
 compilation cache (cold on both sides), timed from just before that process starts. A run
@@ -23,6 +24,9 @@ method keeps its own input and output conventions: eant2_jax maps bounded observ
 dimensions to [-1, 1] (docs/tasks-custom.md), TensorNEAT feeds raw observations; a discrete
 action is the argmax of one output per action on both; a continuous one is ``tanh`` of the
 outputs scaled onto the action bounds on both. brax runs the same ``--backend`` on both.
+On ``servo`` (the paper's task, deterministic: ``tasks.make("servo")``) TensorNEAT's
+network outputs at the 1023 start measurements go through the task's own move and cost
+(``bench_peers.outputs_cost``), and the "return" is minus the task's cost.
 
 **What is compared.** After each generation a method has a champion: for eant2_jax the best
 individual after selection, for TensorNEAT the genome of the highest training fitness seen
@@ -98,6 +102,10 @@ ENVS = {
     "pendulum": Env("gymnax", "Pendulum-v1", 3, 1, False, 2.0, 5, 200, 50_000, 10, 200),
     "hopper": Env("brax", "hopper", 11, 3, False, 1.0, 1, 1000, 50_000, 10, 100),
     "halfcheetah": Env("brax", "halfcheetah", 17, 6, False, 1.0, 1, 1000, 50_000, 10, 100),
+    # The paper's task (kinematic, one move from each of 1023 starts; deterministic): the
+    # "return" is minus the task's cost. TensorNEAT's outputs go through the task's own
+    # tanh step (bench_peers.outputs_cost), as eant2_jax's identity outputs do.
+    "servo": Env("servo", "servo", 10, 3, False, 1.0, 1, 1, 200_000, 20, 1000),
 }
 TENSORNEAT_POP = 1000
 QUICK = {"seeds": 1, "budget": 300, "deadline_s": 240.0,
@@ -112,6 +120,8 @@ class _Deadline(Exception):
 def _task(env: Env, args: argparse.Namespace, episodes: int):
     from eant2_jax import tasks
 
+    if env.family == "servo":
+        return tasks.make("servo")
     if env.family == "gymnax":
         return tasks.make(f"gymnax:{env.name}", episodes=episodes, max_steps=env.max_steps)
     return tasks.make(
@@ -174,7 +184,12 @@ def _worker_eant2(env: Env, args: argparse.Namespace, log: _Log) -> None:
     scores: dict[str, float] = {}
     for p in log.data["curve"]:
         text = p["champion"]
-        if text not in scores:
+        if text in scores:
+            pass
+        elif env.family == "servo":  # deterministic: the cost is the test
+            c = eant2_jax.cost(Genome.parse(text), task, key=_test_key(args.seed))
+            scores[text] = -float(np.asarray(c).ravel()[0])
+        else:
             nets = networks([Genome.parse(text)], task.n_inputs)
             r = returns(test, nets, key=_test_key(args.seed), episodes=args.test_episodes)
             scores[text] = float(np.mean(r[0]))
@@ -189,6 +204,34 @@ def _test_key(seed: int):
 
 
 def _tensorneat_problem(env: Env, args: argparse.Namespace, repeat: int):
+    if env.family == "servo":
+        import jax
+        from tensorneat.problem import BaseProblem
+
+        from bench.bench_peers import outputs_cost
+        from eant2_jax import tasks
+
+        task = tasks.make("servo")
+
+        class Servo(BaseProblem):
+            """The servo task for TensorNEAT: a genome's outputs at the 1023 start inputs,
+            scored by the task's own move and cost (fitness = minus the cost)."""
+
+            jitable = True
+
+            def evaluate(self, state, randkey, act_func, params):
+                y = jax.vmap(lambda x: act_func(state, params, x))(task.x_start)
+                return -outputs_cost(task, y[None])[0]
+
+            @property
+            def input_shape(self):
+                return (env.n_inputs,)
+
+            @property
+            def output_shape(self):
+                return (env.n_outputs,)
+
+        return Servo()
     if env.family == "gymnax":
         from tensorneat.problem.rl import GymNaxEnv
 
@@ -221,6 +264,8 @@ def _worker_tensorneat(env: Env, args: argparse.Namespace, log: _Log) -> None:
 
     if env.discrete:
         out = jnp.argmax
+    elif env.family == "servo":
+        out = None  # the task's own tanh step
     else:
         scale = env.action_scale
 

@@ -192,6 +192,14 @@ def _options(p: argparse.ArgumentParser) -> None:
         help="tasks that start from the recurrent-ready minimal network "
         "(EANT2Config.init_recurrent; default: dpnv)",
     )
+    p.add_argument(
+        "--inherit-search",
+        action="store_true",
+        help="children start from their parent's covariance (EANT2Config.inherit_search)",
+    )
+    p.add_argument(
+        "--reexploit", action="store_true", help="tune surviving parents again (EANT2Config)"
+    )
     p.add_argument("--popsize", type=int, default=16, help="CMA-ES candidates per iteration")
     p.add_argument("--sigma0", type=float, default=1.0, help="CMA-ES initial step size")
     p.add_argument("--max-iters", type=int, default=50)
@@ -341,6 +349,8 @@ def task_config(args: argparse.Namespace, name: str) -> loop.EANT2Config:
         population=args.population,
         offspring=args.offspring,
         init_recurrent=name in args.recurrent_start,
+        inherit_search=getattr(args, "inherit_search", False),
+        reexploit=getattr(args, "reexploit", False),
         exploit=ex.ExploitConfig(
             pruner="covariance",
             popsize=args.popsize,

@@ -72,20 +72,25 @@ def test_bad_arguments_are_one_clear_error(argv, phrase, tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(importlib.util.find_spec("gymnax") is None, reason="gymnax not installed")
-def test_quick_eant2_run_in_a_fresh_process(tmp_path, capsys):
+@pytest.mark.parametrize("env", ["servo", "cartpole"])
+def test_quick_eant2_run_in_a_fresh_process(env, tmp_path, capsys):
+    if env == "cartpole" and importlib.util.find_spec("gymnax") is None:
+        pytest.skip("gymnax not installed")
     out = tmp_path / "field.json"
-    payload = bench_field.main(["--quick", "--methods", "eant2", "--out", str(out)])
+    payload = bench_field.main(["--quick", "--envs", env, "--methods", "eant2", "--out", str(out)])
     (run,) = payload["runs"]
-    assert run["done"] and not run.get("error") and run["env"] == "cartpole"
+    assert run["done"] and not run.get("error") and run["env"] == env
     curve = run["curve"]
     evals = [p["evaluations"] for p in curve]
     assert evals == sorted(evals) and evals[-1] >= bench_field.QUICK["budget"]
     assert all(p["evaluations"] < bench_field.QUICK["budget"] for p in curve[:-1])
     walls = [p["wall_s"] for p in curve]
     assert walls == sorted(walls) and 0 < run["start_s"] < walls[0] <= run["process_s"]
-    # CartPole-v1 returns are episode lengths: 1 .. 500.
-    assert all(1 <= p["test_return"] <= 500 for p in curve)
+    if env == "cartpole":  # CartPole-v1 returns are episode lengths: 1 .. 500
+        assert all(1 <= p["test_return"] <= 500 for p in curve)
+    else:  # deterministic: the test is the task's cost again
+        for p in curve:
+            assert p["test_return"] == pytest.approx(p["train_return"], rel=1e-5)
     assert json.loads(out.read_text())["runs"][0]["curve"] == curve
-    assert "| cartpole | 0 |" in out.with_suffix(".md").read_text()
+    assert f"| {env} | 0 |" in out.with_suffix(".md").read_text()
     capsys.readouterr()

@@ -77,9 +77,8 @@ def test_a_child_inherits_the_scaled_parent_block_and_identity_for_new_genes():
     kept = [j for j, i in enumerate(match) if i is not None]
     scale = n / np.trace(cov)
     assert start.sigma == 0.5 and start.cov.shape == (child.n_params,) * 2
-    np.testing.assert_allclose(
-        start.cov[np.ix_(kept, kept)], cov[np.ix_([match[j] for j in kept], [match[j] for j in kept])] * scale
-    )  # fmt: skip
+    src = [match[j] for j in kept]
+    np.testing.assert_allclose(start.cov[np.ix_(kept, kept)], cov[np.ix_(src, src)] * scale)
     for j in new:
         expect = np.zeros(child.n_params)
         expect[j] = 1.0
@@ -191,6 +190,9 @@ def test_an_individual_with_a_bad_search_is_refused():
     ]:
         with pytest.raises(ValueError, match=phrase):
             Individual.from_json(bad)
-    assert EANT2Config.from_dict(
-        {k: v for k, v in CONFIG.to_dict().items() if k != "inherit_search"}, complete=True
-    ).inherit_search is False  # a run written before the option ran without it
+    assert (
+        EANT2Config.from_dict(
+            {k: v for k, v in CONFIG.to_dict().items() if k != "inherit_search"}, complete=True
+        ).inherit_search
+        is False
+    )  # a run written before the option ran without it

@@ -392,6 +392,7 @@ def summarise(runs: list[dict]) -> list[dict]:
             row["eant2_return_at_tn_evals"] = None if same is None else same.get("test_return")
             tn_hit = first_reaching(tn["curve"], target)
             row["tn_wall_to_own_s"] = None if tn_hit is None else tn_hit["wall_s"]
+            row["tn_evals_to_own"] = None if tn_hit is None else tn_hit["evaluations"]
         rows.append(row)
     return rows
 
@@ -468,7 +469,7 @@ def _prepare(args: argparse.Namespace) -> None:
             setattr(args, k, v)
     if args.envs is None:
         args.envs = ["cartpole"] if args.quick else list(ENVS)
-    if "tensorneat" in args.methods:
+    if "tensorneat" in args.methods and not args.render:  # --render measures nothing
         src = Path(args.tensorneat or "")
         if not args.tensorneat or not (src / "tensorneat" / "pipeline.py").is_file():
             raise BenchInputError(
@@ -512,14 +513,14 @@ def _pair(a: str, b: str, digits: int = 4):
 
 
 def render(payload: dict[str, Any]) -> str:
-    rows = payload.get("summary") or summarise(payload.get("runs", []))
+    rows = summarise(payload.get("runs", []))
     cols = [
         Column("env", "env"),
         Column("seed", "seed"),
         Column(_pair("eant2_return", "tensorneat_return"), "test return (eant2 / TN)"),
         Column(lambda r: _fmt(r.get("eant2_return_at_tn_evals")), "eant2 at TN's evals"),
         Column(_pair("eant2_evals", "tensorneat_evals"), "evals (eant2 / TN)"),
-        Column(lambda r: _fmt(r.get("eant2_evals_to_tn")), "eant2 evals to TN's return"),
+        Column(_pair("eant2_evals_to_tn", "tn_evals_to_own"), "evals to TN's return (eant2 / TN)"),
         Column(_pair("eant2_wall_to_tn_s", "tn_wall_to_own_s", 3),
                "wall s to TN's return (eant2 / TN)"),
         Column(_pair("eant2_size", "tensorneat_size"), "weights (eant2 / TN)"),

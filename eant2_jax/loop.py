@@ -384,7 +384,7 @@ def _generation(
         if callback is not None:
             callback({"event": "compiling", "generation": gen, **info})
 
-    starts: list[Search | None] = []
+    starts: list[Search | None] | None = None  # warm starts (inherit_search)
     if state is None:
         genomes, next_id = _initialise(task, mut_key, config)
         parents: list[Individual] = []
@@ -403,7 +403,8 @@ def _generation(
             ]
         if config.reexploit:
             new = parents + new
-            starts = [p.search for p in parents] + starts  # their own C and sigma go on
+            if starts is not None:  # their own C and sigma go on
+                starts = [p.search for p in parents] + starts
             parents = []
     if new:
         bucket = grow_bucket([ind.genome for ind in new], bucket)
@@ -420,7 +421,7 @@ def _generation(
             min_rows=(config.offspring or config.population)
             + (config.population if config.reexploit else 0),
             solution_test=solution_test,
-            start=starts if any(w is not None for w in starts) else None,
+            start=starts,
             keep_search=config.inherit_search,
         )
         searches = res.searches or [None] * len(new)

@@ -281,7 +281,12 @@ def _reproduce(args: argparse.Namespace) -> int:
     for arm in pruners:  # one clear line before anything runs
         arm_config(EANT2Config(), arm)
     exploit = {} if args.max_iters is None else {"max_iters": args.max_iters}
-    config = EANT2Config(population=args.population, exploit=ExploitConfig(**exploit))
+    config = EANT2Config(
+        population=args.population,
+        reexploit=args.reexploit,
+        inherit_search=args.inherit_search,
+        exploit=ExploitConfig(**exploit),
+    )
     out = Path(args.out) if args.out else _free_dir(f"reproduce-{args.task}", args.seed)
     total = args.generations
 
@@ -508,6 +513,14 @@ def _parser() -> argparse.ArgumentParser:
         type=_positive,
         default=None,
         help="CMA-ES iteration budget per structure and generation",
+    )
+    rep.add_argument(
+        "--reexploit", action="store_true", help="every arm tunes surviving parents again"
+    )
+    rep.add_argument(
+        "--inherit-search",
+        action="store_true",
+        help="every arm's children start from their parent's covariance (see eant2 run)",
     )
     rep.add_argument("--task", default="servo", help="task (default: servo, the paper's)")
     rep.add_argument("--seed", type=_seed, default=0, help="first seed, in [0, 2**32)")

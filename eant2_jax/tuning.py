@@ -192,7 +192,8 @@ def prepare(
     cov = sigma = None
     if start is not None and any(w is not None for w in start):
         width = batch.weights.shape[-1]
-        cov = np.broadcast_to(np.eye(width), (rows, width, width)).copy()
+        dtype = np.dtype(config.dtype)  # float32 by default: rows x P x P of it
+        cov = np.broadcast_to(np.eye(width, dtype=dtype), (rows, width, width)).copy()
         sigma = np.full(rows, config.sigma0)
         for i, (g, w) in enumerate(zip(genomes, start, strict=True)):
             if w is not None:

@@ -80,6 +80,10 @@ class Env:
       budget: default evaluation budget per run.
       population, max_iters: eant2_jax's settings for it.
       solved: the return the environment counts as solved (None: none defined).
+      tensorneat: options of TensorNEAT's own example for it, where they differ from its
+        cartpole/hopper examples: ``max_nodes``, ``max_conns``, ``activation`` (an
+        ``ACT`` name) and ``obs_norm_episodes`` (observation normalisation from that many
+        random-action episodes at setup, counted in its wall time, not in evaluations).
     """
 
     family: str
@@ -94,6 +98,7 @@ class Env:
     population: int
     max_iters: int
     solved: float | None = None
+    tensorneat: tuple[tuple[str, Any], ...] = ()
 
 
 ENVS = {
@@ -101,7 +106,26 @@ ENVS = {
     "acrobot": Env("gymnax", "Acrobot-v1", 6, 3, True, 1.0, 5, 500, 20_000, 10, 100),
     "pendulum": Env("gymnax", "Pendulum-v1", 3, 1, False, 2.0, 5, 200, 50_000, 10, 200),
     "hopper": Env("brax", "hopper", 11, 3, False, 1.0, 1, 1000, 50_000, 10, 100),
-    "halfcheetah": Env("brax", "halfcheetah", 17, 6, False, 1.0, 1, 1000, 50_000, 10, 100),
+    # TensorNEAT's examples/brax/halfcheetah.py: bigger genomes, scaled tanh, normalisation.
+    "halfcheetah": Env(
+        "brax",
+        "halfcheetah",
+        17,
+        6,
+        False,
+        1.0,
+        1,
+        1000,
+        50_000,
+        10,
+        100,
+        tensorneat=(
+            ("max_nodes", 50),
+            ("max_conns", 200),
+            ("activation", "scaled_tanh"),
+            ("obs_norm_episodes", 1000),
+        ),
+    ),
     # The paper's task (kinematic, one move from each of 1023 starts; deterministic): the
     # "return" is minus the task's cost. TensorNEAT's outputs go through the task's own
     # tanh step (bench_peers.outputs_cost), as eant2_jax's identity outputs do.
@@ -250,7 +274,19 @@ def _tensorneat_problem(env: Env, args: argparse.Namespace, repeat: int):
         return Gymnax(env.name, max_step=env.max_steps, repeat_times=repeat)
     from tensorneat.problem.rl import BraxEnv
 
-    return BraxEnv(env.name, backend=args.backend, max_step=env.max_steps, repeat_times=repeat)
+    episodes = dict(env.tensorneat).get("obs_norm_episodes", 0)
+    if not episodes:
+        return BraxEnv(env.name, backend=args.backend, max_step=env.max_steps, repeat_times=repeat)
+    import jax
+
+    n_out = env.n_outputs
+
+    def random_actions(randkey, obs):  # the example's random_sample_policy
+        return jax.random.uniform(randkey, (n_out,), minval=-1.0, maxval=1.0)
+
+    return BraxEnv(env.name, backend=args.backend, max_step=env.max_steps, repeat_times=repeat,
+                   obs_normalization=True, sample_episodes=episodes,
+                   sample_policy=random_actions)  # fmt: skip
 
 
 def _worker_tensorneat(env: Env, args: argparse.Namespace, log: _Log) -> None:
@@ -273,12 +309,15 @@ def _worker_tensorneat(env: Env, args: argparse.Namespace, log: _Log) -> None:
             return scale * jnp.tanh(y)
 
     pop = args.tensorneat_pop
+    extra = dict(env.tensorneat)
+    sizes = {k: extra[k] for k in ("max_nodes", "max_conns") if k in extra}
+    activation = getattr(ACT, extra.get("activation", "tanh"))
     algorithm = NEAT(
         pop_size=pop, species_size=20, survival_threshold=0.1, compatibility_threshold=1.0,
         genome=DefaultGenome(
             num_inputs=env.n_inputs, num_outputs=env.n_outputs, init_hidden_layers=(),
-            node_gene=BiasNode(activation_options=ACT.tanh, aggregation_options=AGG.sum),
-            output_transform=out,
+            node_gene=BiasNode(activation_options=activation, aggregation_options=AGG.sum),
+            output_transform=out, **sizes,
         ),
     )  # fmt: skip
     generations = max(1, math.ceil(args.budget / pop))
@@ -286,7 +325,8 @@ def _worker_tensorneat(env: Env, args: argparse.Namespace, log: _Log) -> None:
                         seed=args.seed, generation_limit=generations,
                         fitness_target=math.inf)  # fmt: skip
     log.data["settings"] = {"pop_size": pop, "species_size": 20, "survival_threshold": 0.1,
-                            "compatibility_threshold": 1.0, "generations": generations}  # fmt: skip
+                            "compatibility_threshold": 1.0, "generations": generations,
+                            **extra}  # fmt: skip
     state = pipeline.setup()
     # As Pipeline.auto_run compiles it: ahead of time, once (a plain jit retraced the step
     # after its first call, the state's types having changed).
@@ -306,8 +346,9 @@ def _worker_tensorneat(env: Env, args: argparse.Namespace, log: _Log) -> None:
         if log.wall() > args.deadline_s:
             log.data["deadline"] = True
             break
+    # Not set up again: the state already holds what setup registers (the observation
+    # statistics of a normalised problem, which the test episodes must share).
     test = _tensorneat_problem(env, args, args.test_episodes)
-    state = test.setup(state)
 
     @jax.jit
     def score(nodes, conns):

@@ -222,17 +222,19 @@ def compile_genomes(
         is_root[r], neuron_mask[r] = root, real
         depth[r] = g.depth()
         weights[r, :n] = g.weights
+    # device_put, not jnp.asarray: the latter compiles a small program per new shape (a
+    # cold-start cost on a GPU); the arrays already have their final dtypes.
     layout = Layout(
-        slot=jnp.asarray(slot),
-        gene_mask=jnp.asarray(gene_mask),
-        is_root=jnp.asarray(is_root),
-        neuron_mask=jnp.asarray(neuron_mask),
-        depth=jnp.asarray(depth),
+        slot=jax.device_put(slot),
+        gene_mask=jax.device_put(gene_mask),
+        is_root=jax.device_put(is_root),
+        neuron_mask=jax.device_put(neuron_mask),
+        depth=jax.device_put(depth),
         n_inputs=int(n_inputs),
         n_outputs=int(n_out),
         sweeps=bucket.sweeps,
     )
-    return CompiledBatch(layout=layout, weights=jnp.asarray(weights), count=count, bucket=bucket)
+    return CompiledBatch(layout=layout, weights=jax.device_put(weights), count=count, bucket=bucket)
 
 
 def network_batch(layout: Layout, weights: jax.Array) -> Network:

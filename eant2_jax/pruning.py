@@ -450,11 +450,11 @@ def tables_for(genomes: Sequence[Genome], genes: int, rows: int | None = None) -
                 subtree_end[r, i] = g.subtree_end(i)
             elif gene.kind in (GeneKind.FORWARD, GeneKind.RECURRENT):
                 reads[r, i] = pos[gene.ref]
-    return Tables(
-        parent=jnp.asarray(parent),
-        subtree_end=jnp.asarray(subtree_end),
-        reads=jnp.asarray(reads),
-        is_neuron=jnp.asarray(is_neuron),
+    return Tables(  # device_put: no per-shape program to compile (see compile_genomes)
+        parent=jax.device_put(parent),
+        subtree_end=jax.device_put(subtree_end),
+        reads=jax.device_put(reads),
+        is_neuron=jax.device_put(is_neuron),
     )
 
 

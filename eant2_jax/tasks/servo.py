@@ -450,7 +450,9 @@ def servo(
     goal = arm.goal[None]
 
     def f32(a):
-        return jnp.asarray(a, jnp.float32)
+        # Converted on the host, then copied with device_put: jnp.asarray/astype compile a
+        # small XLA program per shape (8 here, each a cold-start cost on a GPU).
+        return jax.device_put(np.asarray(a, np.float32))
 
     return Servo(
         model=model,

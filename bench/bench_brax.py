@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from bench import harness
-from bench.common import BenchInputError, Column, environment, markdown_table
+from bench.common import BenchInputError, Column, environment, markdown_table, unseen_key
 
 # The spring backend: on an H100 (2026-11-23) a generalized-backend inverted_pendulum run
 # did not finish its first generation in 262 s (bench/results/brax-generalized-gpu-h100.md);
@@ -63,7 +63,6 @@ def _last_generation(run_dir: Path) -> dict[str, Any]:
 
 def _new_returns(run_dir: Path, episodes: int, seed: int) -> list[float]:
     """Returns of the run's best network on ``episodes`` new episodes."""
-    import jax
 
     from eant2_jax import tasks
     from eant2_jax.compiler import networks
@@ -74,9 +73,7 @@ def _new_returns(run_dir: Path, episodes: int, seed: int) -> list[float]:
     task = tasks.make(meta["task"], **meta["task_options"])
     genome = GenomeFile.read(run_dir / "best.genome").genome
     nets = networks([genome], task.n_inputs)
-    # fold_in 2**31 - 1: a stream of keys that the run (split from its seed) never drew.
-    key = jax.random.fold_in(jax.random.key(seed), 2**31 - 1)
-    return returns(task, nets, key=key, episodes=episodes)[0].tolist()
+    return returns(task, nets, key=unseen_key(seed), episodes=episodes)[0].tolist()
 
 
 def _case(spec: str, args, deadline: float) -> dict[str, Any]:

@@ -59,7 +59,7 @@ from typing import Any
 import numpy as np
 
 from bench import harness
-from bench.common import BenchInputError, Column, environment, markdown_table
+from bench.common import BenchInputError, Column, environment, markdown_table, unseen_key
 
 __all__ = ["ENVS", "METHODS", "Env", "first_reaching", "main", "summarise"]
 
@@ -79,7 +79,6 @@ class Env:
       max_steps: steps per episode at most.
       budget: default evaluation budget per run.
       population, max_iters: eant2_jax's settings for it.
-      solved: the return the environment counts as solved (None: none defined).
       tensorneat: options of TensorNEAT's own example for it, where they differ from its
         cartpole/hopper examples: ``max_nodes``, ``max_conns``, ``activation`` (an
         ``ACT`` name) and ``obs_norm_episodes`` (observation normalisation from that many
@@ -97,12 +96,11 @@ class Env:
     budget: int
     population: int
     max_iters: int
-    solved: float | None = None
     tensorneat: tuple[tuple[str, Any], ...] = ()
 
 
 ENVS = {
-    "cartpole": Env("gymnax", "CartPole-v1", 4, 2, True, 1.0, 5, 500, 20_000, 10, 100, 500.0),
+    "cartpole": Env("gymnax", "CartPole-v1", 4, 2, True, 1.0, 5, 500, 20_000, 10, 100),
     "acrobot": Env("gymnax", "Acrobot-v1", 6, 3, True, 1.0, 5, 500, 20_000, 10, 100),
     "pendulum": Env("gymnax", "Pendulum-v1", 3, 1, False, 2.0, 5, 200, 50_000, 10, 200),
     "hopper": Env("brax", "hopper", 11, 3, False, 1.0, 1, 1000, 50_000, 10, 100),
@@ -211,20 +209,13 @@ def _worker_eant2(env: Env, args: argparse.Namespace, log: _Log) -> None:
         if text in scores:
             pass
         elif env.family == "servo":  # deterministic: the cost is the test
-            c = eant2_jax.cost(Genome.parse(text), task, key=_test_key(args.seed))
+            c = eant2_jax.cost(Genome.parse(text), task, key=unseen_key(args.seed))
             scores[text] = -float(np.asarray(c).ravel()[0])
         else:
             nets = networks([Genome.parse(text)], task.n_inputs)
-            r = returns(test, nets, key=_test_key(args.seed), episodes=args.test_episodes)
+            r = returns(test, nets, key=unseen_key(args.seed), episodes=args.test_episodes)
             scores[text] = float(np.mean(r[0]))
         p["test_return"] = scores[text]
-
-
-def _test_key(seed: int):
-    import jax
-
-    # fold_in 2**31 - 1: a stream of keys no run (split from its seed) ever drew.
-    return jax.random.fold_in(jax.random.key(seed), 2**31 - 1)
 
 
 def _tensorneat_problem(env: Env, args: argparse.Namespace, repeat: int):
@@ -353,7 +344,7 @@ def _worker_tensorneat(env: Env, args: argparse.Namespace, log: _Log) -> None:
     @jax.jit
     def score(nodes, conns):
         t = algorithm.transform(state, (nodes, conns))
-        return test.evaluate(state, _test_key(args.seed), algorithm.forward, t)
+        return test.evaluate(state, unseen_key(args.seed), algorithm.forward, t)
 
     scores = [float(score(*c)) for c in champions]
     for p in log.data["curve"]:

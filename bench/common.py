@@ -68,6 +68,12 @@ def environment() -> dict[str, Any]:
     }
 
 
+def unseen_key(seed: int) -> jax.Array:
+    """A key for checking a run's result on episodes it never saw: ``fold_in(key(seed),
+    2**31 - 1)``, a stream no run split from ``key(seed)`` ever draws."""
+    return jax.random.fold_in(jax.random.key(seed), 2**31 - 1)
+
+
 def device_tag() -> str:
     """The tag of result file names: the default JAX platform (``cpu``, ``gpu``, ``tpu``)."""
     return jax.devices()[0].platform

@@ -282,7 +282,7 @@ def _explore(
     task: Task,
     next_id: int,
     config: EANT2Config,
-) -> tuple[list[Individual], int]:
+) -> tuple[list[Individual], int, list[Individual]]:
     """Make offspring by structural mutation; duplicates of existing structures are dropped.
     Returns the children, the next free neuron id and each child's parent."""
     want = config.offspring or config.population

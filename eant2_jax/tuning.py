@@ -19,6 +19,7 @@ tests — goes through `tune`, which does the whole round trip once:
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
@@ -104,8 +105,8 @@ def inherited(parent: Genome, search: Search, child: Genome, sigma0: float) -> S
     aligning the two gene lists (`align`)."""
     match = align(parent, child)
     cov = np.asarray(search.cov, np.float64)
-    n_p = cov.shape[0]
-    scale = n_p / np.trace(cov) if n_p and np.trace(cov) > 0 else 1.0
+    n_p, trace = cov.shape[0], np.trace(cov)
+    scale = n_p / trace if n_p and trace > 0 else 1.0
     n = child.n_params
     out = np.eye(n)
     kept = [j for j in range(n) if match[j] is not None]
@@ -121,7 +122,6 @@ def align(parent: Genome, child: Genome) -> list[int | None]:
     genes it keeps with their weights; so the genes that two genomes share are the longest
     common subsequence of their ``(kind, ref, weight)`` lists (a neuron gene's arity may
     differ: a connection was added to or removed from it)."""
-    import difflib
 
     def sig(g: Genome):
         return [(gene.kind, gene.ref, float(gene.weight)) for gene in g.genes]

@@ -61,8 +61,9 @@ def _last_generation(run_dir: Path) -> dict[str, Any]:
     return json.loads(lines[-1]) if lines else {}
 
 
-def _new_returns(run_dir: Path, episodes: int, seed: int) -> list[float]:
-    """Returns of the run's best network on ``episodes`` new episodes."""
+def _new_returns(run_dir: Path, episodes: int, seed: int, **options: Any) -> list[float]:
+    """Returns of the run's best network on ``episodes`` new episodes, of the task the run
+    recorded with ``options`` put over its own (e.g. another ``precision``)."""
 
     from eant2_jax import tasks
     from eant2_jax.compiler import networks
@@ -70,7 +71,7 @@ def _new_returns(run_dir: Path, episodes: int, seed: int) -> list[float]:
     from eant2_jax.tasks.episodic import returns
 
     meta = json.loads((run_dir / "config.json").read_text())
-    task = tasks.make(meta["task"], **meta["task_options"])
+    task = tasks.make(meta["task"], **{**meta["task_options"], **options})
     genome = GenomeFile.read(run_dir / "best.genome").genome
     nets = networks([genome], task.n_inputs)
     return returns(task, nets, key=unseen_key(seed), episodes=episodes)[0].tolist()
@@ -108,6 +109,10 @@ def _case(spec: str, args, deadline: float) -> dict[str, Any]:
             row.update(new_episodes=len(r), new_return_mean=sum(r) / len(r),
                        new_return_min=min(r), new_return_max=max(r),
                        new_eval_s=time.perf_counter() - t0)  # fmt: skip
+            for precision in args.replay_precision:  # the same episodes, other physics
+                r = _new_returns(run_dir, args.episodes, args.seed, precision=precision)
+                row[f"new_return_mean_{precision}"] = sum(r) / len(r)
+                row[f"new_return_min_{precision}"] = min(r)
     return row
 
 
@@ -133,6 +138,10 @@ def _options(p: argparse.ArgumentParser) -> None:
                    help="new episodes the best network plays after the run (0: none)")  # fmt: skip
     p.add_argument("--budget-s", type=float, default=600.0,
                    help="wall time for all cases; a case running past it is stopped")  # fmt: skip
+    p.add_argument("--replay-precision", action="append", default=[],
+                   choices=("highest", "high", "default"),
+                   help="the best network also plays the same new episodes with the brax "
+                   "task's precision set to this (repeatable)")  # fmt: skip
 
 
 def _prepare(args: argparse.Namespace) -> None:
@@ -162,7 +171,14 @@ COLUMNS = [
 
 
 def render(payload: dict[str, Any]) -> str:
-    out = markdown_table(payload["rows"], COLUMNS)
+    columns = list(COLUMNS)
+    for precision in payload["config"].get("replay_precision") or []:
+        columns += [
+            Column(f"new_return_mean_{precision}", f"mean return, precision={precision}",
+                   "{:.1f}"),
+            Column(f"new_return_min_{precision}", "min", "{:g}"),
+        ]  # fmt: skip
+    out = markdown_table(payload["rows"], columns)
     genomes = [f"* `{r['case']}`: `{r['best_genome']}`" for r in payload["rows"]
                if r.get("best_genome")]  # fmt: skip
     return out + ("\nBest genomes:\n\n" + "\n".join(genomes) + "\n" if genomes else "")

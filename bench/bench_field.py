@@ -452,9 +452,11 @@ def _spawn(method: str, env: str, seed: int, args: argparse.Namespace, budget: i
             cmd += [flag, str(v)]
     environ = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR",)}
     environ["EANT2_CACHE_DIR"] = ""  # cold: no persistent compilation cache on either side
+    # The checkout goes last, for `bench` alone: a checkout's eant2_jax is not importable as
+    # it lies (its kernels/ is mapped in by the install), so the installed one must win.
     environ["PYTHONPATH"] = os.pathsep.join(
-        [str(Path(__file__).resolve().parents[1]), environ.get("PYTHONPATH", "")]
-    ).rstrip(os.pathsep)
+        filter(None, [environ.get("PYTHONPATH", ""), str(Path(__file__).resolve().parents[1])])
+    )
     t0 = time.time()
     cmd += ["--t0", repr(t0)]
     err = ""

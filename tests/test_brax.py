@@ -131,6 +131,7 @@ def test_a_batch_of_networks_gets_one_cost_each(name, options, n_in, n_out):
         ("brax:hopper", {"params": {"ctrl_cost_wieght": 1}}, "unknown params ctrl_cost_wieght"),
         ("brax:hopper", {"episodes": 0}, "episodes and chunk must be >= 1"),
         ("brax:hopper", {"max_steps": 0}, "max_steps must be >= 1"),
+        ("brax:hopper", {"precision": "tf32"}, "precision must be one of highest, high, default"),
         ("brax:hopper", {"hidden": "tanhh"}, "tanhh"),
         ("brax:hopper", {"bogus": 1}, "bad options"),
     ],

@@ -51,9 +51,14 @@ from ..kernels import network as kn
 from .episodic import EpisodicTask
 from .episodic import returns as returns
 
-__all__ = ["BACKENDS", "BraxTask", "brax", "calling_brax", "returns"]
+__all__ = ["BACKENDS", "PRECISIONS", "BraxTask", "brax", "calling_brax", "returns"]
 
 BACKENDS = ("generalized", "mjx", "positional", "spring")
+# Precision of the float32 products in brax's physics (``jax.default_matmul_precision``):
+# "highest" (the default) computes them in full float32 on every device; "default" lets a
+# GPU use TF32 (a 10-bit mantissa), which is faster but makes a GPU's trajectories differ
+# from a CPU's after a few steps.
+PRECISIONS = ("highest", "high", "default")
 # Constructor arguments of brax's PipelineEnv that an environment passes on (**kwargs).
 _PIPELINE_OPTIONS = ("n_frames",)
 
@@ -127,6 +132,7 @@ class BraxTask(EpisodicTask):
       params: the environment's constructor arguments, as sorted ``(name, value)`` pairs
         (static).
       n_inputs, n_outputs: observation size and action size (static).
+      precision: precision of the physics' float32 products, one of `PRECISIONS` (static).
 
     and `EpisodicTask`'s ``episodes``, ``max_steps``, ``chunk``, ``hidden``, ``output``
     and ``noisy`` (keyword-only).
@@ -137,6 +143,7 @@ class BraxTask(EpisodicTask):
     params: tuple[tuple[str, Any], ...] = struct.field(pytree_node=False)
     n_inputs: int = struct.field(pytree_node=False)
     n_outputs: int = struct.field(pytree_node=False)
+    precision: str = struct.field(pytree_node=False, default="highest")
 
     @property
     def env(self):
@@ -153,14 +160,18 @@ class BraxTask(EpisodicTask):
     def episode(self, net: kn.Network, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Return (sum of rewards) and length of ONE episode of ONE network."""
         env = self.env
+        # "default" leaves the choice to JAX (and its caller's own context).
+        exact = contextlib.nullcontext
+        if self.precision != "default":
+            exact = functools.partial(jax.default_matmul_precision, self.precision)
 
         def reset(key):
-            with calling_brax():
+            with calling_brax(), exact():
                 state = env.reset(key)
             return state.obs, state
 
         def step(_, state, action):  # brax's dynamics are deterministic: no key
-            with calling_brax():
+            with calling_brax(), exact():
                 state = env.step(state, action)
             return state.obs, state, state.reward, state.done > 0
 
@@ -177,6 +188,7 @@ def brax(
     chunk: int = 50,
     hidden: str = "tanh",
     output: str = "tanh",
+    precision: str = "highest",
 ) -> BraxTask:
     """A brax environment as a task (``tasks.make("brax:NAME", ...)``).
 
@@ -192,6 +204,8 @@ def brax(
       chunk: steps per block of the episode loop (its early exit is checked per block).
       hidden: activation of hidden neurons.
       output: activation of output neurons (the action is the output clipped to [-1, 1]).
+      precision: precision of the physics' float32 products (``jax.default_matmul_precision``):
+        ``highest`` (full float32, as on a CPU), ``high`` or ``default`` (TF32 on a GPU).
 
     Returns:
       The `BraxTask`.
@@ -208,6 +222,10 @@ def brax(
         raise ValueError(
             f"brax:{name}: unknown params {', '.join(unknown)}; "
             f"known: {', '.join(_known_params(envs._envs[name]))}"
+        )
+    if precision not in PRECISIONS:
+        raise ValueError(
+            f"brax:{name}: precision must be one of {', '.join(PRECISIONS)}, got {precision!r}"
         )
     if int(episodes) < 1 or int(chunk) < 1:
         raise ValueError(f"brax:{name}: episodes and chunk must be >= 1")
@@ -235,4 +253,5 @@ def brax(
         chunk=int(chunk),
         hidden=hidden,
         output=output,
+        precision=precision,
     )

@@ -11,6 +11,11 @@ evaluate ``popsize`` candidates, tell). The structures have different dimensions
   (32, 64, 128, 256), one compiled step per bucket per iteration (dispatched asynchronously);
 * ``batched-P<size>-scan<K>``: as ``batched-P<size>``, K iterations per call in ``lax.scan``
   (how the exploitation engine runs); reported per iteration;
+* ``batched-P<size>-scan<K>-lazy<F>``: as the scan variant with the lazy update of the
+  engine's ``ExploitConfig.lazy_eigen = F`` (``--lazy-eigen``): ``tell`` keeps the last
+  decomposition, and the batched ``eigh`` runs in an iteration only if some structure's C
+  has learnt for ``F / (n (c_1 + c_mu))`` iterations since its last one (pycma's rule at
+  F = 0.5), by the engine's own code;
 * ``evosax-loop``: a Python loop over the S structures, each stepped by a jit-compiled
   evosax ``CMA_ES`` step (ask, evaluate, tell) compiled once per distinct dimension;
 * ``pycma``: a Python loop over S ``cma.CMAEvolutionStrategy`` instances (NumPy, CPU), the
@@ -32,6 +37,7 @@ Run from the repository root::
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import os
 import time
@@ -82,8 +88,12 @@ def batched_engine(
     cond: float,
     seed: int,
     chunk: int = 1,
+    lazy: float = 0.0,
 ) -> Callable[[], jax.Array]:
-    """One iteration (or ``chunk`` in a scan) of S structures padded into ``size``."""
+    """One iteration (or ``chunk`` in a scan) of S structures padded into ``size``; with
+    ``lazy`` > 0 the lazy eigendecomposition of the exploitation engine."""
+    from eant2_jax.exploitation import _decompose_rows  # the engine's own lazy step
+
     s_count = len(dims)
     data = [ellipsoid_data(n, cond, seed + s) for s, n in enumerate(dims)]
     rot = jnp.asarray(np.stack([_pad(r, size) for r, _ in data]))
@@ -99,25 +109,35 @@ def batched_engine(
     params, states = setup(mask)
     keys = jax.random.split(jax.random.key(seed), s_count)
 
-    def one(states, params, it):
+    interval = jax.vmap(cmaes.eigen_interval, in_axes=(0, None))(params, lazy)
+
+    def one(carry, params, it):
+        states, age = carry
         ks = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, it)
         xs, states = jax.vmap(cmaes.ask)(ks, states, params)
         costs = jax.vmap(ellipsoid)(rot, scale, xs)
-        return jax.vmap(cmaes.tell)(states, xs, costs, params)
+        tell = functools.partial(cmaes.tell, decompose=not lazy)
+        states = jax.vmap(tell)(states, xs, costs, params)
+        if lazy:
+            age = age + 1
+            due = age >= interval
+            states = _decompose_rows(states, params, due)
+            age = jnp.where(due, 0, age)
+        return states, age
 
     @jax.jit
-    def step(states, params, it):
+    def step(carry, params, it):
         if chunk == 1:
-            return one(states, params, it)
+            return one(carry, params, it)
         body = lambda i, s: one(s, params, i)  # noqa: E731
-        return jax.lax.fori_loop(it * chunk, (it + 1) * chunk, body, states)
+        return jax.lax.fori_loop(it * chunk, (it + 1) * chunk, body, carry)
 
-    holder = {"states": states, "it": 0}
+    holder = {"carry": (states, jnp.zeros(s_count, jnp.int32)), "it": 0}
 
     def iteration():
-        holder["states"] = step(holder["states"], params, holder["it"])
+        holder["carry"] = step(holder["carry"], params, holder["it"])
         holder["it"] += 1
-        return holder["states"].sigma
+        return holder["carry"][0].sigma
 
     return iteration
 
@@ -230,11 +250,13 @@ def _options(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--popsize", type=int, default=None, help="default 4 + 3 ln(max dim)")
     ap.add_argument("--cond", type=float, default=1e6, help="ellipsoid condition number")
     ap.add_argument("--chunk", type=int, default=10, help="K of the scan variant (0: skip)")
+    ap.add_argument("--lazy-eigen", type=float, default=0.5,
+                    help="F of the lazy scan variant (engine 'lazy')")  # fmt: skip
     ap.add_argument(
         "--engines",
         nargs="+",
         default=None,
-        choices=["batched", "buckets", "scan", "evosax", "pycma"],
+        choices=["batched", "buckets", "scan", "lazy", "evosax", "pycma"],
         help="engines to run (default all)",
     )
     ap.add_argument("--seed", type=int, default=0)
@@ -255,14 +277,16 @@ def _prepare(args: argparse.Namespace) -> None:
         args.structures = args.structures or [1, 8, 32, 128]
         args.dims = args.dims or list(range(20, 201, 20))
         args.pad = args.pad or 256
-        args.engines = args.engines or ["batched", "buckets", "scan", "evosax", "pycma"]
+        args.engines = args.engines or ["batched", "buckets", "scan", "lazy", "evosax", "pycma"]
     if max(args.dims) > args.pad:
         raise BenchInputError(
             f"--pad {args.pad} is smaller than the largest dimension {max(args.dims)}"
         )
     args.popsize = args.popsize or 4 + int(math.floor(3 * math.log(max(args.dims))))
     if args.chunk <= 0:
-        args.engines = [e for e in args.engines if e != "scan"]
+        args.engines = [e for e in args.engines if e not in ("scan", "lazy")]
+    if args.lazy_eigen <= 0:
+        raise BenchInputError(f"--lazy-eigen must be > 0, got {args.lazy_eigen}")
 
 
 def _cases(args: argparse.Namespace, dims: list[int]) -> list[tuple[str, str, Callable]]:
@@ -283,6 +307,12 @@ def _cases(args: argparse.Namespace, dims: list[int]) -> list[tuple[str, str, Ca
             f"batched-P{args.pad}-scan{k}",
             str(args.pad),
             lambda: batched_engine(dims, args.pad, p, args.cond, seed, chunk=k),
+        ),
+        "lazy": (
+            f"batched-P{args.pad}-scan{k}-lazy{args.lazy_eigen:g}",
+            str(args.pad),
+            lambda: batched_engine(dims, args.pad, p, args.cond, seed, chunk=k,
+                                   lazy=args.lazy_eigen),  # fmt: skip
         ),
         "evosax": ("evosax-loop", "none", lambda: evosax_loop_engine(dims, p, args.cond, seed)),
         "pycma": ("pycma", "none", lambda: pycma_engine(dims, p, args.cond, seed)),

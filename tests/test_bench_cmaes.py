@@ -46,3 +46,17 @@ def test_dimensions_spread_over_the_grid():
     assert bench_cmaes.dimensions(1, grid) == [120]
     assert bench_cmaes.dimensions(8, grid) == [20, 40, 80, 100, 120, 140, 180, 200]
     assert sorted(set(bench_cmaes.dimensions(32, grid))) == grid
+
+
+def test_the_lazy_variant_is_the_scan_variant_when_every_iteration_decomposes():
+    """An interval under one iteration decomposes every C every iteration: the lazy engine's
+    trajectory is then exactly the eager one; with pycma's F = 0.5 it is another (the
+    larger structures keep their decomposition for several iterations)."""
+    dims, make = [6, 30], bench_cmaes.batched_engine
+    eager = make(dims, 32, 9, 1e3, 0, chunk=3)
+    every = make(dims, 32, 9, 1e3, 0, chunk=3, lazy=1e-9)
+    pycma = make(dims, 32, 9, 1e3, 0, chunk=3, lazy=0.5)
+    for _ in range(4):
+        a, b, c = eager(), every(), pycma()
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert np.all(np.isfinite(np.asarray(c))) and not np.array_equal(np.asarray(a), np.asarray(c))

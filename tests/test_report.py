@@ -150,3 +150,29 @@ def test_network_drawing_has_a_legend_and_no_unused_bias(tmp_path):
                       "recurrent jumper"]  # fmt: skip
     nodes, legend = texts(rp.genome_figure(Genome.parse(GENOME), n_inputs=3))
     assert "1" in nodes and "bias (1)" in legend and "x2" in nodes
+
+
+def test_evaluations_to_the_reference_fitness_match_a_plain_count(tmp_path):
+    """Each arm's evaluations to 99% of the reference arm's mean final fitness: the first
+    generation whose best cost is within 1% of that cost, averaged over the runs that got
+    there (recomputed here from the records as written)."""
+    dirs = [make_run(tmp_path / f"{p}-{s}", pruner=p, seed=s, generations=6)
+            for p in ("covariance", "none") for s in (0, 1, 2)]  # fmt: skip
+    runs = rp.load_runs(dirs)
+    summary = rp.summarise(runs)
+    target = float(np.mean([r.generations[-1].best_cost for r in runs if r.arm == "none"]))
+    for arm in ("covariance", "none"):
+        hits = []
+        for r in (r for r in runs if r.arm == arm):
+            costs = np.array([g.best_cost for g in r.generations])
+            ok = np.flatnonzero(costs <= target * 1.01)  # costs are positive here
+            if ok.size:
+                hits.append(r.generations[ok[0]].evaluations)
+        assert summary[arm]["reached_reference"] == len(hits)
+        expected = np.mean(hits) if hits else None
+        assert summary[arm]["evaluations_to_reference"] == expected
+    # The reference arm's own runs end around their mean: not all need reach it.
+    assert 1 <= summary["none"]["reached_reference"] <= 3
+    text = rp.report(dirs, tmp_path / "rep").read_text()
+    assert "evaluations to the reference's 99%" in text
+    assert f"({summary['covariance']['reached_reference']}/3)" in text

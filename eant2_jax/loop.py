@@ -95,11 +95,19 @@ class RunState:
     evaluations: int
     key: tuple[int, ...]  # raw key data of the run's PRNG key
     wall_s: float = 0.0
+    # The padding bucket (neurons, genes, sweeps) the run has grown to (`grow_bucket`): the
+    # default CMA-ES popsize follows it, so a resume must go on from it, not from scratch.
+    # None in checkpoints written before it was recorded.
+    bucket: tuple[int, int, int] | None = None
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
         d["population"] = [ind.to_json() for ind in self.population]
         d["key"] = list(self.key)
+        if self.bucket is None:
+            del d["bucket"]
+        else:
+            d["bucket"] = list(self.bucket)
         return d
 
     @classmethod
@@ -124,6 +132,7 @@ class RunState:
             evaluations=d["evaluations"],
             key=_check_key(d.get("key"), "the state's key"),
             wall_s=as_float(d.get("wall_s", 0.0), "wall_s"),
+            bucket=_check_bucket(d.get("bucket")),
         )
 
     def best(self) -> Individual:
@@ -205,6 +214,21 @@ def _key_data(key: jax.Array) -> tuple[int, ...]:
     if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
         key = jax.random.key_data(key)
     return tuple(int(k) for k in np.asarray(key, dtype=np.uint32).ravel())
+
+
+def _check_bucket(data) -> tuple[int, int, int] | None:
+    """A checkpoint's bucket: absent (None), or three integers >= 1."""
+    if data is None:
+        return None
+    if not (
+        isinstance(data, list)
+        and len(data) == 3
+        and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in data)
+    ):
+        raise ValueError(
+            f"the state's bucket must be [neurons, genes, sweeps] integers >= 1, got {data!r:.60}"
+        )
+    return tuple(data)
 
 
 def _check_key(data, what: str) -> tuple[int, ...]:
@@ -340,8 +364,10 @@ def grow_bucket(genomes: Sequence[Genome], current: Bucket | None) -> Bucket:
     (at least two sweeps: a first hidden neuron adds one).
 
     Each new bucket is a new program to compile (seconds on a CPU, more on a GPU), while the
-    padding costs little (a generation is latency-bound: docs/benchmarks.md). Results do not
-    depend on it: a structure's CMA-ES is independent of its padding."""
+    padding costs little (a generation is latency-bound: docs/benchmarks.md). A structure's
+    CMA-ES is independent of its padding except through the default popsize, which follows
+    the gene bucket (`eant2_jax.tuning.popsize_for`); so the bucket is part of the checkpoint
+    (`RunState.bucket`) and a resumed run goes on with it."""
     neurons = max(g.n_neurons for g in genomes)
     genes = max(g.n_params for g in genomes)
     depth = max(g.depth() for g in genomes)
@@ -452,6 +478,7 @@ def _generation(
         evaluations=evaluations + evals,
         key=_key_data(key) if state is None else state.key,
         wall_s=(0.0 if state is None else state.wall_s) + dt,
+        bucket=None if bucket is None else (bucket.neurons, bucket.genes, bucket.sweeps),
     )
     record = _generation_record(state, len(new), prune, dt, compilestats.snapshot() - compiled)
     return state, record, prune, bucket, solution
@@ -746,7 +773,9 @@ def _loop(
     gen_records=(), prune_records=(), solution_test=None,
 ) -> RunResult:  # fmt: skip
     gen_records, prune_records = list(gen_records), list(prune_records)
-    bucket = None  # grows, never shrinks: one program for as long as the genomes fit
+    # Grows, never shrinks: one program for as long as the genomes fit; a resume goes on
+    # from the checkpoint's.
+    bucket = None if state is None or state.bucket is None else Bucket(*state.bucket)
     solution = None
     if state is not None and solution_test is not None:  # resumed: test what it holds
         solution = next((ind for ind in state.population if solution_test(ind.genome)), None)

@@ -13,7 +13,10 @@ from collections.abc import Callable, Sequence
 
 import jax
 
+from pathlib import Path
+
 from .loop import EANT2Config, RunResult, run
+from .loop import resume as resume_run
 from .tasks.base import Task
 
 __all__ = ["run_many"]
@@ -30,6 +33,7 @@ def run_many(
     workers_per_device: int = 1,
     callback: Callable[[dict], None] | None = None,
     meta: dict | None = None,
+    resume: bool = False,
 ) -> list[RunResult]:
     """Independent runs (seeds, or arms with different configs) spread over devices.
 
@@ -47,6 +51,9 @@ def run_many(
         with another's device work).
       callback: progress events, with ``run`` (the run's index) added.
       meta: extra ``config.json`` fields for every run directory.
+      resume: a run whose directory in ``outs`` exists continues it (`eant2_jax.loop.resume`: a finished
+        run is read back, a stopped one goes on from its last complete generation) instead
+        of starting.
 
     Returns:
       The results, in the order of ``keys``.
@@ -90,6 +97,9 @@ def run_many(
 
             try:
                 with jax.default_device(device):
+                    if resume and outs[i] is not None and Path(outs[i]).exists():
+                        results[i] = resume_run(outs[i], task, callback=cb)
+                        continue
                     results[i] = run(
                         task,
                         key=keys[i],

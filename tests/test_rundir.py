@@ -386,6 +386,8 @@ CORRUPT = [
     ("key out of range", _state_edit("key", [0, 2**40]), "key"),
     ("foreign key", _state_edit("key", [0, 7]), "not the run's key"),
     ("evaluations differ", _state_edit("evaluations", 12345), "evaluations"),
+    ("bucket of two sizes", _state_edit("bucket", [8, 16]), "bucket"),
+    ("bucket of zeros", _state_edit("bucket", [0, 16, 2]), "bucket"),
     ("two-output genome for xor", _two_output_best, "outputs"),
     ("state edited silently", _replace(CHECKPOINT, b'"next_id": 3', b'"next_id": 4'), "checksum"),
     (

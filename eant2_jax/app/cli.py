@@ -156,9 +156,12 @@ def _run(args: argparse.Namespace) -> int:
 
 def _resume(args: argparse.Namespace) -> int:
     import eant2_jax
+    from eant2_jax.app.experiments import MANIFEST
     from eant2_jax.progress import ProgressReporter
     from eant2_jax.rundir import RunDir
 
+    if (Path(args.dir) / MANIFEST).is_file():
+        return _resume_reproduction(args)
     with RunDir.open(args.dir, lock=False) as rundir:  # resume takes the lock itself
         meta = rundir.config()
     config = meta.get("config")
@@ -174,6 +177,40 @@ def _resume(args: argparse.Namespace) -> int:
         callback=ProgressReporter(total, header=f"eant2 resume {args.dir}"),
     )
     return _finish(result, Path(args.dir))
+
+
+def _resume_reproduction(args: argparse.Namespace) -> int:
+    """``eant2 resume DIR`` of an ``eant2 reproduce`` directory."""
+    from eant2_jax.app.experiments import MANIFEST, resume_reproduction
+
+    if args.generations is not None:
+        raise ValueError(
+            f"{args.dir} is an eant2 reproduce directory: --generations does not apply "
+            "(its runs keep the number they were started with)"
+        )
+    try:  # for the progress lines only; resume_reproduction checks the file
+        total = json.loads((Path(args.dir) / MANIFEST).read_text())["generations"]
+    except (OSError, ValueError, KeyError, TypeError):
+        total = "?"
+    print(f"eant2 resume: finishing the reproduction in {args.dir}", file=sys.stderr)
+    path = resume_reproduction(args.dir, callback=_reproduce_progress(total))
+    print(f"report: {path}")
+    return 0
+
+
+def _reproduce_progress(total):
+    """Progress lines of a reproduction's runs on stderr."""
+
+    def progress(event: dict) -> None:
+        if event["event"] == "generation":
+            print(
+                f"[{event['arm']} run {event['run']}] gen {event['generation']}/{total} "
+                f"best {event['best_cost']:.4g} size {event['best_size']}",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    return progress
 
 
 def _report(args: argparse.Namespace) -> int:
@@ -288,16 +325,10 @@ def _reproduce(args: argparse.Namespace) -> int:
         exploit=ExploitConfig(**exploit),
     )
     out = Path(args.out) if args.out else _free_dir(f"reproduce-{args.task}", args.seed)
+    args.out = str(out)  # for the interruption hint (eant2 resume OUT)
     total = args.generations
 
-    def progress(event):
-        if event["event"] == "generation":
-            print(
-                f"[{event['arm']} run {event['run']}] gen {event['generation']}/{total} "
-                f"best {event['best_cost']:.4g} size {event['best_size']}",
-                file=sys.stderr,
-                flush=True,
-            )
+    progress = _reproduce_progress(total)
 
     print(f"eant2 reproduce: writing {out}", file=sys.stderr)
     path = reproduce(
@@ -581,8 +612,12 @@ def _parser() -> argparse.ArgumentParser:
     tasks = sub.add_parser("tasks", help="list the registered tasks and their options")
     tasks.set_defaults(func=_tasks)
 
-    resume = sub.add_parser("resume", help="continue a run directory from its last generation")
-    resume.add_argument("dir", help="the run directory")
+    resume = sub.add_parser(
+        "resume",
+        help="continue a run directory from its last generation, or finish an eant2 "
+        "reproduce directory",
+    )
+    resume.add_argument("dir", help="the run directory (or eant2 reproduce's directory)")
     resume.add_argument(
         "--generations",
         type=_non_negative,

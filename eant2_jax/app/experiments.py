@@ -32,7 +32,12 @@ from ..tasks.base import ReportingTask, Task
 from ..tuning import optimize, prepare, tune
 from .report import report
 
-__all__ = ["arm_config", "condition_experiment", "reproduce"]
+__all__ = ["MANIFEST", "arm_config", "condition_experiment", "reproduce", "resume_reproduction"]
+
+# What `reproduce` writes first into its directory: its settings, so that
+# `resume_reproduction` (``eant2 resume DIR``) can finish a reproduction that was killed.
+MANIFEST = "reproduce.json"
+_MANIFEST_VERSION = 1
 
 
 def condition_experiment(
@@ -242,8 +247,13 @@ def reproduce(
     condition_inits: int = 5,
     condition_dtype: str = "float64",
     callback: Callable[[dict], None] | None = None,
+    _resume: bool = False,
 ) -> Path:
     """Run the paper's experiments and write the report.
+
+    The settings go first into ``out/reproduce.json``; a reproduction that was killed (or
+    crashed) goes on with `resume_reproduction` (``eant2 resume OUT``), losing at most each
+    run's current generation.
 
     Args:
       task: the task (the paper's: ``tasks.make("servo")``).
@@ -270,13 +280,35 @@ def reproduce(
       The path of ``report/report.md``.
     """
     out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise RunDirError(f"{out} already exists and is not an empty directory; not overwriting")
     base = config or EANT2Config()
     arms = [p for p in pruners if p != "none"] + ["none"]
     jobs = [(arm, seed + i) for arm in arms for i in range(runs)]
     configs = [arm_config(base, arm) for arm, _ in jobs]
     dirs = [out / f"{arm}-s{s}" for arm, s in jobs]
+    if not _resume:
+        if out.exists() and (not out.is_dir() or any(out.iterdir())):
+            raise RunDirError(
+                f"{out} already exists and is not an empty directory; not overwriting"
+            )
+        manifest = {
+            "version": _MANIFEST_VERSION,
+            "task_meta": task_meta,
+            "runs": runs,
+            "generations": generations,
+            "pruners": list(pruners),
+            "config": base.to_dict(),
+            "seed": seed,
+            "devices": devices,
+            "workers_per_device": workers_per_device,
+            "condition": condition,
+            "condition_iters": condition_iters,
+            "condition_inits": condition_inits,
+            "condition_dtype": condition_dtype,
+        }
+        out.mkdir(parents=True, exist_ok=True)
+        tmp = out / (MANIFEST + ".tmp")
+        tmp.write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
+        tmp.replace(out / MANIFEST)  # atomic: a manifest is whole or absent
     t0 = time.perf_counter()
 
     def progress(event):
@@ -298,9 +330,12 @@ def reproduce(
             if callback is None
             else (lambda e, idx=idx: progress({**e, "run": idx[e["run"]]})),
             meta={**task_meta, "arm": arm},
+            resume=_resume,
         )
     wall = time.perf_counter() - t0
     extra: dict = {"wall_s": wall, "device": jax.devices()[0].device_kind}
+    if _resume:
+        extra["resumed"] = True
     if isinstance(task, ReportingTask):
         extra["baselines"] = task.baselines()
         gen: dict[str, list[float]] = {}
@@ -309,7 +344,10 @@ def reproduce(
             gen.setdefault(arm, []).append(float(np.asarray(task.generalisation(nets))[0]))
         extra["generalisation"] = gen
     cond = None
-    if condition:
+    done = out / "condition.json"
+    if condition and _resume and done.is_file():  # written whole, after the experiment
+        cond = json.loads(done.read_text(encoding="utf-8"))
+    elif condition:
         unpruned = [r for (arm, _), r in zip(jobs, results, strict=True) if arm == "none"]
         best = min(unpruned, key=lambda r: r.generations[-1].best_cost)
         if condition_dtype == "float64":
@@ -325,9 +363,54 @@ def reproduce(
             inits=condition_inits,
             dtype=condition_dtype,
         )
-        (out / "condition.json").write_text(json.dumps(cond) + "\n", encoding="utf-8")
+        tmp = out / "condition.json.tmp"
+        tmp.write_text(json.dumps(cond) + "\n", encoding="utf-8")
+        tmp.replace(done)
     extra["notes"] = _claims(dirs, cond)
     return report([str(d) for d in dirs], out / "report", extra=extra, condition=cond)
+
+
+def resume_reproduction(
+    out: str | Path, *, callback: Callable[[dict], None] | None = None
+) -> Path:
+    """Finish a reproduction that `reproduce` started in ``out`` and that was stopped: with
+    the settings of its ``reproduce.json``, finished runs are read back, interrupted ones
+    resume from their last complete generation, missing ones start, then the condition
+    experiment (unless its result is there) and the report follow. The result equals an
+    uninterrupted reproduction's where a resumed run equals an uninterrupted one (on a CPU,
+    or a GPU with deterministic ops).
+
+    Raises:
+      RunDirError: ``out`` holds no readable reproduction.
+    """
+    from .. import tasks
+
+    out = Path(out)
+    path = out / MANIFEST
+    try:
+        m = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise RunDirError(f"{out}: not a reproduction ({MANIFEST}: {e})") from None
+    keys = ("task_meta", "runs", "generations", "pruners", "config", "seed", "devices",
+            "workers_per_device", "condition", "condition_iters", "condition_inits",
+            "condition_dtype")  # fmt: skip
+    if not isinstance(m, dict) or m.get("version") != _MANIFEST_VERSION or any(
+        k not in m for k in keys
+    ):
+        raise RunDirError(
+            f"{path}: not a reproduce.json of version {_MANIFEST_VERSION} with {', '.join(keys)}"
+        )
+    meta = m["task_meta"]
+    task = tasks.make(meta["task"], **meta["task_options"])
+    return reproduce(
+        task,
+        out,
+        task_meta=meta,
+        config=EANT2Config.from_dict(m["config"], complete=True),
+        callback=callback,
+        _resume=True,
+        **{k: m[k] for k in keys if k not in ("task_meta", "config")},
+    )
 
 
 def _claims(dirs: Sequence[Path], cond: dict | None) -> str:

@@ -618,7 +618,8 @@ def report(
     if "device" in extra:
         lines.append(f"Device: {extra['device']}.")
     if "wall_s" in extra:
-        lines.append(f"Wall time: {extra['wall_s']:.1f} s.")
+        last = " (of its last part: the reproduction was resumed)" if extra.get("resumed") else ""
+        lines.append(f"Wall time: {extra['wall_s']:.1f} s{last}.")
     lines += [
         "",
         "| arm | runs | final fitness (mean ± sd) | size (mean ± sd) | size reduction | "

@@ -1,0 +1,87 @@
+"""A reproduction killed part-way is finished by `resume_reproduction` (``eant2 resume
+DIR``) to exactly the result of an uninterrupted one (CPU: resumed runs are exact), and a
+directory that is not a whole reproduction gets one clear error."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from eant2_jax import tasks
+from eant2_jax.app.cli import main
+from eant2_jax.app.experiments import MANIFEST, reproduce, resume_reproduction
+from eant2_jax.loop import RUN_DEPENDENT, EANT2Config
+from eant2_jax.rundir import RunDirError
+
+SETTINGS = dict(
+    task_meta={"task": "xor", "task_options": {}},
+    runs=2,
+    generations=2,
+    pruners=("covariance",),
+    config=EANT2Config(population=5),
+    devices=1,
+    condition=True,
+    condition_iters=60,
+    condition_inits=2,
+    # float32: float64 would turn JAX's x64 mode on for the rest of this process (the second
+    # reproduction here, and other tests of this worker); a resume in a new process, as the
+    # command line does it, starts without it as the killed one did.
+    condition_dtype="float32",
+)
+RUNS = ("covariance-s0", "covariance-s1", "none-s0", "none-s1")
+
+
+def _records(run_dir):
+    """The generation records without the fields that describe the process, not the run
+    (wall times, and what it compiled: a second reproduction in one process compiles
+    nothing)."""
+    rows = [json.loads(line) for line in (run_dir / "generations.jsonl").read_text().splitlines()]
+    return [{k: v for k, v in r.items() if k not in RUN_DEPENDENT} for r in rows]
+
+
+@pytest.mark.slow
+def test_a_killed_reproduction_resumes_to_the_uninterrupted_result(tmp_path, capsys):
+    task = tasks.make("xor")
+    reproduce(task, tmp_path / "whole", **SETTINGS)
+
+    def kill(event):  # Ctrl-C in the second arm's first run, after its generation 1
+        if event["event"] == "generation" and event["arm"] == "none" and event["generation"] == 1:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        reproduce(task, tmp_path / "cut", callback=kill, **SETTINGS)
+    cut = tmp_path / "cut"
+    assert (cut / MANIFEST).is_file() and not (cut / "report").exists()
+    assert not (cut / "none-s1").exists()  # never started
+    # The command line finishes it (the task is rebuilt from the manifest).
+    assert main(["resume", str(cut)]) == 0
+    assert "report:" in capsys.readouterr().out
+
+    whole = tmp_path / "whole"
+    for run in RUNS:
+        assert _records(cut / run) == _records(whole / run), run
+        assert (cut / run / "best.genome").read_text() == (whole / run / "best.genome").read_text()
+    summary = [json.loads((d / "report" / "summary.json").read_text()) for d in (cut, whole)]
+    assert summary[0] == summary[1]
+    cond = [json.loads((d / "condition.json").read_text()) for d in (cut, whole)]
+    assert cond[0] == cond[1]
+    assert "the reproduction was resumed" in (cut / "report" / "report.md").read_text()
+    # A finished reproduction resumes to itself, reading its condition result back.
+    assert resume_reproduction(cut) == cut / "report" / "report.md"
+    assert json.loads((cut / "report" / "summary.json").read_text()) == summary[1]
+
+
+def test_what_is_not_a_reproduction_is_one_clear_error(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(RunDirError, match="not a reproduction"):
+        resume_reproduction(tmp_path / "empty")
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / MANIFEST).write_text(json.dumps({"version": 1, "runs": 2}))
+    with pytest.raises(RunDirError, match="not a reproduce.json of version 1 with task_meta"):
+        resume_reproduction(bad)
+    # eant2 resume sees the manifest: --generations does not apply to a reproduction.
+    assert main(["resume", str(bad), "--generations", "3"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--generations does not apply" in err[0], err

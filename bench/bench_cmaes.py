@@ -311,8 +311,9 @@ def _cases(args: argparse.Namespace, dims: list[int]) -> list[tuple[str, str, Ca
         "lazy": (
             f"batched-P{args.pad}-scan{k}-lazy{args.lazy_eigen:g}",
             str(args.pad),
-            lambda: batched_engine(dims, args.pad, p, args.cond, seed, chunk=k,
-                                   lazy=args.lazy_eigen),  # fmt: skip
+            lambda: batched_engine(
+                dims, args.pad, p, args.cond, seed, chunk=k, lazy=args.lazy_eigen
+            ),  # fmt: skip
         ),
         "evosax": ("evosax-loop", "none", lambda: evosax_loop_engine(dims, p, args.cond, seed)),
         "pycma": ("pycma", "none", lambda: pycma_engine(dims, p, args.cond, seed)),

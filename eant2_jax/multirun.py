@@ -10,10 +10,9 @@ from __future__ import annotations
 import queue
 import threading
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import jax
-
-from pathlib import Path
 
 from .loop import EANT2Config, RunResult, run
 from .loop import resume as resume_run
@@ -51,9 +50,9 @@ def run_many(
         with another's device work).
       callback: progress events, with ``run`` (the run's index) added.
       meta: extra ``config.json`` fields for every run directory.
-      resume: a run whose directory in ``outs`` exists continues it (`eant2_jax.loop.resume`: a finished
-        run is read back, a stopped one goes on from its last complete generation) instead
-        of starting.
+      resume: a run whose directory in ``outs`` exists continues it instead of starting
+        (`eant2_jax.loop.resume`: a finished run is read back, a stopped one goes on from
+        its last complete generation).
 
     Returns:
       The results, in the order of ``keys``.

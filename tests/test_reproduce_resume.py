@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 
+import jax
 import pytest
 
 from eant2_jax import tasks
@@ -24,10 +25,7 @@ SETTINGS = dict(
     condition=True,
     condition_iters=60,
     condition_inits=2,
-    # float32: float64 would turn JAX's x64 mode on for the rest of this process (the second
-    # reproduction here, and other tests of this worker); a resume in a new process, as the
-    # command line does it, starts without it as the killed one did.
-    condition_dtype="float32",
+    condition_dtype="float64",  # JAX's x64 mode for that experiment alone
 )
 RUNS = ("covariance-s0", "covariance-s1", "none-s0", "none-s1")
 
@@ -44,6 +42,9 @@ def _records(run_dir):
 def test_a_killed_reproduction_resumes_to_the_uninterrupted_result(tmp_path, capsys):
     task = tasks.make("xor")
     reproduce(task, tmp_path / "whole", **SETTINGS)
+    # The condition experiment's float64 mode ended with it: the next reproduction's runs
+    # are the float32 runs of the first (compared below).
+    assert not jax.config.jax_enable_x64
 
     def kill(event):  # Ctrl-C in the second arm's first run, after its generation 1
         if event["event"] == "generation" and event["arm"] == "none" and event["generation"] == 1:

@@ -572,7 +572,7 @@ def _parser() -> argparse.ArgumentParser:
         "--condition-dtype",
         choices=["float64", "float32"],
         default="float64",
-        help="CMA-ES state in the condition experiment (default float64: x64 mode after the runs)",
+        help="CMA-ES state in the condition experiment (default float64: x64 mode for it alone)",
     )
     rep.add_argument(
         "--task-option",

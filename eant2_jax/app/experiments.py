@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import time
@@ -20,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..compiler import networks
-from ..config import ExploitConfig, enable_x64
+from ..config import ExploitConfig
 from ..exploitation import run as run_engine
 from ..genome import Genome
 from ..kernels.pruning import PRUNERS
@@ -272,8 +273,8 @@ def reproduce(
       condition_iters: CMA-ES budget of each run of that experiment from random weights.
       condition_inits: random initialisations of each network in it.
       condition_dtype: the CMA-ES state's dtype in it; ``float64`` turns on JAX's x64 mode
-        once the evolution runs are done (the mode is process-wide, and the runs stay in
-        float32).
+        for that experiment alone (``jax.enable_x64``, once the evolution runs are done:
+        they stay in float32).
       callback: progress events (with ``run`` and ``arm``).
 
     Returns:
@@ -350,19 +351,21 @@ def reproduce(
     elif condition:
         unpruned = [r for (arm, _), r in zip(jobs, results, strict=True) if arm == "none"]
         best = min(unpruned, key=lambda r: r.generations[-1].best_cost)
-        if condition_dtype == "float64":
-            enable_x64()
-        cond = condition_experiment(
-            best.best,
-            task,
-            key=jax.random.key(seed + 10_000),
-            iters=condition_iters,
-            # The pruning rounds from the tuned weights need no more than the runs from
-            # random weights (and a short setting stays short).
-            prune_iters=min(condition_iters, 2000),
-            inits=condition_inits,
-            dtype=condition_dtype,
-        )
+        # x64 for this experiment alone: the mode is global JAX state, and a run started
+        # after this call (a second reproduction in one process) must not see it.
+        x64 = jax.enable_x64(True) if condition_dtype == "float64" else contextlib.nullcontext()
+        with x64:
+            cond = condition_experiment(
+                best.best,
+                task,
+                key=jax.random.key(seed + 10_000),
+                iters=condition_iters,
+                # The pruning rounds from the tuned weights need no more than the runs from
+                # random weights (and a short setting stays short).
+                prune_iters=min(condition_iters, 2000),
+                inits=condition_inits,
+                dtype=condition_dtype,
+            )
         tmp = out / "condition.json.tmp"
         tmp.write_text(json.dumps(cond) + "\n", encoding="utf-8")
         tmp.replace(done)
@@ -370,9 +373,7 @@ def reproduce(
     return report([str(d) for d in dirs], out / "report", extra=extra, condition=cond)
 
 
-def resume_reproduction(
-    out: str | Path, *, callback: Callable[[dict], None] | None = None
-) -> Path:
+def resume_reproduction(out: str | Path, *, callback: Callable[[dict], None] | None = None) -> Path:
     """Finish a reproduction that `reproduce` started in ``out`` and that was stopped: with
     the settings of its ``reproduce.json``, finished runs are read back, interrupted ones
     resume from their last complete generation, missing ones start, then the condition
@@ -394,8 +395,10 @@ def resume_reproduction(
     keys = ("task_meta", "runs", "generations", "pruners", "config", "seed", "devices",
             "workers_per_device", "condition", "condition_iters", "condition_inits",
             "condition_dtype")  # fmt: skip
-    if not isinstance(m, dict) or m.get("version") != _MANIFEST_VERSION or any(
-        k not in m for k in keys
+    if (
+        not isinstance(m, dict)
+        or m.get("version") != _MANIFEST_VERSION
+        or any(k not in m for k in keys)
     ):
         raise RunDirError(
             f"{path}: not a reproduce.json of version {_MANIFEST_VERSION} with {', '.join(keys)}"

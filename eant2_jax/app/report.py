@@ -632,7 +632,8 @@ def report(
         to_ref = "—"
         if s.get("reached_reference") is not None:
             mean = s["evaluations_to_reference"]
-            to_ref = f"{'—' if mean is None else f'{mean:.3g}'} ({s['reached_reference']}/{s['runs']})"
+            shown = "—" if mean is None else f"{mean:.3g}"
+            to_ref = f"{shown} ({s['reached_reference']}/{s['runs']})"
         lines.append(
             f"| {arm} | {s['runs']} | {_fmt(s['fitness_mean'])} ± {_fmt(s['fitness_sd'], 2)} | "
             f"{s['size_mean']:.1f} ± {s['size_sd']:.1f} | {red or '—'} | "

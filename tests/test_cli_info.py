@@ -32,6 +32,8 @@ def test_tasks_lists_every_task_and_its_options(capsys, monkeypatch):
     assert '    options: hidden="tanh", output="identity"' in out  # xor's
     assert 'mode="kinematic"' in out and "n_starts=1023" in out  # servo's, imported lazily
     assert ", ".join(activations.names()) in out
+    assert tasks.namespaces() == ["brax", "gymnax", "playground"]
+    assert "docs/tasks-custom.md): brax, gymnax, playground.\n" in out
 
 
 def test_task_options_read_the_real_factory():

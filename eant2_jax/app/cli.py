@@ -284,7 +284,11 @@ def _tasks(args: argparse.Namespace) -> int:
             for k, v in tasks.options(name).items()
         ]
         print("    options: " + (", ".join(opts) if opts else "none"))
-    print("\nSet an option with --task-option KEY=VALUE (VALUE is JSON or a string).")
+    print(
+        "\nEnvironment families, NAMESPACE:NAME (optional extras, their options in "
+        f"docs/tasks-custom.md): {', '.join(tasks.namespaces())}."
+    )
+    print("Set an option with --task-option KEY=VALUE (VALUE is JSON or a string).")
     print(f"Activations (hidden=, output=): {', '.join(activations.names())}.")
     return 0
 

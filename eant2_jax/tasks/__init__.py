@@ -3,8 +3,8 @@
 ``make(spec, **options)`` builds a task from a spec, which is one of
 
 * a registered name (``xor``, ``servo``, ``dpv``, ``dpnv``; `names`);
-* ``NAMESPACE:NAME`` for a registered family of tasks (``gymnax:CartPole-v1``, ``brax:hopper``;
-  `namespaces`);
+* ``NAMESPACE:NAME`` for a registered family of tasks (``gymnax:CartPole-v1``, ``brax:hopper``,
+  ``playground:CartpoleBalance``; `namespaces`);
 * ``module.path:factory``, a factory in an importable module;
 * ``path/to/file.py:factory`` (or ``path/to/file.py``, factory ``make_task``), a factory in
   a Python file.
@@ -222,8 +222,8 @@ register("xor", xor)
 
 
 def _lazy(module: str, attr: str) -> Callable[..., Task]:
-    """A factory that imports its module on first use (MJX, gymnax, brax are slow to import);
-    ``resolve()`` returns the real factory (for its signature and docstring)."""
+    """A factory that imports its module on first use (MJX, gymnax, brax and Playground are
+    slow to import); ``resolve()`` returns the real factory (for its signature and docstring)."""
 
     def resolve() -> Callable[..., Task]:
         return getattr(importlib.import_module(f"{__name__}.{module}"), attr)
@@ -241,3 +241,4 @@ register("dpv", _lazy("pole", "dpv"))
 register("dpnv", _lazy("pole", "dpnv"))
 register_namespace("gymnax", _lazy("gymnax_task", "gymnax"))
 register_namespace("brax", _lazy("brax_task", "brax"))
+register_namespace("playground", _lazy("playground_task", "playground"))

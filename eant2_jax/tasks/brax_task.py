@@ -51,7 +51,15 @@ from ..kernels import network as kn
 from .episodic import EpisodicTask
 from .episodic import returns as returns
 
-__all__ = ["BACKENDS", "PRECISIONS", "BraxTask", "brax", "calling_brax", "returns"]
+__all__ = [
+    "BACKENDS",
+    "PRECISIONS",
+    "BraxTask",
+    "brax",
+    "calling_brax",
+    "play_pipeline",
+    "returns",
+]
 
 BACKENDS = ("generalized", "mjx", "positional", "spring")
 # Precision of the float32 products in brax's physics (``jax.default_matmul_precision``):
@@ -159,23 +167,31 @@ class BraxTask(EpisodicTask):
 
     def episode(self, net: kn.Network, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Return (sum of rewards) and length of ONE episode of ONE network."""
-        env = self.env
-        # "default" leaves the choice to JAX (and its caller's own context).
-        exact = contextlib.nullcontext
-        if self.precision != "default":
-            exact = functools.partial(jax.default_matmul_precision, self.precision)
+        return play_pipeline(self, self.env, net, key, self.precision)
 
-        def reset(key):
-            with calling_brax(), exact():
-                state = env.reset(key)
-            return state.obs, state
 
-        def step(_, state, action):  # brax's dynamics are deterministic: no key
-            with calling_brax(), exact():
-                state = env.step(state, action)
-            return state.obs, state, state.reward, state.done > 0
+def play_pipeline(
+    task: EpisodicTask, env: Any, net: kn.Network, key: jax.Array, precision: str
+) -> tuple[jax.Array, jax.Array]:
+    """`EpisodicTask.play` of an environment with brax's interface (``env.reset(key)`` and
+    ``env.step(state, action)`` returning a state with ``obs``, ``reward`` and ``done``:
+    brax's, and MuJoCo Playground's), its float32 products at ``precision``."""
+    # "default" leaves the choice to JAX (and its caller's own context).
+    exact = contextlib.nullcontext
+    if precision != "default":
+        exact = functools.partial(jax.default_matmul_precision, precision)
 
-        return self.play(net, key, reset, step)
+    def reset(key):
+        with calling_brax(), exact():
+            state = env.reset(key)
+        return state.obs, state
+
+    def step(_, state, action):  # the dynamics are deterministic: no key
+        with calling_brax(), exact():
+            state = env.step(state, action)
+        return state.obs, state, state.reward, state.done > 0
+
+    return task.play(net, key, reset, step)
 
 
 def brax(

@@ -1,0 +1,196 @@
+"""MuJoCo Playground environments as EANT2 tasks: ``tasks.make("playground:CartpoleBalance")``.
+
+MuJoCo Playground (Zakka et al. 2025, https://github.com/google-deepmind/mujoco_playground;
+the ``playground`` package) is brax's maintained successor for MJX environments: the DM
+Control Suite (``CartpoleBalance``, ``PendulumSwingup``, ``CheetahRun``, ...), locomotion
+and manipulation, each a pure-JAX ``reset(key)`` / ``step(state, action)`` with brax's
+interface. It is an optional extra: ``pip install "eant2-jax[playground]"``.
+
+A network controls the environment for one episode at a time, as with the brax adapter
+(`eant2_jax.tasks.brax_task`, whose episode loop this one shares):
+
+* **physics**: MJX's JAX implementation (``impl="jax"``) by default; Playground's own default
+  is MJX-Warp (``impl="warp"``), which needs NVIDIA's ``warp-lang`` and a GPU.
+* **observation -> inputs**: the observation vector as it is (float32); where an
+  environment's observation is a dictionary (the locomotion tasks: ``state``,
+  ``privileged_state``, ...), the entry ``obs_key`` (``state`` by default). Not normalised,
+  for the reason the gymnax adapter gives.
+* **outputs -> action**: one output per actuator (``tanh``), clipped to ``[-1, 1]``,
+  Playground's normalised action range.
+* **episodes and cost** (`eant2_jax.tasks.episodic`): at most ``max_steps`` steps (the
+  environment's ``episode_length`` by default: 1,000 for the Control Suite), ending early
+  when the environment sets ``done`` (the Control Suite does only on a non-finite state);
+  the cost is ``-mean return`` over ``episodes`` episodes drawn from the cost's key.
+
+The task is ``noisy`` (random start states), as brax's and gymnax's are.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Any
+
+import jax
+from flax import struct
+
+from ..kernels import network as kn
+from .brax_task import PRECISIONS, _hashable, calling_brax, play_pipeline
+from .episodic import EpisodicTask
+
+__all__ = ["IMPLS", "PlaygroundTask", "playground"]
+
+IMPLS = ("jax", "warp")
+
+
+def _registry():
+    from . import mjx_quiet  # noqa: F401  (drop MJX's lines about an absent warp)
+
+    try:
+        with calling_brax():
+            from mujoco_playground import registry
+    except ImportError as e:
+        raise ValueError(
+            f"playground tasks need the playground package ({e}): "
+            "pip install 'eant2-jax[playground]'"
+        ) from None
+    return registry
+
+
+@functools.cache
+def _environment(name: str, overrides: tuple[tuple[str, Any], ...]) -> Any:
+    """The environment, once per process and settings (tasks alike share its programs)."""
+    with calling_brax():
+        return _registry().load(name, config_overrides=dict(overrides))
+
+
+@struct.dataclass
+class PlaygroundTask(EpisodicTask):
+    """A MuJoCo Playground environment as a task (module docstring). Build with
+    `playground`.
+
+    Attributes:
+      env_name: the Playground environment name (static).
+      overrides: the environment's config overrides, ``impl`` included, as sorted
+        ``(name, value)`` pairs (static).
+      obs_key: the entry of a dictionary observation the network sees (static).
+      n_inputs, n_outputs: observation size and action size (static).
+      precision: precision of the physics' float32 products (static; as for brax).
+
+    and `EpisodicTask`'s ``episodes``, ``max_steps``, ``chunk``, ``hidden``, ``output``
+    and ``noisy`` (keyword-only).
+    """
+
+    env_name: str = struct.field(pytree_node=False)
+    overrides: tuple[tuple[str, Any], ...] = struct.field(pytree_node=False)
+    obs_key: str = struct.field(pytree_node=False)
+    n_inputs: int = struct.field(pytree_node=False)
+    n_outputs: int = struct.field(pytree_node=False)
+    precision: str = struct.field(pytree_node=False, default="highest")
+
+    @property
+    def env(self):
+        return _environment(self.env_name, self.overrides)
+
+    def inputs(self, obs: Any) -> jax.Array:
+        """Network inputs ``[n_inputs]`` of one observation."""
+        if isinstance(obs, dict):
+            obs = obs[self.obs_key]
+        return jax.numpy.ravel(obs).astype(jax.numpy.float32)
+
+    def action(self, y: jax.Array) -> jax.Array:
+        """The environment's action ``[n_outputs]`` (in ``[-1, 1]``) for outputs ``y``."""
+        return jax.numpy.clip(y, -1.0, 1.0)
+
+    def episode(self, net: kn.Network, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Return (sum of rewards) and length of ONE episode of ONE network."""
+        return play_pipeline(self, self.env, net, key, self.precision)
+
+
+def playground(
+    name: str,
+    *,
+    episodes: int = 1,
+    max_steps: int | None = None,
+    impl: str = "jax",
+    config: dict | None = None,
+    obs_key: str = "state",
+    chunk: int = 50,
+    hidden: str = "tanh",
+    output: str = "tanh",
+    precision: str = "highest",
+) -> PlaygroundTask:
+    """A MuJoCo Playground environment as a task (``tasks.make("playground:NAME", ...)``).
+
+    Args:
+      name: the environment name, e.g. ``CartpoleBalance``, ``PendulumSwingup``,
+        ``CheetahRun`` (``mujoco_playground.registry.ALL_ENVS``).
+      episodes: episodes per evaluation (the cost is minus their mean return).
+      max_steps: steps per episode at most (default: the environment's ``episode_length``).
+      impl: MJX implementation: ``jax`` (default, any device) or ``warp`` (needs
+        ``warp-lang`` and a GPU).
+      config: overrides of the environment's config, e.g. ``{"ctrl_dt": 0.02}``.
+      obs_key: the entry the network sees of a dictionary observation.
+      chunk: steps per block of the episode loop (its early exit is checked per block).
+      hidden: activation of hidden neurons.
+      output: activation of output neurons (the action is the output clipped to [-1, 1]).
+      precision: precision of the physics' float32 products (as for brax tasks).
+
+    Returns:
+      The `PlaygroundTask`.
+    """
+    registry = _registry()
+    known = list(registry.ALL_ENVS)
+    if name not in known:
+        raise ValueError(f"unknown playground environment {name!r}; known: {', '.join(known)}")
+    if impl not in IMPLS:
+        raise ValueError(f"playground:{name}: impl must be one of {', '.join(IMPLS)}")
+    if precision not in PRECISIONS:
+        raise ValueError(
+            f"playground:{name}: precision must be one of {', '.join(PRECISIONS)}, "
+            f"got {precision!r}"
+        )
+    if int(episodes) < 1 or int(chunk) < 1:
+        raise ValueError(f"playground:{name}: episodes and chunk must be >= 1")
+    kn.activation(hidden), kn.activation(output)
+    config = dict(config or {})
+    defaults = registry.get_default_config(name)
+    unknown = sorted(k for k in config if k not in defaults)
+    if unknown:
+        raise ValueError(
+            f"playground:{name}: unknown config {', '.join(unknown)}; "
+            f"known: {', '.join(sorted(defaults.keys()))}"
+        )
+    overrides = tuple(sorted((k, _hashable(v)) for k, v in {**config, "impl": impl}.items()))
+    try:
+        env = _environment(name, overrides)
+    except (TypeError, ValueError, RuntimeError) as e:
+        first = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ValueError(f"playground:{name}: cannot build the environment: {first}") from None
+    steps = int(defaults.get("episode_length", 1000) if max_steps is None else max_steps)
+    if "episode_length" in config and max_steps is None:
+        steps = int(config["episode_length"])
+    if steps < 1:
+        raise ValueError(f"playground:{name}: max_steps must be >= 1, got {steps}")
+    with calling_brax():
+        obs = jax.eval_shape(env.reset, jax.random.key(0)).obs
+    if isinstance(obs, dict):
+        if obs_key not in obs:
+            raise ValueError(
+                f"playground:{name}: observations are a dictionary without {obs_key!r}; "
+                f"obs_key must be one of {', '.join(sorted(obs))}"
+            )
+        obs = obs[obs_key]
+    return PlaygroundTask(
+        env_name=name,
+        overrides=overrides,
+        obs_key=obs_key,
+        n_inputs=math.prod(obs.shape),
+        n_outputs=int(env.action_size),
+        episodes=int(episodes),
+        max_steps=steps,
+        chunk=int(chunk),
+        hidden=hidden,
+        output=output,
+        precision=precision,
+    )

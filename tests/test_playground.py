@@ -1,0 +1,142 @@
+"""The MuJoCo Playground adapter on a real Playground environment (skipped when the
+``playground`` package is not installed):
+
+* episode returns and lengths equal those of a plain Python loop over Playground's own
+  ``env.reset`` / ``env.step`` driven by the NumPy genome interpreter (a recurrent
+  controller, so the carried state is checked too);
+* a batch of networks gets one cost each, and a second task built alike compiles nothing;
+* options are checked with one line; an EANT2 run resumes from the command line.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import json
+
+import jax
+import numpy as np
+import pytest
+from episodes import batch_costs
+
+if importlib.util.find_spec("mujoco_playground") is None:
+    pytest.skip("playground is not installed", allow_module_level=True)
+
+import eant2_jax  # noqa: E402
+from eant2_jax import tasks  # noqa: E402
+from eant2_jax.compiler import networks  # noqa: E402
+from eant2_jax.reference import interpret  # noqa: E402
+from eant2_jax.tasks.brax_task import calling_brax  # noqa: E402
+from eant2_jax.tasks.episodic import returns  # noqa: E402
+
+# CartpoleBalance: inputs cart position, cos and sin of the pole angle, cart and pole
+# velocities; the one output pushes the cart.
+PUSH = "N0/5*1 I0*0.5 I2*4 I3*0.5 I4*1 R0*0.1"
+NOTHING = "N0/1*1 I0*0"
+
+
+@functools.cache
+def _jitted(env):
+    return jax.jit(env.reset), jax.jit(env.step)
+
+
+def _plain_returns(task, genome: str, key, episodes: int):
+    """Returns and lengths of episodes played one step at a time in Python: Playground's
+    reset and step (jitted alone), the network by the NumPy reference (float64)."""
+    reset, step = _jitted(task.env)
+    g = eant2_jax.Genome.parse(genome)
+    out = []
+    for k in jax.random.split(key, episodes):
+        reset_key, _ = jax.random.split(k)  # as rollout splits an episode's key
+        with calling_brax():
+            state = reset(reset_key)
+        seen, ret, t = [], 0.0, 0
+        while t < task.max_steps:
+            seen.append(np.asarray(state.obs, np.float64))
+            y = interpret(g, np.asarray(seen)[:, None, :], hidden="tanh", output="tanh")[-1, 0]
+            with calling_brax():
+                state = step(state, np.clip(y, -1, 1).astype(np.float32))
+            ret, t = ret + float(state.reward), t + 1
+            if float(state.done) > 0:
+                break
+        out.append((ret, t))
+    return np.asarray(out)
+
+
+@functools.partial(jax.jit, static_argnames=("episodes",))
+def _episodes(task, nets, key, episodes):
+    keys = jax.random.split(key, episodes)
+    return jax.vmap(jax.vmap(task.episode, in_axes=(None, 0)), in_axes=(0, None))(nets, keys)
+
+
+def test_returns_equal_a_plain_loop_over_playground_steps():
+    task = tasks.make("playground:CartpoleBalance", max_steps=40, chunk=16)
+    assert (task.n_inputs, task.n_outputs, task.overrides) == (5, 1, (("impl", "jax"),))
+    key = jax.random.key(5)
+    genomes = (PUSH, NOTHING)
+    got, steps = map(np.asarray, _episodes(task, networks(
+        [eant2_jax.Genome.parse(g) for g in genomes], task.n_inputs), key, 2))  # fmt: skip
+    for i, g in enumerate(genomes):
+        plain = _plain_returns(task, g, key, 2)
+        np.testing.assert_array_equal(steps[i], plain[:, 1], err_msg=g)
+        # float32 physics in both; the network's float32 vs float64 outputs differ by ~1e-7.
+        np.testing.assert_allclose(got[i], plain[:, 0], rtol=1e-4, err_msg=g)
+    assert np.all(steps == 40)  # the Control Suite never ends an episode early
+    assert not np.allclose(got[0], got[1])
+
+
+def test_a_batch_of_networks_gets_one_cost_each():
+    task, nets, cost = batch_costs(
+        "playground:CartpoleBalance", {"max_steps": 20, "episodes": 2}, 5, 1
+    )
+    flat = jax.tree.map(lambda a: a.reshape(6, *a.shape[2:]), nets)
+    r = returns(task, flat, key=jax.random.key(0), episodes=task.episodes)
+    np.testing.assert_allclose(cost.ravel(), -r.mean(axis=1), rtol=1e-6)
+    assert np.all((r >= 0) & (r <= 20))  # a reward in [0, 1] per step
+
+
+@pytest.mark.parametrize(
+    "options,phrase",
+    [
+        ({"impl": "c"}, "impl must be one of jax, warp"),
+        ({"config": {"ctrl_dtt": 0.02}}, "unknown config ctrl_dtt"),
+        ({"episodes": 0}, "episodes and chunk must be >= 1"),
+        ({"max_steps": 0}, "max_steps must be >= 1"),
+        ({"precision": "tf32"}, "precision must be one of highest, high, default"),
+        ({"hidden": "tanhh"}, "tanhh"),
+    ],
+)
+def test_bad_playground_options_are_one_line(options, phrase):
+    with pytest.raises(ValueError) as e:
+        tasks.make("playground:CartpoleBalance", **options)
+    assert phrase in str(e.value) and "\n" not in str(e.value)
+
+
+def test_an_unknown_environment_lists_the_known_ones():
+    with pytest.raises(ValueError, match="unknown playground environment 'Nope'; known: "):
+        tasks.make("playground:Nope")
+
+
+def test_config_reaches_the_environment():
+    task = tasks.make("playground:CartpoleBalance", config={"episode_length": 300})
+    assert task.max_steps == 300 and ("episode_length", 300) in task.overrides
+    assert task.env._config.episode_length == 300
+
+
+@pytest.mark.slow
+def test_cli_runs_and_resumes_a_playground_task(tmp_path, capsys, monkeypatch):
+    from eant2_jax.app.cli import main
+
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")
+    out = tmp_path / "cp"
+    argv = ["run", "playground:CartpoleBalance", "--task-option", "max_steps=30"]
+    argv += ["--generations", "0", "--population", "3", "--max-iters", "5", "--no-prune"]
+    assert main([*argv, "--out", str(out)]) == 0
+    meta = json.loads((out / "config.json").read_text())
+    assert meta["task"] == "playground:CartpoleBalance"
+    assert meta["task_options"] == {"max_steps": 30}
+    assert main(["resume", str(out), "--generations", "1"]) == 0
+    lines = (out / "generations.jsonl").read_text().splitlines()
+    assert [json.loads(x)["generation"] for x in lines] == [0, 1]
+    assert -30 <= json.loads(lines[-1])["best_cost"] <= 0  # at most 30 steps of reward <= 1
+    capsys.readouterr()

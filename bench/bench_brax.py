@@ -1,5 +1,6 @@
 """brax tasks end to end: ``eant2 run brax:ENV`` and ``eant2 resume`` from process start,
-then the best network's return on new episodes.
+then the best network's return on new episodes. A case may name another environment family
+instead (``playground:CartpoleBalance ARGS...``: MuJoCo Playground).
 
 Each case starts ``eant2 run brax:ENV ARGS...`` in a fresh process (as a user does, with an
 empty compilation cache) and times it from just before the process starts to its exit; then
@@ -79,7 +80,9 @@ def _new_returns(run_dir: Path, episodes: int, seed: int, **options: Any) -> lis
 
 def _case(spec: str, args, deadline: float) -> dict[str, Any]:
     env_name, *extra = shlex.split(spec)
-    row: dict[str, Any] = {"case": spec, "task": f"brax:{env_name}", "seed": args.seed}
+    # "ENV" is a brax environment; "playground:ENV" (any "NAMESPACE:NAME") is run as named.
+    task = env_name if ":" in env_name else f"brax:{env_name}"
+    row: dict[str, Any] = {"case": spec, "task": task, "seed": args.seed}
     with tempfile.TemporaryDirectory() as tmp:
         environ = dict(os.environ, EANT2_CACHE_DIR=str(Path(tmp) / "cache"))
         run_dir = Path(tmp) / "run"
@@ -131,7 +134,8 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
 
 def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--case", action="append", default=None,
-                   help='"ENV ARGS...": brax:ENV and arguments of eant2 run (repeatable; '
+                   help='"ENV ARGS...": brax:ENV (or a task NAMESPACE:NAME, e.g. '
+                   "playground:CartpoleBalance) and arguments of eant2 run (repeatable; "
                    "default: the two cases of the module docstring)")  # fmt: skip
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--episodes", type=int, default=100,

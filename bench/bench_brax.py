@@ -29,6 +29,7 @@ from typing import Any
 
 from bench import harness
 from bench.common import BenchInputError, Column, environment, markdown_table, unseen_key
+from eant2_jax.tasks.brax_task import PRECISIONS  # (brax itself is imported on first use)
 
 # The spring backend: on an H100 (2026-11-23) a generalized-backend inverted_pendulum run
 # did not finish its first generation in 262 s (bench/results/brax-generalized-gpu-h100.md);
@@ -142,8 +143,7 @@ def _options(p: argparse.ArgumentParser) -> None:
                    help="new episodes the best network plays after the run (0: none)")  # fmt: skip
     p.add_argument("--budget-s", type=float, default=600.0,
                    help="wall time for all cases; a case running past it is stopped")  # fmt: skip
-    p.add_argument("--replay-precision", action="append", default=[],
-                   choices=("highest", "high", "default"),
+    p.add_argument("--replay-precision", action="append", default=[], choices=PRECISIONS,
                    help="the best network also plays the same new episodes with the brax "
                    "task's precision set to this (repeatable)")  # fmt: skip
 

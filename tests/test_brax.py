@@ -17,14 +17,13 @@ the plain loop as well, in the slow lane (its compilation takes longer).
 
 from __future__ import annotations
 
-import functools
 import importlib.util
 import json
 
 import jax
 import numpy as np
 import pytest
-from episodes import batch_costs
+from episodes import batch_costs, episode_batch, plain_returns
 
 if importlib.util.find_spec("brax") is None:  # not imported here: the adapter imports it
     pytest.skip("brax is not installed", allow_module_level=True)
@@ -32,8 +31,7 @@ if importlib.util.find_spec("brax") is None:  # not imported here: the adapter i
 import eant2_jax  # noqa: E402
 from eant2_jax import tasks  # noqa: E402
 from eant2_jax.compiler import networks  # noqa: E402
-from eant2_jax.reference import interpret  # noqa: E402
-from eant2_jax.tasks.brax_task import calling_brax, returns  # noqa: E402
+from eant2_jax.tasks.brax_task import returns  # noqa: E402
 
 # inverted_pendulum: inputs cart position, pole angle, cart velocity, pole angular velocity;
 # the one output pushes the cart. Push towards the side the pole leans to (a PD law), with a
@@ -47,42 +45,6 @@ def _nets(task, *genomes):
     return networks([eant2_jax.Genome.parse(g) for g in genomes], task.n_inputs)
 
 
-@functools.cache
-def _jitted(env):
-    return jax.jit(env.reset), jax.jit(env.step)
-
-
-def _plain_returns(task, genome: str, key, episodes: int):
-    """Returns and lengths of episodes played one step at a time in Python: brax's reset
-    and step (jitted alone), the network by the NumPy reference, float64; the network sees
-    every observation so far (its recurrent state is rebuilt from them each step)."""
-    reset, step = _jitted(task.env)
-    g = eant2_jax.Genome.parse(genome)
-    out = []
-    for k in jax.random.split(key, episodes):
-        reset_key, _ = jax.random.split(k)  # as rollout splits an episode's key
-        with calling_brax():
-            state = reset(reset_key)
-        seen, ret, t = [], 0.0, 0
-        while t < task.max_steps:
-            seen.append(np.asarray(state.obs, np.float64))
-            y = interpret(g, np.asarray(seen)[:, None, :], hidden="tanh", output="tanh")[-1, 0]
-            with calling_brax():
-                state = step(state, np.clip(y, -1, 1).astype(np.float32))
-            ret, t = ret + float(state.reward), t + 1
-            if float(state.done) > 0:
-                break
-        out.append((ret, t))
-    return np.asarray(out)
-
-
-@functools.partial(jax.jit, static_argnames=("episodes",))
-def _episodes(task, nets, key, episodes):
-    """``(returns, steps)`` ``[networks, episodes]`` (what `returns` computes, with lengths)."""
-    keys = jax.random.split(key, episodes)
-    return jax.vmap(jax.vmap(task.episode, in_axes=(None, 0)), in_axes=(0, None))(nets, keys)
-
-
 @pytest.mark.parametrize("backend", ["generalized", pytest.param("mjx", marks=pytest.mark.slow)])
 def test_returns_equal_a_plain_loop_over_brax_steps(backend):
     task = tasks.make("brax:inverted_pendulum", backend=backend, max_steps=60, chunk=16)
@@ -90,9 +52,9 @@ def test_returns_equal_a_plain_loop_over_brax_steps(backend):
     key = jax.random.key(3)
     genomes = (BALANCE, NOTHING, SWING)
     nets = _nets(task, *genomes)
-    got, steps = map(np.asarray, _episodes(task, nets, key, 3))
+    got, steps = map(np.asarray, episode_batch(task, nets, key, 3))
     for i, g in enumerate(genomes):
-        plain = _plain_returns(task, g, key, 3)
+        plain = plain_returns(task, g, key, 3)
         # float32 physics in both; the network's float32 vs float64 outputs differ by ~1e-7,
         # which cannot flip a termination this far from the 0.2 rad limit: lengths exact.
         np.testing.assert_array_equal(steps[i], plain[:, 1], err_msg=g)

@@ -10,14 +10,13 @@
 
 from __future__ import annotations
 
-import functools
 import importlib.util
 import json
 
 import jax
 import numpy as np
 import pytest
-from episodes import batch_costs
+from episodes import batch_costs, episode_batch, plain_returns
 
 if importlib.util.find_spec("mujoco_playground") is None:
     pytest.skip("playground is not installed", allow_module_level=True)
@@ -25,8 +24,6 @@ if importlib.util.find_spec("mujoco_playground") is None:
 import eant2_jax  # noqa: E402
 from eant2_jax import tasks  # noqa: E402
 from eant2_jax.compiler import networks  # noqa: E402
-from eant2_jax.reference import interpret  # noqa: E402
-from eant2_jax.tasks.brax_task import calling_brax  # noqa: E402
 from eant2_jax.tasks.episodic import returns  # noqa: E402
 
 # CartpoleBalance: inputs cart position, cos and sin of the pole angle, cart and pole
@@ -35,49 +32,15 @@ PUSH = "N0/5*1 I0*0.5 I2*4 I3*0.5 I4*1 R0*0.1"
 NOTHING = "N0/1*1 I0*0"
 
 
-@functools.cache
-def _jitted(env):
-    return jax.jit(env.reset), jax.jit(env.step)
-
-
-def _plain_returns(task, genome: str, key, episodes: int):
-    """Returns and lengths of episodes played one step at a time in Python: Playground's
-    reset and step (jitted alone), the network by the NumPy reference (float64)."""
-    reset, step = _jitted(task.env)
-    g = eant2_jax.Genome.parse(genome)
-    out = []
-    for k in jax.random.split(key, episodes):
-        reset_key, _ = jax.random.split(k)  # as rollout splits an episode's key
-        with calling_brax():
-            state = reset(reset_key)
-        seen, ret, t = [], 0.0, 0
-        while t < task.max_steps:
-            seen.append(np.asarray(state.obs, np.float64))
-            y = interpret(g, np.asarray(seen)[:, None, :], hidden="tanh", output="tanh")[-1, 0]
-            with calling_brax():
-                state = step(state, np.clip(y, -1, 1).astype(np.float32))
-            ret, t = ret + float(state.reward), t + 1
-            if float(state.done) > 0:
-                break
-        out.append((ret, t))
-    return np.asarray(out)
-
-
-@functools.partial(jax.jit, static_argnames=("episodes",))
-def _episodes(task, nets, key, episodes):
-    keys = jax.random.split(key, episodes)
-    return jax.vmap(jax.vmap(task.episode, in_axes=(None, 0)), in_axes=(0, None))(nets, keys)
-
-
 def test_returns_equal_a_plain_loop_over_playground_steps():
     task = tasks.make("playground:CartpoleBalance", max_steps=40, chunk=16)
     assert (task.n_inputs, task.n_outputs, task.overrides) == (5, 1, (("impl", "jax"),))
     key = jax.random.key(5)
     genomes = (PUSH, NOTHING)
-    got, steps = map(np.asarray, _episodes(task, networks(
+    got, steps = map(np.asarray, episode_batch(task, networks(
         [eant2_jax.Genome.parse(g) for g in genomes], task.n_inputs), key, 2))  # fmt: skip
     for i, g in enumerate(genomes):
-        plain = _plain_returns(task, g, key, 2)
+        plain = plain_returns(task, g, key, 2)
         np.testing.assert_array_equal(steps[i], plain[:, 1], err_msg=g)
         # float32 physics in both; the network's float32 vs float64 outputs differ by ~1e-7.
         np.testing.assert_allclose(got[i], plain[:, 0], rtol=1e-4, err_msg=g)

@@ -379,22 +379,16 @@ def load_runs(dirs: Sequence[str | Path]) -> list[LoadedRun]:
     return runs
 
 
+def _first_within(gens: list[GenerationRecord], cost: float) -> GenerationRecord | None:
+    """The first generation whose best cost came within 1% of ``cost`` (None: none did)."""
+    return next((g for g in gens if g.best_cost <= cost + 0.01 * abs(cost)), None)
+
+
 def _to_target(gens: list[GenerationRecord]) -> tuple[int, int]:
     """Generation and evaluations at which the best cost first came within 1% of its final
     value (i.e. the fitness reached 99% of its final value)."""
-    final = gens[-1].best_cost
-    for g in gens:
-        if g.best_cost <= final + 0.01 * abs(final):
-            return g.generation, g.evaluations
-    return gens[-1].generation, gens[-1].evaluations
-
-
-def _to_cost(gens: list[GenerationRecord], cost: float) -> int | None:
-    """Evaluations at which the best cost first came within 1% of ``cost`` (None: never)."""
-    for g in gens:
-        if g.best_cost <= cost + 0.01 * abs(cost):
-            return g.evaluations
-    return None
+    g = _first_within(gens, gens[-1].best_cost) or gens[-1]
+    return g.generation, g.evaluations
 
 
 def reference_arm(arms: Sequence[str], reference: str | None = None) -> str | None:
@@ -441,8 +435,8 @@ def summarise(runs: list[LoadedRun], *, reference: str | None = None) -> dict[st
         s["evaluations_to_reference"] = s["reached_reference"] = None
         if reference is not None:
             target = -out[reference]["fitness_mean"]
-            hits = [_to_cost(r.generations, target) for r in arms[arm]]
-            reached = [h for h in hits if h is not None]
+            hits = [_first_within(r.generations, target) for r in arms[arm]]
+            reached = [h.evaluations for h in hits if h is not None]
             s["reached_reference"] = len(reached)
             s["evaluations_to_reference"] = float(np.mean(reached)) if reached else None
         if reference is None or arm == reference:

@@ -55,9 +55,10 @@ __all__ = [
     "BACKENDS",
     "PRECISIONS",
     "BraxTask",
+    "PipelineTask",
     "brax",
     "calling_brax",
-    "play_pipeline",
+    "check_precision",
     "returns",
 ]
 
@@ -130,34 +131,32 @@ def _known_params(cls: type) -> list[str]:
     return sorted(names + list(_PIPELINE_OPTIONS))
 
 
-@struct.dataclass
-class BraxTask(EpisodicTask):
-    """A brax environment as a task (module docstring). Build with `brax`.
+def check_precision(where: str, precision: str) -> None:
+    """One clear line unless ``precision`` is one of `PRECISIONS`."""
+    if precision not in PRECISIONS:
+        raise ValueError(
+            f"{where}: precision must be one of {', '.join(PRECISIONS)}, got {precision!r}"
+        )
+
+
+@struct.dataclass(kw_only=True)
+class PipelineTask(EpisodicTask):
+    """The base of the adapters for environments with brax's interface (``env.reset(key)``
+    and ``env.step(state, action)`` returning a state with ``obs``, ``reward`` and ``done``:
+    brax's own, and MuJoCo Playground's). A subclass gives the environment (``env``).
 
     Attributes:
-      env_name: the brax environment name (static).
-      backend: the physics pipeline (static).
-      params: the environment's constructor arguments, as sorted ``(name, value)`` pairs
-        (static).
-      n_inputs, n_outputs: observation size and action size (static).
-      precision: precision of the physics' float32 products, one of `PRECISIONS` (static).
-
-    and `EpisodicTask`'s ``episodes``, ``max_steps``, ``chunk``, ``hidden``, ``output``
-    and ``noisy`` (keyword-only).
+      precision: precision of the physics' float32 products, one of `PRECISIONS` (static,
+        keyword-only).
     """
 
-    env_name: str = struct.field(pytree_node=False)
-    backend: str = struct.field(pytree_node=False)
-    params: tuple[tuple[str, Any], ...] = struct.field(pytree_node=False)
-    n_inputs: int = struct.field(pytree_node=False)
-    n_outputs: int = struct.field(pytree_node=False)
     precision: str = struct.field(pytree_node=False, default="highest")
 
     @property
-    def env(self):
-        return _environment(self.env_name, self.backend, self.params)
+    def env(self) -> Any:
+        raise NotImplementedError
 
-    def inputs(self, obs: jax.Array) -> jax.Array:
+    def inputs(self, obs: Any) -> jax.Array:
         """Network inputs ``[n_inputs]`` of one observation."""
         return jnp.ravel(obs).astype(jnp.float32)
 
@@ -167,31 +166,49 @@ class BraxTask(EpisodicTask):
 
     def episode(self, net: kn.Network, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Return (sum of rewards) and length of ONE episode of ONE network."""
-        return play_pipeline(self, self.env, net, key, self.precision)
+        env = self.env
+        # "default" leaves the choice to JAX (and its caller's own context).
+        exact = contextlib.nullcontext
+        if self.precision != "default":
+            exact = functools.partial(jax.default_matmul_precision, self.precision)
+
+        def reset(key):
+            with calling_brax(), exact():
+                state = env.reset(key)
+            return state.obs, state
+
+        def step(_, state, action):  # the dynamics are deterministic: no key
+            with calling_brax(), exact():
+                state = env.step(state, action)
+            return state.obs, state, state.reward, state.done > 0
+
+        return self.play(net, key, reset, step)
 
 
-def play_pipeline(
-    task: EpisodicTask, env: Any, net: kn.Network, key: jax.Array, precision: str
-) -> tuple[jax.Array, jax.Array]:
-    """`EpisodicTask.play` of an environment with brax's interface (``env.reset(key)`` and
-    ``env.step(state, action)`` returning a state with ``obs``, ``reward`` and ``done``:
-    brax's, and MuJoCo Playground's), its float32 products at ``precision``."""
-    # "default" leaves the choice to JAX (and its caller's own context).
-    exact = contextlib.nullcontext
-    if precision != "default":
-        exact = functools.partial(jax.default_matmul_precision, precision)
+@struct.dataclass
+class BraxTask(PipelineTask):
+    """A brax environment as a task (module docstring). Build with `brax`.
 
-    def reset(key):
-        with calling_brax(), exact():
-            state = env.reset(key)
-        return state.obs, state
+    Attributes:
+      env_name: the brax environment name (static).
+      backend: the physics pipeline (static).
+      params: the environment's constructor arguments, as sorted ``(name, value)`` pairs
+        (static).
+      n_inputs, n_outputs: observation size and action size (static).
 
-    def step(_, state, action):  # the dynamics are deterministic: no key
-        with calling_brax(), exact():
-            state = env.step(state, action)
-        return state.obs, state, state.reward, state.done > 0
+    and `PipelineTask`'s ``precision`` and `EpisodicTask`'s ``episodes``, ``max_steps``,
+    ``chunk``, ``hidden``, ``output`` and ``noisy`` (keyword-only).
+    """
 
-    return task.play(net, key, reset, step)
+    env_name: str = struct.field(pytree_node=False)
+    backend: str = struct.field(pytree_node=False)
+    params: tuple[tuple[str, Any], ...] = struct.field(pytree_node=False)
+    n_inputs: int = struct.field(pytree_node=False)
+    n_outputs: int = struct.field(pytree_node=False)
+
+    @property
+    def env(self):
+        return _environment(self.env_name, self.backend, self.params)
 
 
 def brax(
@@ -239,10 +256,7 @@ def brax(
             f"brax:{name}: unknown params {', '.join(unknown)}; "
             f"known: {', '.join(_known_params(envs._envs[name]))}"
         )
-    if precision not in PRECISIONS:
-        raise ValueError(
-            f"brax:{name}: precision must be one of {', '.join(PRECISIONS)}, got {precision!r}"
-        )
+    check_precision(f"brax:{name}", precision)
     if int(episodes) < 1 or int(chunk) < 1:
         raise ValueError(f"brax:{name}: episodes and chunk must be >= 1")
     if int(max_steps) < 1:

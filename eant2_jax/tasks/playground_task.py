@@ -35,8 +35,7 @@ import jax
 from flax import struct
 
 from ..kernels import network as kn
-from .brax_task import PRECISIONS, _hashable, calling_brax, play_pipeline
-from .episodic import EpisodicTask
+from .brax_task import PipelineTask, _hashable, calling_brax, check_precision
 
 __all__ = ["IMPLS", "PlaygroundTask", "playground"]
 
@@ -65,7 +64,7 @@ def _environment(name: str, overrides: tuple[tuple[str, Any], ...]) -> Any:
 
 
 @struct.dataclass
-class PlaygroundTask(EpisodicTask):
+class PlaygroundTask(PipelineTask):
     """A MuJoCo Playground environment as a task (module docstring). Build with
     `playground`.
 
@@ -75,10 +74,9 @@ class PlaygroundTask(EpisodicTask):
         ``(name, value)`` pairs (static).
       obs_key: the entry of a dictionary observation the network sees (static).
       n_inputs, n_outputs: observation size and action size (static).
-      precision: precision of the physics' float32 products (static; as for brax).
 
-    and `EpisodicTask`'s ``episodes``, ``max_steps``, ``chunk``, ``hidden``, ``output``
-    and ``noisy`` (keyword-only).
+    and `PipelineTask`'s ``precision`` and `EpisodicTask`'s ``episodes``, ``max_steps``,
+    ``chunk``, ``hidden``, ``output`` and ``noisy`` (keyword-only).
     """
 
     env_name: str = struct.field(pytree_node=False)
@@ -86,25 +84,15 @@ class PlaygroundTask(EpisodicTask):
     obs_key: str = struct.field(pytree_node=False)
     n_inputs: int = struct.field(pytree_node=False)
     n_outputs: int = struct.field(pytree_node=False)
-    precision: str = struct.field(pytree_node=False, default="highest")
 
     @property
     def env(self):
         return _environment(self.env_name, self.overrides)
 
     def inputs(self, obs: Any) -> jax.Array:
-        """Network inputs ``[n_inputs]`` of one observation."""
-        if isinstance(obs, dict):
-            obs = obs[self.obs_key]
-        return jax.numpy.ravel(obs).astype(jax.numpy.float32)
-
-    def action(self, y: jax.Array) -> jax.Array:
-        """The environment's action ``[n_outputs]`` (in ``[-1, 1]``) for outputs ``y``."""
-        return jax.numpy.clip(y, -1.0, 1.0)
-
-    def episode(self, net: kn.Network, key: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Return (sum of rewards) and length of ONE episode of ONE network."""
-        return play_pipeline(self, self.env, net, key, self.precision)
+        """Network inputs ``[n_inputs]`` of one observation (its ``obs_key`` entry where
+        it is a dictionary)."""
+        return super().inputs(obs[self.obs_key] if isinstance(obs, dict) else obs)
 
 
 def playground(
@@ -145,11 +133,7 @@ def playground(
         raise ValueError(f"unknown playground environment {name!r}; known: {', '.join(known)}")
     if impl not in IMPLS:
         raise ValueError(f"playground:{name}: impl must be one of {', '.join(IMPLS)}")
-    if precision not in PRECISIONS:
-        raise ValueError(
-            f"playground:{name}: precision must be one of {', '.join(PRECISIONS)}, "
-            f"got {precision!r}"
-        )
+    check_precision(f"playground:{name}", precision)
     if int(episodes) < 1 or int(chunk) < 1:
         raise ValueError(f"playground:{name}: episodes and chunk must be >= 1")
     kn.activation(hidden), kn.activation(output)
@@ -167,9 +151,8 @@ def playground(
     except (TypeError, ValueError, RuntimeError) as e:
         first = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise ValueError(f"playground:{name}: cannot build the environment: {first}") from None
-    steps = int(defaults.get("episode_length", 1000) if max_steps is None else max_steps)
-    if "episode_length" in config and max_steps is None:
-        steps = int(config["episode_length"])
+    length = config.get("episode_length", defaults.get("episode_length", 1000))
+    steps = int(length if max_steps is None else max_steps)
     if steps < 1:
         raise ValueError(f"playground:{name}: max_steps must be >= 1, got {steps}")
     with calling_brax():

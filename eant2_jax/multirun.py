@@ -3,12 +3,19 @@
 One worker thread per device (or several, to overlap one run's host-side work with another's
 device work) takes runs from a queue; each run is pinned to its device with
 ``jax.default_device`` and is exactly the run `eant2_jax.loop.run` would make there.
+
+CPU devices get one worker thread between them: XLA's CPU devices share one thread pool, and
+two programs running at once in it can deadlock (jaxlib's batched LAPACK kernels, the
+engine's ``eigh`` among them, wait inside the pool for work queued behind each other: a
+two-core machine hung in ``jax::ParallelBatchMap`` with ``eant2 reproduce --workers 2`` on
+the servo task). A CPU run already uses every core, so concurrency gains nothing there.
 """
 
 from __future__ import annotations
 
 import queue
 import threading
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -47,7 +54,8 @@ def run_many(
       outs: optional run directory per run (None entries write nothing).
       devices: ``"all"`` (this process's devices), a count, or explicit devices.
       workers_per_device: runs in flight per device (>1 overlaps one run's host-side work
-        with another's device work).
+        with another's device work). CPU devices run one run at a time between them (see
+        the module's docstring); asking for more there warns.
       callback: progress events, with ``run`` (the run's index) added.
       meta: extra ``config.json`` fields for every run directory.
       resume: a run whose directory in ``outs`` exists continues it instead of starting
@@ -87,6 +95,7 @@ def run_many(
                 i = todo.get_nowait()
             except queue.Empty:
                 return
+            here = device if device is not None else chosen[i % len(chosen)]
             cb = None
             if callback is not None:
 
@@ -95,7 +104,7 @@ def run_many(
                         callback({**event, "run": i})
 
             try:
-                with jax.default_device(device):
+                with jax.default_device(here):
                     if resume and outs[i] is not None and Path(outs[i]).exists():
                         results[i] = resume_run(outs[i], task, callback=cb)
                         continue
@@ -113,11 +122,18 @@ def run_many(
 
     if workers_per_device < 1:
         raise ValueError(f"workers_per_device must be >= 1, got {workers_per_device}")
-    threads = [
-        threading.Thread(target=worker, args=(d,), daemon=True)
-        for d in chosen
-        for _ in range(workers_per_device)
-    ]
+    if all(d.platform == "cpu" for d in chosen):
+        if workers_per_device > 1:
+            warnings.warn(
+                f"workers_per_device={workers_per_device} on CPU devices: running one run at "
+                "a time (concurrent programs can deadlock XLA's CPU thread pool)",
+                stacklevel=2,
+            )
+        # One worker (device None: each run goes to chosen[i % len]).
+        slots: list = [None]
+    else:
+        slots = [d for d in chosen for _ in range(workers_per_device)]
+    threads = [threading.Thread(target=worker, args=(d,), daemon=True) for d in slots]
     for t in threads:
         t.start()
     for t in threads:

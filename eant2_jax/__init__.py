@@ -6,8 +6,8 @@ The pipeline, one module per stage: `genome` (the linear genome),
 fast path is tested against), `exploitation` (the batched CMA-ES engine),
 `pruning` (the pruning stage), `tuning` (the host/device
 handover: "tune these genomes on this task"), `exploration` (mutation and
-selection), `loop` (the EANT2 loop), `multirun` (many runs
-over devices), `rundir` (crash-safe run directories), `progress`
+selection), `loop` (the EANT2 loop), `lockstep` (runs tuned together), `multirun`
+(many runs over devices), `rundir` (crash-safe run directories), `progress`
 (a ready progress reporter). The applications
 built on the library (the ``eant2`` command line, the paper's experiments, reports) live
 apart, in `eant2_jax.app`. Kernels other JAX code may import live in
@@ -37,6 +37,7 @@ from . import tasks as tasks
 from .config import enable_compilation_cache as enable_compilation_cache
 from .config import enable_x64 as enable_x64
 from .exploitation import ExploitConfig as ExploitConfig
+from .lockstep import run_lockstep as run_lockstep
 from .loop import EANT2Config as EANT2Config
 from .loop import GenerationRecord as GenerationRecord
 from .loop import Individual as Individual

@@ -49,6 +49,7 @@ from .kernels.network import Layout, Network, buffer_size, network
 __all__ = [
     "Bucket",
     "CompiledBatch",
+    "batch_rows",
     "bucket_for",
     "bucket_size",
     "compile_genomes",
@@ -74,6 +75,15 @@ def bucket_size(n: int, floor: int = 1) -> int:
             return p + p // 2
         p *= 2
     return p
+
+
+def batch_rows(
+    count: int, *, min_rows: int = 1, pad_count: bool = True, multiple_of: int = 1
+) -> int:
+    """Rows of the batch `compile_genomes` makes of ``count`` genomes (same options)."""
+    rows = max(count, min_rows)
+    rows = bucket_size(rows, BATCH_FLOOR) if pad_count else rows
+    return -(-rows // multiple_of) * multiple_of
 
 
 @struct.dataclass
@@ -204,9 +214,7 @@ def compile_genomes(
             f"int32 slot table holds ({MAX_BUFFER:,}; about 24,576 neurons with few inputs)"
         )
     count = len(genomes)
-    rows = max(count, min_rows)
-    rows = bucket_size(rows, BATCH_FLOOR) if pad_count else rows
-    rows = -(-rows // multiple_of) * multiple_of
+    rows = batch_rows(count, min_rows=min_rows, pad_count=pad_count, multiple_of=multiple_of)
     trash = buffer_size(h, n_inputs, n_out) - 1
     slot = np.full((rows, p), trash, dtype=np.int32)
     gene_mask = np.zeros((rows, p), dtype=bool)

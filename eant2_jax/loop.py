@@ -383,6 +383,114 @@ def grow_bucket(genomes: Sequence[Genome], current: Bucket | None) -> Bucket:
     )
 
 
+class _Brood(NamedTuple):
+    """A generation up to its tuning (`_breed`): what it tunes and what it keeps aside."""
+
+    gen: int
+    parents: list[Individual]  # kept untuned into selection
+    new: list[Individual]  # to tune
+    next_id: int
+    evaluations: int  # of the run before this generation
+    starts: list[Search | None] | None  # warm starts of ``new`` (inherit_search)
+    exp_key: jax.Array
+    t0: float
+    compiled: compilestats.CompileStats
+
+
+class _Tuned(NamedTuple):
+    """The part of a `tuning.tune` result that belongs to one run's brood."""
+
+    genomes: list[Genome]
+    costs: list[float]
+    evaluations: list[int]
+    pruning: list[PruneAttempt]
+    searches: list[Search | None] | None
+    solution: int | None
+
+
+def _breed(task: Task, state: RunState | None, key: jax.Array, config: EANT2Config) -> _Brood:
+    """A generation's start: the initial structures (generation 0), else the parents'
+    offspring (and the parents themselves with ``reexploit``)."""
+    t0 = time.perf_counter()
+    compiled = compilestats.snapshot()
+    gen = 0 if state is None else state.generation + 1
+    gkey = jax.random.fold_in(key, gen)
+    mut_key, exp_key = jax.random.split(gkey)
+    starts: list[Search | None] | None = None  # warm starts (inherit_search)
+    if state is None:
+        genomes, next_id = _initialise(task, mut_key, config)
+        return _Brood(
+            gen, [], [Individual(g, float("inf")) for g in genomes], next_id, 0, None,
+            exp_key, t0, compiled,
+        )  # fmt: skip
+    rng = np.random.default_rng(_key_data(mut_key))
+    parents = list(state.population)
+    new, next_id, made_from = _explore(rng, parents, task, state.next_id, config)
+    if config.inherit_search:
+        sigma0 = config.exploit.sigma0
+        starts = [
+            None if p.search is None else inherited(p.genome, p.search, c.genome, sigma0)
+            for c, p in zip(new, made_from, strict=True)
+        ]
+    if config.reexploit:
+        new = parents + new
+        if starts is not None:  # their own C and sigma go on
+            starts = [p.search for p in parents] + starts
+        parents = []
+    return _Brood(gen, parents, new, next_id, state.evaluations, starts, exp_key, t0, compiled)
+
+
+def _rows(config: EANT2Config) -> int:
+    """Rows of every generation's batch of one run: one program per bucket."""
+    return (config.offspring or config.population) + (config.population if config.reexploit else 0)
+
+
+def _conclude(
+    state: RunState | None,
+    key: jax.Array,
+    config: EANT2Config,
+    brood: _Brood,
+    res: _Tuned | None,
+    bucket: Bucket | None,
+) -> tuple[RunState, GenerationRecord, list[PruneAttempt], Individual | None]:
+    """A generation's end: the tuned brood into selection, the new state and its record."""
+    new = brood.new
+    if res is not None:
+        searches = res.searches or [None] * len(new)
+        new = [
+            Individual(g, c, ind.origin, w)
+            for g, c, ind, w in zip(res.genomes, res.costs, new, searches, strict=True)
+        ]
+        solution = None if res.solution is None else new[res.solution]
+        evals = sum(res.evaluations)
+        prune = [dataclasses.replace(r, generation=brood.gen) for r in res.pruning]
+    else:
+        evals, prune, solution = 0, [], None
+    pool = brood.parents + new
+    keep = select(
+        [ind.genome for ind in pool],
+        [ind.cost for ind in pool],
+        config.population,
+        similar_limit=config.similar_limit,
+        prefer_smaller=config.prefer_smaller,
+        size_tolerance=config.size_tolerance,
+        size_atol=config.size_atol,
+    )
+    dt = time.perf_counter() - brood.t0
+    state = RunState(
+        generation=brood.gen,
+        population=tuple(pool[i] for i in keep),
+        next_id=brood.next_id,
+        evaluations=brood.evaluations + evals,
+        key=_key_data(key) if state is None else state.key,
+        wall_s=(0.0 if state is None else state.wall_s) + dt,
+        bucket=None if bucket is None else (bucket.neurons, bucket.genes, bucket.sweeps),
+    )
+    compiled = compilestats.snapshot() - brood.compiled
+    record = _generation_record(state, len(new), prune, dt, compiled)
+    return state, record, prune, solution
+
+
 def _generation(
     task: Task,
     state: RunState | None,
@@ -396,11 +504,8 @@ def _generation(
     """One generation (generation 0 initialises); returns the new state, its records, the
     bucket it compiled into (`grow_bucket` of ``bucket``) and the new structure whose best
     network passed ``solution_test`` (None if none did)."""
-    t0 = time.perf_counter()
-    compiled = compilestats.snapshot()
-    gen = 0 if state is None else state.generation + 1
-    gkey = jax.random.fold_in(key, gen)
-    mut_key, exp_key = jax.random.split(gkey)
+    brood = _breed(task, state, key, config)
+    gen = brood.gen
 
     def progress(info):
         if callback is not None:
@@ -410,77 +515,27 @@ def _generation(
         if callback is not None:
             callback({"event": "compiling", "generation": gen, **info})
 
-    starts: list[Search | None] | None = None  # warm starts (inherit_search)
-    if state is None:
-        genomes, next_id = _initialise(task, mut_key, config)
-        parents: list[Individual] = []
-        new = [Individual(g, float("inf")) for g in genomes]
-        evaluations = 0
-    else:
-        rng = np.random.default_rng(_key_data(mut_key))
-        parents = list(state.population)
-        new, next_id, made_from = _explore(rng, parents, task, state.next_id, config)
-        evaluations = state.evaluations
-        if config.inherit_search:
-            sigma0 = config.exploit.sigma0
-            starts = [
-                None if p.search is None else inherited(p.genome, p.search, c.genome, sigma0)
-                for c, p in zip(new, made_from, strict=True)
-            ]
-        if config.reexploit:
-            new = parents + new
-            if starts is not None:  # their own C and sigma go on
-                starts = [p.search for p in parents] + starts
-            parents = []
-    if new:
-        bucket = grow_bucket([ind.genome for ind in new], bucket)
+    part = None
+    if brood.new:
+        bucket = grow_bucket([ind.genome for ind in brood.new], bucket)
         res = tune(
-            [ind.genome for ind in new],
+            [ind.genome for ind in brood.new],
             task,
-            key=exp_key,
+            key=brood.exp_key,
             config=config.exploit,
             bucket=bucket,
             on_chunk=progress,
             on_compile=compiling,
             mesh=mesh,
-            # Every generation's batch gets the same number of rows: one program per bucket.
-            min_rows=(config.offspring or config.population)
-            + (config.population if config.reexploit else 0),
+            min_rows=_rows(config),
             solution_test=solution_test,
-            start=starts,
+            start=brood.starts,
             keep_search=config.inherit_search,
         )
-        searches = res.searches or [None] * len(new)
-        new = [
-            Individual(g, c, ind.origin, w)
-            for g, c, ind, w in zip(res.genomes, res.costs, new, searches, strict=True)
-        ]
-        solution = None if res.solution is None else new[res.solution]
-        evals = sum(res.evaluations)
-        prune = [dataclasses.replace(r, generation=gen) for r in res.pruning]
-    else:
-        evals, prune, solution = 0, [], None
-    pool = parents + new
-    keep = select(
-        [ind.genome for ind in pool],
-        [ind.cost for ind in pool],
-        config.population,
-        similar_limit=config.similar_limit,
-        prefer_smaller=config.prefer_smaller,
-        size_tolerance=config.size_tolerance,
-        size_atol=config.size_atol,
-    )
-    dt = time.perf_counter() - t0
-    state = RunState(
-        generation=gen,
-        population=tuple(pool[i] for i in keep),
-        next_id=next_id,
-        evaluations=evaluations + evals,
-        key=_key_data(key) if state is None else state.key,
-        wall_s=(0.0 if state is None else state.wall_s) + dt,
-        bucket=None if bucket is None else (bucket.neurons, bucket.genes, bucket.sweeps),
-    )
-    record = _generation_record(state, len(new), prune, dt, compilestats.snapshot() - compiled)
+        part = _Tuned(
+            res.genomes, res.costs, res.evaluations, res.pruning, res.searches, res.solution
+        )
+    state, record, prune, solution = _conclude(state, key, config, brood, part, bucket)
     return state, record, prune, bucket, solution
 
 

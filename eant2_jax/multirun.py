@@ -21,6 +21,7 @@ from pathlib import Path
 
 import jax
 
+from .lockstep import run_lockstep
 from .loop import EANT2Config, RunResult, run
 from .loop import resume as resume_run
 from .tasks.base import Task
@@ -40,6 +41,7 @@ def run_many(
     callback: Callable[[dict], None] | None = None,
     meta: dict | None = None,
     resume: bool = False,
+    lockstep: bool = False,
 ) -> list[RunResult]:
     """Independent runs (seeds, or arms with different configs) spread over devices.
 
@@ -61,6 +63,11 @@ def run_many(
       resume: a run whose directory in ``outs`` exists continues it instead of starting
         (`eant2_jax.loop.resume`: a finished run is read back, a stopped one goes on from
         its last complete generation).
+      lockstep: runs of equal configs go in lock-step (`eant2_jax.run_lockstep`: each
+        generation of all of them tuned in one batch), split into one group per device;
+        the groups are what the workers take. Much faster on a GPU, where a generation is
+        latency-bound; a run then shares its padding bucket with its group (see
+        `eant2_jax.lockstep`). ``exploit``/``compiling`` events carry ``runs``.
 
     Returns:
       The results, in the order of ``keys``.
@@ -82,29 +89,62 @@ def run_many(
         chosen = local[:devices]
     else:
         chosen = list(devices)
+    jobs = [[i] for i in range(len(keys))]
+    if lockstep:
+        by_config: dict = {}
+        for i, c in enumerate(configs):
+            by_config.setdefault(c, []).append(i)
+        parts = 1 if chosen[0].platform == "cpu" else len(chosen)
+        jobs = [g[k::parts] for g in by_config.values() for k in range(parts) if g[k::parts]]
     todo: queue.Queue = queue.Queue()
-    for i in range(len(keys)):
-        todo.put(i)
+    for job in jobs:
+        todo.put(job)
     results: list[RunResult | None] = [None] * len(keys)
     errors: list[BaseException] = []
     lock = threading.Lock()
 
+    def relay(job):
+        if callback is None:
+            return None
+
+        def cb(event):
+            event = dict(event)
+            if "run" in event:
+                event["run"] = job[event["run"]] if lockstep else job[0]
+            else:
+                event["run"] = job[0]
+            if "runs" in event:
+                event["runs"] = [job[r] for r in event["runs"]]
+            with lock:
+                callback(event)
+
+        return cb
+
     def worker(device):
         while not errors:
             try:
-                i = todo.get_nowait()
+                job = todo.get_nowait()
             except queue.Empty:
                 return
-            here = device if device is not None else chosen[i % len(chosen)]
-            cb = None
-            if callback is not None:
-
-                def cb(event, i=i):
-                    with lock:
-                        callback({**event, "run": i})
-
+            here = device if device is not None else chosen[job[0] % len(chosen)]
+            cb = relay(job)
             try:
                 with jax.default_device(here):
+                    if lockstep:
+                        group = run_lockstep(
+                            task,
+                            [keys[i] for i in job],
+                            config=configs[job[0]],
+                            generations=generations,
+                            outs=[outs[i] for i in job],
+                            callback=cb,
+                            meta=meta,
+                            resume=resume,
+                        )
+                        for i, r in zip(job, group, strict=True):
+                            results[i] = r
+                        continue
+                    i = job[0]
                     if resume and outs[i] is not None and Path(outs[i]).exists():
                         results[i] = resume_run(outs[i], task, callback=cb)
                         continue

@@ -39,9 +39,10 @@ def _records(run_dir):
 
 
 @pytest.mark.slow
-def test_a_killed_reproduction_resumes_to_the_uninterrupted_result(tmp_path, capsys):
+@pytest.mark.parametrize("lockstep", [True, False])
+def test_a_killed_reproduction_resumes_to_the_uninterrupted_result(tmp_path, capsys, lockstep):
     task = tasks.make("xor")
-    reproduce(task, tmp_path / "whole", **SETTINGS)
+    reproduce(task, tmp_path / "whole", lockstep=lockstep, **SETTINGS)
     # The condition experiment's float64 mode ended with it: the next reproduction's runs
     # are the float32 runs of the first (compared below).
     assert not jax.config.jax_enable_x64
@@ -51,10 +52,13 @@ def test_a_killed_reproduction_resumes_to_the_uninterrupted_result(tmp_path, cap
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        reproduce(task, tmp_path / "cut", callback=kill, **SETTINGS)
+        reproduce(task, tmp_path / "cut", callback=kill, lockstep=lockstep, **SETTINGS)
     cut = tmp_path / "cut"
     assert (cut / MANIFEST).is_file() and not (cut / "report").exists()
-    assert not (cut / "none-s1").exists()  # never started
+    if lockstep:  # the arm's second run went with the first, and had not committed gen 1
+        assert len((cut / "none-s1" / "generations.jsonl").read_text().splitlines()) == 1
+    else:
+        assert not (cut / "none-s1").exists()  # never started
     # The command line finishes it (the task is rebuilt from the manifest).
     assert main(["resume", str(cut)]) == 0
     assert "report:" in capsys.readouterr().out

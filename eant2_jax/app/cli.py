@@ -345,6 +345,7 @@ def _reproduce(args: argparse.Namespace) -> int:
         config=config,
         seed=args.seed,
         workers_per_device=args.workers,
+        lockstep=args.lockstep,
         condition=not args.no_condition,
         condition_iters=args.condition_iters,
         condition_inits=args.condition_inits,
@@ -559,7 +560,19 @@ def _parser() -> argparse.ArgumentParser:
     )
     rep.add_argument("--task", default="servo", help="task (default: servo, the paper's)")
     rep.add_argument("--seed", type=_seed, default=0, help="first seed, in [0, 2**32)")
-    rep.add_argument("--workers", type=_positive, default=1, help="concurrent runs per device")
+    rep.add_argument(
+        "--workers",
+        type=_positive,
+        default=1,
+        help="concurrent runs (with --no-lockstep) or lock-step groups per device (default 1)",
+    )
+    rep.add_argument(
+        "--lockstep",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="tune each generation of an arm's runs in one batch (default; several times "
+        "faster on a GPU); --no-lockstep runs each alone",
+    )
     rep.add_argument(
         "--condition-iters",
         type=_positive,

@@ -243,6 +243,7 @@ def reproduce(
     seed: int = 0,
     devices: int | str = "all",
     workers_per_device: int = 1,
+    lockstep: bool = True,
     condition: bool = True,
     condition_iters: int = 10_000,
     condition_inits: int = 5,
@@ -269,6 +270,10 @@ def reproduce(
       devices: devices to spread the runs over (see `eant2_jax.run_many`).
       workers_per_device: concurrent runs per device (overlaps one run's host work with
         another's device work).
+      lockstep: an arm's runs go in lock-step, each generation of all of them tuned in one
+        batch (`eant2_jax.run_lockstep`; one group per device); False: each run alone, in
+        ``workers_per_device`` threads per device. On a GPU lock-step is several times
+        faster (docs/reproduce.md); a run then shares its padding bucket with its arm.
       condition: also run the V.A condition experiment.
       condition_iters: CMA-ES budget of each run of that experiment from random weights.
       condition_inits: random initialisations of each network in it.
@@ -301,6 +306,7 @@ def reproduce(
             "seed": seed,
             "devices": devices,
             "workers_per_device": workers_per_device,
+            "lockstep": lockstep,
             "condition": condition,
             "condition_iters": condition_iters,
             "condition_inits": condition_inits,
@@ -332,6 +338,7 @@ def reproduce(
             else (lambda e, idx=idx: progress({**e, "run": idx[e["run"]]})),
             meta={**task_meta, "arm": arm},
             resume=_resume,
+            lockstep=lockstep,
         )
     wall = time.perf_counter() - t0
     extra: dict = {"wall_s": wall, "device": jax.devices()[0].device_kind}
@@ -412,6 +419,8 @@ def resume_reproduction(out: str | Path, *, callback: Callable[[dict], None] | N
         config=EANT2Config.from_dict(m["config"], complete=True),
         callback=callback,
         _resume=True,
+        # Reproductions written before lock-step existed ran each run alone.
+        lockstep=bool(m.get("lockstep", False)),
         **{k: m[k] for k in keys if k not in ("task_meta", "config")},
     )
 

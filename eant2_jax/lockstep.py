@@ -1,0 +1,275 @@
+"""Independent EANT2 runs in lock-step: every generation of every run tuned in ONE batch.
+
+A servo generation is latency-bound on a GPU: one engine iteration of 20 structures costs
+about the same as one of 200 (docs/benchmarks.md). Runs side by side in threads
+(`eant2_jax.run_many`'s workers) do not overlap there, because one device runs one program
+at a time, so ten runs cost ten times one. In lock-step the runs' new structures of a
+generation go into one `eant2_jax.tuning.tune` call instead, and ten runs cost little more
+than one.
+
+Each run keeps its own key, state, records and run directory; only the tuning is shared.
+A structure's CMA-ES starts from the key it would get in the run alone and draws its own
+random numbers (per-row keys, `eant2_jax.exploitation`), so on a task that is not noisy a
+run in lock-step is the run `eant2_jax.run` makes alone with the same padding bucket, up to
+the float rounding of wider padded sums (tests/test_lockstep.py). The bucket is the group's
+(it grows with the largest structure of any run), and the default CMA-ES popsize follows it
+(`eant2_jax.tuning.popsize_for`), so a run in a group can differ from the same key run
+alone. On a noisy task the episodes of an iteration are shared by the
+whole batch, so a run's result also depends on the group it ran in.
+
+A killed group resumes exactly (on a task that is not noisy): the group's bucket is the
+largest its members' checkpoints hold, and runs a generation behind the others (killed
+between two commits) catch up first.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+from . import distributed
+from .compiler import Bucket, batch_rows
+from .config import EANT2Config
+from .loop import (
+    RunResult,
+    RunState,
+    _best_text,
+    _breed,
+    _conclude,
+    _holds_best,
+    _key_data,
+    _key_from_data,
+    _rows,
+    _Tuned,
+    _validate,
+    grow_bucket,
+)
+from .rundir import RunDir
+from .tasks import check_task, spec_of
+from .tasks.base import Task
+from .tuning import tune
+
+__all__ = ["run_lockstep"]
+
+
+class _Member:
+    """One run of the group: its key, state, records and directory."""
+
+    def __init__(self, index, key, total, rundir, meta, state=None, records=(), pruning=()):
+        self.index, self.key, self.total, self.rundir, self.meta = index, key, total, rundir, meta
+        self.state: RunState | None = state
+        self.records, self.pruning = list(records), list(pruning)
+
+    def done(self, config: EANT2Config) -> bool:
+        st = self.state
+        if st is None:
+            return False
+        return (
+            st.generation >= self.total
+            or (config.target_cost is not None and st.best().cost <= config.target_cost)
+            or (config.max_evaluations is not None and st.evaluations >= config.max_evaluations)
+        )
+
+
+def run_lockstep(
+    task: Task,
+    keys: Sequence[jax.Array],
+    *,
+    config: EANT2Config | None = None,
+    generations: int,
+    outs: Sequence[str | None] | None = None,
+    callback: Callable[[dict], None] | None = None,
+    meta: dict | None = None,
+    resume: bool = False,
+    devices: int | str | Sequence[jax.Device] | None = None,
+) -> list[RunResult]:
+    """Independent runs of one configuration, tuned together generation by generation.
+
+    Args:
+      task: the task, shared by all runs.
+      keys: one PRNG key per run.
+      config: the configuration of every run (its ``devices`` must be None: pass
+        ``devices``).
+      generations: as for `eant2_jax.run`.
+      outs: optional run directory per run (None entries write nothing); each is an
+        ordinary run directory (`eant2_jax.resume` continues one alone).
+      callback: progress events, with ``run`` (the run's index in ``keys``) added;
+        ``exploit`` and ``compiling`` events are the group's and carry ``runs`` (the indices
+        of the runs in the batch) instead.
+      meta: extra ``config.json`` fields for every run directory.
+      resume: a run whose directory in ``outs`` exists continues it (a finished run is read
+        back, a stopped one goes on from its last complete generation); its configuration
+        must be ``config``.
+      devices: split each batch over these devices (`eant2_jax.distributed.make_mesh`);
+        None: JAX's default device.
+
+    Returns:
+      One `eant2_jax.RunResult` per key, in order. A run solved by a ``solution_test`` is
+      not supported here (it halts the whole batch): use `eant2_jax.run`.
+    """
+    config = EANT2Config() if config is None else config
+    keys = list(keys)
+    outs = [None] * len(keys) if outs is None else list(outs)
+    if len(outs) != len(keys):
+        raise ValueError(f"run_lockstep: {len(keys)} keys but {len(outs)} outs")
+    if not keys:
+        raise ValueError("run_lockstep: no keys")
+    if generations < 0:
+        raise ValueError(f"generations must be >= 0, got {generations}")
+    if config.devices is not None:
+        raise ValueError("run_lockstep places its batches itself: leave config.devices None")
+    check_task(task)
+    spec = spec_of(task) or {"task_type": f"{type(task).__module__}.{type(task).__qualname__}"}
+    base_meta = {**spec, **(meta or {})}
+    mesh = distributed.make_mesh(devices)
+    with contextlib.ExitStack() as stack:
+        members = []
+        for i, (key, out) in enumerate(zip(keys, outs, strict=True)):
+            key = _key_from_data(_key_data(key))
+            if out is None:
+                members.append(_Member(i, key, generations, None, base_meta))
+            elif resume and Path(out).exists():
+                members.append(_reopen(stack, i, out, task, config))
+            else:
+                rundir = stack.enter_context(
+                    RunDir.create(
+                        out,
+                        {
+                            **base_meta,
+                            "generations": generations,
+                            "key": list(_key_data(key)),
+                            "config": config.to_dict(),
+                        },
+                    )
+                )
+                members.append(_Member(i, key, generations, rundir, base_meta))
+        _loop(task, members, config, callback, mesh)
+    return [
+        RunResult(list(m.state.population), m.state.best().genome, m.records, m.pruning, None)
+        for m in members
+    ]
+
+
+def _reopen(stack, index, out, task, config) -> _Member:
+    """A run directory to go on with, checked and rewound as `eant2_jax.resume` does."""
+    rundir = stack.enter_context(RunDir.open(out))
+    committed = rundir.read()
+    v = _validate(rundir, committed, task)
+    if v.config != config:
+        raise ValueError(f"{out}: its configuration is not the group's; resume it alone")
+    best = None
+    if v.state is not None and not _holds_best(committed.best, v.state):
+        best = _best_text(v.state, task, committed.config)
+    rundir.rewind(v.committed.offsets, best)
+    return _Member(
+        index, v.key, v.generations, rundir, committed.config, v.state, v.records, v.pruning
+    )
+
+
+def _group_bucket(members: Sequence[_Member]) -> Bucket | None:
+    """The largest bucket the members' checkpoints hold (a group shares one)."""
+    held = [m.state.bucket for m in members if m.state is not None and m.state.bucket]
+    if not held:
+        return None
+    return Bucket(*(max(b[i] for b in held) for i in range(3)))
+
+
+def _loop(task, members, config, callback, mesh) -> None:
+    bucket = _group_bucket(members)
+    while True:
+        active = [m for m in members if not m.done(config)]
+        if not active:
+            return
+        # Runs a generation behind (a kill between two commits) go first, alone.
+        lowest = min(-1 if m.state is None else m.state.generation for m in active)
+        group = [m for m in active if (-1 if m.state is None else m.state.generation) == lowest]
+        broods = [_breed(task, m.state, m.key, config) for m in group]
+        parts: list[_Tuned | None] = [None] * len(group)
+        genomes = [ind.genome for b in broods for ind in b.new]
+        if genomes:
+            bucket = grow_bucket(genomes, bucket)
+            parts = _tune_together(task, group, broods, config, bucket, callback, mesh)
+        for m, brood, part in zip(group, broods, parts, strict=True):
+            m.state, record, prune, _ = _conclude(m.state, m.key, config, brood, part, bucket)
+            m.records.append(record)
+            m.pruning.extend(prune)
+            if m.rundir is not None:
+                m.rundir.commit(
+                    [record.to_json()],
+                    [r.to_json() for r in prune],
+                    _best_text(m.state, task, m.meta),
+                    m.state.to_json(),
+                )
+            if callback is not None:
+                callback({"event": "generation", "run": m.index, **record.to_json()})
+
+
+def _tune_together(task, group, broods, config, bucket, callback, mesh) -> list[_Tuned | None]:
+    """One `tune` of every brood's new structures; each brood's part of the result."""
+    runs = [m.index for m in group]
+    gen = max(b.gen for b in broods)
+
+    def progress(info):
+        if callback is not None:
+            callback({"event": "exploit", "generation": gen, "runs": runs, **info})
+
+    def compiling(info):
+        if callback is not None:
+            callback({"event": "compiling", "generation": gen, "runs": runs, **info})
+
+    genomes = [ind.genome for b in broods for ind in b.new]
+    starts = None
+    if any(b.starts is not None for b in broods):
+        starts = [s for b in broods for s in (b.starts or [None] * len(b.new))]
+    min_rows = _rows(config) * len(group)
+    rows = batch_rows(len(genomes), min_rows=min_rows, multiple_of=distributed.size(mesh))
+    # Row j of a brood starts from the key it gets in its run alone (`tuning.tune`: row j
+    # of a batch tuned with key k starts from fold_in(split(k)[0], j)); padding rows from
+    # the last brood's key, past its rows.
+    row_keys = []
+    for b in broods:
+        init_key = jax.random.split(b.exp_key)[0]
+        row_keys += [jax.random.fold_in(init_key, j) for j in range(len(b.new))]
+    last = jax.random.split(broods[-1].exp_key)[0]
+    row_keys += [
+        jax.random.fold_in(last, len(broods[-1].new) + j) for j in range(rows - len(row_keys))
+    ]
+    res = tune(
+        genomes,
+        task,
+        key=broods[0].exp_key,
+        keys=jnp.stack(row_keys),
+        config=config.exploit,
+        bucket=bucket,
+        min_rows=min_rows,
+        on_chunk=progress,
+        on_compile=compiling,
+        mesh=mesh,
+        start=starts,
+        keep_search=config.inherit_search,
+    )
+    parts: list[_Tuned | None] = []
+    lo = 0
+    for b in broods:
+        hi = lo + len(b.new)
+        if hi == lo:
+            parts.append(None)
+            continue
+        pruning = [r for r in res.pruning if lo <= r.structure < hi]
+        parts.append(
+            _Tuned(
+                res.genomes[lo:hi],
+                res.costs[lo:hi],
+                res.evaluations[lo:hi],
+                [dataclasses.replace(r, structure=r.structure - lo) for r in pruning],
+                None if res.searches is None else res.searches[lo:hi],
+                None,
+            )
+        )
+        lo = hi
+    return parts

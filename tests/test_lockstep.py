@@ -1,0 +1,102 @@
+"""Runs in lock-step (`eant2_jax.run_lockstep`): the runs alone, their directories, resume."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+import eant2_jax as E
+from eant2_jax.lockstep import run_lockstep
+
+
+def _task():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(32, 2))
+    y = np.tanh(x @ np.array([[0.5], [-1.0]])) + 0.3 * np.tanh(x[:, :1] * x[:, 1:])
+    return E.tasks.regression(x, y, hidden="tanh", output="tanh")
+
+
+def _config(**exploit):
+    options = {"max_iters": 30, "pruner": "covariance", "prune_window": 5, **exploit}
+    return E.EANT2Config(population=3, offspring=3, exploit=E.ExploitConfig(**options))
+
+
+def _same(a: E.RunResult, b: E.RunResult):
+    assert [str(i.genome) for i in a.population] == [str(i.genome) for i in b.population]
+    assert [i.cost for i in a.population] == [i.cost for i in b.population]
+    assert [r.evaluations for r in a.generations] == [r.evaluations for r in b.generations]
+    assert [r.to_json() for r in a.pruning] == [r.to_json() for r in b.pruning]
+
+
+def _shape(g: E.Genome) -> str:
+    return str(g.with_weights(np.zeros(g.n_params)))
+
+
+def test_each_run_is_the_run_alone_at_a_fixed_popsize():
+    # With the popsize fixed, the group's shared padding changes only float rounding (wider
+    # sums and eigendecompositions): each structure starts from its solo key and draws its
+    # own numbers, so each run evolves the same networks as alone.
+    task, cfg = _task(), _config(popsize=8)
+    keys = [jax.random.key(s) for s in (3, 4, 5)]
+    group = run_lockstep(task, keys, config=cfg, generations=3)
+    for k, r in zip(keys, group, strict=True):
+        alone = E.run(task, key=k, config=cfg, generations=3)
+        assert [_shape(i.genome) for i in r.population] == [
+            _shape(i.genome) for i in alone.population
+        ]
+        np.testing.assert_allclose(
+            [i.cost for i in r.population], [i.cost for i in alone.population], rtol=1e-3
+        )
+        for a, b in zip(r.population, alone.population, strict=True):
+            np.testing.assert_allclose(a.genome.weights, b.genome.weights, rtol=1e-3, atol=1e-4)
+        assert [x.evaluations for x in r.generations] == [x.evaluations for x in alone.generations]
+    assert len({str(r.best) for r in group}) > 1  # independent runs, not copies
+
+
+def test_a_group_of_one_is_the_run_alone():
+    task, cfg = _task(), _config()  # default popsize: follows the (same) bucket
+    key = jax.random.key(7)
+    (r,) = run_lockstep(task, [key], config=cfg, generations=2)
+    _same(r, E.run(task, key=key, config=cfg, generations=2))
+
+
+class _Kill(Exception):
+    pass
+
+
+def test_a_killed_group_resumes_exactly(tmp_path):
+    task, cfg = _task(), _config()
+    keys = [jax.random.key(s) for s in (1, 2)]
+    whole = run_lockstep(task, keys, config=cfg, generations=3)
+    outs = [str(tmp_path / f"r{i}") for i in range(2)]
+
+    def kill(event):  # run 0 has committed generation 2, run 1 has not
+        if event["event"] == "generation" and event["run"] == 0 and event["generation"] == 2:
+            raise _Kill
+
+    with pytest.raises(_Kill):
+        run_lockstep(task, keys, config=cfg, generations=3, outs=outs, callback=kill)
+    logs = [tmp_path / r / "generations.jsonl" for r in ("r0", "r1")]
+    lines = [len(p.read_text().splitlines()) for p in logs]
+    assert lines == [3, 2]
+    again = run_lockstep(task, keys, config=cfg, generations=3, outs=outs, resume=True)
+    for a, b in zip(whole, again, strict=True):
+        _same(a, b)
+    # Each directory is an ordinary run directory: resume reads a finished one back.
+    alone = E.resume(outs[1], task)
+    _same(alone, whole[1])
+    rec = [json.loads(x) for x in (tmp_path / "r1" / "generations.jsonl").read_text().splitlines()]
+    assert [r["generation"] for r in rec] == [0, 1, 2, 3]
+
+
+def test_bad_input():
+    task, cfg = _task(), _config()
+    with pytest.raises(ValueError, match="no keys"):
+        run_lockstep(task, [], config=cfg, generations=1)
+    with pytest.raises(ValueError, match="outs"):
+        run_lockstep(task, [jax.random.key(0)], config=cfg, generations=1, outs=["a", "b"])
+    with pytest.raises(ValueError, match="config.devices"):
+        run_lockstep(task, [jax.random.key(0)], config=E.EANT2Config(devices=1), generations=1)

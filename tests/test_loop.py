@@ -380,6 +380,13 @@ def test_cli_ctrl_c_exits_130_and_resumes(cli_reference, cli_cache, tmp_path):
     n = min(len(gens), CLI_GENERATIONS + 1)
     assert _without_wall(gens[:n]) == _without_wall(_jsonl(cli_reference, GENERATIONS)[:n])
     assert not list(out.glob(".*.tmp"))
+    # Ctrl-C in `eant2 resume DIR` gives the same hint (it has DIR, not --out).
+    proc = _eant2("resume", str(out), "--generations", "200", cache=cli_cache)
+    _wait_for_lines(out / GENERATIONS, len(gens) + 1, proc)
+    proc.send_signal(signal.SIGINT)
+    rc, _, err = _finish(proc, timeout=120)
+    assert rc == 130, err
+    assert f"eant2 resume {out}" in err and "Traceback" not in err
 
 
 def _run_main(argv: list[str], capsys, monkeypatch) -> tuple[int, list[str], str]:

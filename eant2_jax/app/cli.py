@@ -684,13 +684,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except KeyboardInterrupt:
+        # `eant2 run`/`reproduce` name their directory --out, `eant2 resume` takes DIR.
+        where = getattr(args, "out", None) or getattr(args, "dir", None)
         print(
             "\neant2: interrupted; every completed generation is saved"
-            + (
-                f" (continue with: eant2 resume {args.out or args.dir})"
-                if getattr(args, "out", None) or getattr(args, "dir", None)
-                else ""
-            ),
+            + (f" (continue with: eant2 resume {where})" if where else ""),
             file=sys.stderr,
         )
         return 130

@@ -176,3 +176,31 @@ def test_evaluations_to_the_reference_fitness_match_a_plain_count(tmp_path):
     text = rp.report(dirs, tmp_path / "rep").read_text()
     assert "evaluations to the reference's 99%" in text
     assert f"({summary['covariance']['reached_reference']}/3)" in text
+
+
+def test_upto_reads_every_run_to_one_generation(tmp_path, capsys, monkeypatch):
+    """``eant2 report --upto G``: each run's records and pruning up to generation G, as if
+    it had stopped there; a run that stopped before G is one clear error."""
+    long = [make_run(tmp_path / f"c-{s}", seed=s, generations=6) for s in (0, 1)]
+    short = [make_run(tmp_path / f"n-{s}", pruner="none", seed=s, generations=6, done=4)
+             for s in (0, 1)]  # fmt: skip
+    dirs = long + short
+    cut = rp.summarise([rp._upto(r, 3) for r in rp.load_runs(dirs)])
+    alone = []  # the same runs written only up to generation 3
+    for d in dirs:
+        name = Path(d).name
+        arm = "none" if name.startswith("n") else "covariance"
+        alone.append(make_run(tmp_path / "alone" / name, pruner=arm, seed=int(name[-1]),
+                              generations=6, done=4))  # fmt: skip
+    whole = rp.summarise(rp.load_runs(alone))
+    for arm in ("covariance", "none"):
+        for k in ("fitness_mean", "size_mean", "evaluations_to_99", "p_fitness"):
+            assert cut[arm][k] == whole[arm][k], (arm, k)
+    rc, out, err = _cli(["report", "--upto", "3", *dirs, "--out", "r3"], capsys, monkeypatch,
+                        tmp_path)  # fmt: skip
+    assert rc == 0, err
+    assert "read up to generation 3" in (tmp_path / "r3" / "report.md").read_text()
+    rc, out, err = _cli(["report", "--upto", "5", *dirs, "--out", "r5"], capsys, monkeypatch,
+                        tmp_path)  # fmt: skip
+    assert rc == 2 and "its last generation is 3, before 5" in err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "r5").exists()

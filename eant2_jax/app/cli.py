@@ -226,7 +226,9 @@ def _report(args: argparse.Namespace) -> int:
                     file=sys.stderr,
                 )
     out = Path(args.out) if args.out else Path(args.dirs[0]).parent / "report"
-    path = report(args.dirs, out, allow_mixed=args.allow_mixed, reference=args.reference)
+    path = report(
+        args.dirs, out, allow_mixed=args.allow_mixed, reference=args.reference, upto=args.upto
+    )
     print(f"report: {path}")
     return 0
 
@@ -617,6 +619,14 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         metavar="ARM",
         help="the arm p-values are computed against (default: none, the arm without pruning)",
+    )
+    report.add_argument(
+        "--upto",
+        type=_non_negative,
+        default=None,
+        metavar="GEN",
+        help="read every run only up to this generation (arms at equal generations when "
+        "some runs stopped early)",
     )
     report.set_defaults(func=_report)
 

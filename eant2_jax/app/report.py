@@ -379,6 +379,20 @@ def load_runs(dirs: Sequence[str | Path]) -> list[LoadedRun]:
     return runs
 
 
+def _upto(run: LoadedRun, generation: int) -> LoadedRun:
+    """``run`` read up to ``generation`` (ValueError if it has not reached it)."""
+    if isinstance(generation, bool) or not isinstance(generation, int) or generation < 0:
+        raise ValueError(f"upto must be a generation >= 0, got {generation!r}")
+    last = run.generations[-1].generation
+    if last < generation:
+        raise ValueError(f"{run.dir}: its last generation is {last}, before {generation}")
+    return dataclasses.replace(
+        run,
+        generations=[g for g in run.generations if g.generation <= generation],
+        pruning=[p for p in run.pruning if p.generation is None or p.generation <= generation],
+    )
+
+
 def _first_within(gens: list[GenerationRecord], cost: float) -> GenerationRecord | None:
     """The first generation whose best cost came within 1% of ``cost`` (None: none did)."""
     return next((g for g in gens if g.best_cost <= cost + 0.01 * abs(cost)), None)
@@ -534,6 +548,7 @@ def report(
     condition: dict | None = None,
     allow_mixed: bool = False,
     reference: str | None = None,
+    upto: int | None = None,
 ) -> Path:
     """Write ``report.md`` and its figures for the given run directories.
 
@@ -549,11 +564,15 @@ def report(
       allow_mixed: report runs of different tasks or configurations together (the report
         says how they differ); otherwise they raise `MixedRunsError`.
       reference: the arm p-values are computed against (default ``none`` if present).
+      upto: read every run only up to this generation (arms compared at equal generations
+        when some runs were stopped early); a run that has not reached it is refused.
 
     Returns:
       The path of ``report.md``.
     """
     runs = load_runs(dirs)  # every directory checked before anything is written
+    if upto is not None:
+        runs = [_upto(r, upto) for r in runs]
     plt = _pyplot()
     out = Path(out)
     mixed = check_comparable(runs)
@@ -609,6 +628,8 @@ def report(
             f"**Mixed runs** (reported together on request): they differ in {', '.join(mixed)}. "
             "Each arm's mean covers the generations all its runs reached."
         )
+    if upto is not None:
+        lines.append(f"Every run is read up to generation {upto} (`--upto`).")
     if "device" in extra:
         lines.append(f"Device: {extra['device']}.")
     if "wall_s" in extra:

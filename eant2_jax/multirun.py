@@ -14,6 +14,7 @@ the servo task). A CPU run already uses every core, so concurrency gains nothing
 from __future__ import annotations
 
 import queue
+import signal
 import threading
 import warnings
 from collections.abc import Callable, Sequence
@@ -27,6 +28,9 @@ from .loop import resume as resume_run
 from .tasks.base import Task
 
 __all__ = ["run_many"]
+
+# The worker threads' name prefix (the command line tells a Ctrl-C with runs still going).
+WORKER = "eant2-run-worker"
 
 
 def run_many(
@@ -121,6 +125,8 @@ def run_many(
         return cb
 
     def worker(device):
+        # Ctrl-C goes to the main thread, which is waiting for these (see below).
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         while not errors:
             try:
                 job = todo.get_nowait()
@@ -173,11 +179,22 @@ def run_many(
         slots: list = [None]
     else:
         slots = [d for d in chosen for _ in range(workers_per_device)]
-    threads = [threading.Thread(target=worker, args=(d,), daemon=True) for d in slots]
+    threads = [
+        threading.Thread(target=worker, args=(d,), daemon=True, name=f"{WORKER}-{k}")
+        for k, d in enumerate(slots)
+    ]
     for t in threads:
         t.start()
-    for t in threads:
-        t.join()
+    try:
+        for t in threads:
+            # In short waits: a signal that a jax thread received is only acted on when the
+            # main thread runs Python again (a plain join() kept Ctrl-C waiting for every
+            # run to end).
+            while t.is_alive():
+                t.join(0.25)
+    except KeyboardInterrupt:
+        errors.append(KeyboardInterrupt())  # no worker starts another run
+        raise
     if errors:
         raise errors[0]
     return results

@@ -90,3 +90,36 @@ def test_what_is_not_a_reproduction_is_one_clear_error(tmp_path, capsys):
     assert main(["resume", str(bad), "--generations", "3"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--generations does not apply" in err[0], err
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_a_reproduction_at_once(tmp_path):
+    """Ctrl-C reaches the main thread while worker threads run (a plain join kept it
+    waiting for every run to end), and the command exits 130 with the resume hint."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "rp"
+    code = (
+        "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+        "sys.argv[0] = 'eant2'; runpy.run_module('eant2_jax.app.cli', run_name='__main__')"
+    )
+    argv = ["reproduce", "--task", "xor", "--runs", "2", "--generations", "500",
+            "--population", "6", "--no-condition", "--out", str(out)]  # fmt: skip
+    env = {**os.environ, "EANT2_CACHE_DIR": "", "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-c", code, *argv], env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+    log = out / "covariance-s0" / "generations.jsonl"
+    deadline = time.monotonic() + 240
+    while not (log.is_file() and len(log.read_text().splitlines()) >= 2):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)  # 500 generations would take far longer
+    assert proc.returncode == 130, err
+    assert f"eant2 resume {out}" in err
+    assert "Traceback" not in err and "terminate" not in err
+    assert len(log.read_text().splitlines()) < 100

@@ -707,5 +707,28 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
+def entry() -> None:
+    """The ``eant2`` command: `main`, then the exit.
+
+    After a Ctrl-C, runs of `eant2_jax.run_many` may still be inside a compiled program in
+    their worker threads; letting the interpreter tear down under them aborted the process
+    ("terminate called ... FATAL: exception not rethrown", exit 134, on a GPU and on this
+    CPU). Every completed generation is already on disk (each commit is atomic), so the
+    process ends at once, as a kill would end it. (A worker counts while it is listed: a
+    join interrupted by Ctrl-C can leave `Thread.is_alive` False for a thread still running.)
+    """
+    import os
+    import threading
+
+    from eant2_jax.multirun import WORKER
+
+    rc = main()
+    if rc == 130 and any(t.name.startswith(WORKER) for t in threading.enumerate()):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
+    sys.exit(rc)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    entry()

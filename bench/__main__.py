@@ -11,6 +11,7 @@ fuzz_rundir (corrupted run directories and genome texts, issue 16).
 brax (``eant2 run brax:ENV`` and ``eant2 resume`` from process start, the best network's
 return on new episodes).
 field (eant2_jax against TensorNEAT on gymnax and brax environments, issue 18).
+runs (many runs of one configuration on one device: lock-step, threads, one at a time).
 Each writes JSON (device, versions, config, compile time apart from steady state) and a
 markdown table, and never over an existing result file unless ``--force`` is given;
 ``--help`` after the suite name lists its options.
@@ -37,6 +38,7 @@ SUITES = {
     "fuzz_rundir": "bench.bench_fuzz_rundir",
     "brax": "bench.bench_brax",
     "field": "bench.bench_field",
+    "runs": "bench.bench_runs",
 }
 
 

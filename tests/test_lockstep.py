@@ -100,3 +100,41 @@ def test_bad_input():
         run_lockstep(task, [jax.random.key(0)], config=cfg, generations=1, outs=["a", "b"])
     with pytest.raises(ValueError, match="config.devices"):
         run_lockstep(task, [jax.random.key(0)], config=E.EANT2Config(devices=1), generations=1)
+
+
+def test_warm_starts_and_reexploited_parents_go_to_their_own_runs():
+    # inherit_search + reexploit: each brood's warm starts and kept searches are sliced
+    # back to its own run (a slip would hand one run's covariance to another's structure).
+    task = _task()
+    cfg = E.EANT2Config(
+        population=3, offspring=3, inherit_search=True, reexploit=True,
+        exploit=E.ExploitConfig(max_iters=30, pruner="covariance", prune_window=5, popsize=8),
+    )  # fmt: skip
+    keys = [jax.random.key(s) for s in (8, 9)]
+    group = run_lockstep(task, keys, config=cfg, generations=2)
+    for k, r in zip(keys, group, strict=True):
+        alone = E.run(task, key=k, config=cfg, generations=2)
+        assert [_shape(i.genome) for i in r.population] == [
+            _shape(i.genome) for i in alone.population
+        ]
+        np.testing.assert_allclose(
+            [i.cost for i in r.population], [i.cost for i in alone.population], rtol=1e-3
+        )
+        for a, b in zip(r.population, alone.population, strict=True):
+            assert (a.search is None) == (b.search is None)
+            if a.search is not None:
+                np.testing.assert_allclose(a.search.cov, b.search.cov, rtol=1e-2, atol=1e-4)
+
+
+def test_each_run_stops_at_its_own_target():
+    task = E.tasks.make("xor")
+    cfg = E.EANT2Config(
+        population=4, offspring=4, target_cost=0.05,
+        exploit=E.ExploitConfig(max_iters=60, pruner="none", popsize=8),
+    )  # fmt: skip
+    keys = [jax.random.key(s) for s in range(4)]
+    group = run_lockstep(task, keys, config=cfg, generations=8)
+    alone = [E.run(task, key=k, config=cfg, generations=8) for k in keys]
+    counts = [len(r.generations) for r in group]
+    assert counts == [len(r.generations) for r in alone]
+    assert len(set(counts)) > 1  # the runs did stop at different generations

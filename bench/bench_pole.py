@@ -26,7 +26,11 @@ et al. (2008), tables 3-4.
 Seeds can run concurrently (``--workers``: threads of one process, sharing the device and
 its compiled programs; a run's result does not depend on it), be split over processes or
 machines (``--first-seed``) and the result files merged afterwards (``--merge``); a merge
-refuses files whose settings or devices differ, or that share a seed.
+refuses files whose settings or devices differ, or that share a seed. On a CPU, threads
+share XLA's CPU thread pool, where concurrent programs can deadlock it (jaxlib's batched
+LAPACK map; `eant2_jax.run_many` runs one at a time on CPUs for that reason): two workers
+on the 2-core machine ran the pole suite fine, but for many seeds on a large CPU prefer
+several processes (``--first-seed``) and ``--merge``.
 
 Run: ``python -m bench pole [--quick] [--seeds N] [--first-seed K] [--tasks dpv dpnv]
 [--workers W] [--out PATH]``, then ``python -m bench pole --merge A.json B.json ... --out

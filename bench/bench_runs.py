@@ -32,6 +32,7 @@ from typing import Any
 
 from bench import harness
 from bench.common import Column, environment, markdown_table
+from eant2_jax.app.cli import _task_options
 
 _CHILD = textwrap.dedent(
     """
@@ -67,7 +68,7 @@ MODES = {"lockstep": (True, None), "threads": (False, "workers"), "sequential": 
 def _one(args, mode: str) -> dict[str, Any]:
     lockstep, workers = MODES[mode]
     spec = {
-        "task": args.task, "options": dict(args.task_option), "runs": args.runs,
+        "task": args.task, "options": _task_options(args.task_option), "runs": args.runs,
         "generations": args.generations, "population": args.population,
         "max_iters": args.max_iters, "seed": args.seed, "lockstep": lockstep,
         "workers": args.workers if workers == "workers" else 1,
@@ -97,20 +98,10 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     return payload
 
 
-def _option(text: str) -> tuple[str, Any]:
-    key, sep, value = text.partition("=")
-    if not sep:
-        raise argparse.ArgumentTypeError(f"--task-option wants KEY=VALUE, got {text!r}")
-    try:
-        return key, json.loads(value)
-    except ValueError:
-        return key, value
-
-
 def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--task", default="servo")
-    p.add_argument("--task-option", type=_option, action="append", default=[],
-                   metavar="KEY=VALUE")  # fmt: skip
+    p.add_argument("--task-option", action="append", default=[], metavar="KEY=VALUE",
+                   help="as for eant2 run (VALUE is JSON or a string)")  # fmt: skip
     p.add_argument("--runs", type=int, default=10)
     p.add_argument("--generations", type=int, default=3)
     p.add_argument("--population", type=int, default=20)

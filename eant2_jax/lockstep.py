@@ -38,19 +38,22 @@ from .config import EANT2Config
 from .loop import (
     RunResult,
     RunState,
-    _best_text,
     _breed,
+    _commit,
     _conclude,
-    _holds_best,
+    _create,
     _key_data,
     _key_from_data,
+    _rewind,
     _rows,
+    _run_meta,
+    _stopped,
     _Tuned,
     _validate,
     grow_bucket,
 )
 from .rundir import RunDir
-from .tasks import check_task, spec_of
+from .tasks import check_task
 from .tasks.base import Task
 from .tuning import tune
 
@@ -65,15 +68,14 @@ class _Member:
         self.state: RunState | None = state
         self.records, self.pruning = list(records), list(pruning)
 
+    @property
+    def generation(self) -> int:
+        """Its last complete generation (-1 before generation 0)."""
+        return -1 if self.state is None else self.state.generation
+
     def done(self, config: EANT2Config) -> bool:
         st = self.state
-        if st is None:
-            return False
-        return (
-            st.generation >= self.total
-            or (config.target_cost is not None and st.best().cost <= config.target_cost)
-            or (config.max_evaluations is not None and st.evaluations >= config.max_evaluations)
-        )
+        return st is not None and (st.generation >= self.total or _stopped(st, config))
 
 
 def run_lockstep(
@@ -124,8 +126,7 @@ def run_lockstep(
     if config.devices is not None:
         raise ValueError("run_lockstep places its batches itself: leave config.devices None")
     check_task(task)
-    spec = spec_of(task) or {"task_type": f"{type(task).__module__}.{type(task).__qualname__}"}
-    base_meta = {**spec, **(meta or {})}
+    base_meta = _run_meta(task, meta)
     mesh = distributed.make_mesh(devices)
     with contextlib.ExitStack() as stack:
         members = []
@@ -136,17 +137,7 @@ def run_lockstep(
             elif resume and Path(out).exists():
                 members.append(_reopen(stack, i, out, task, config))
             else:
-                rundir = stack.enter_context(
-                    RunDir.create(
-                        out,
-                        {
-                            **base_meta,
-                            "generations": generations,
-                            "key": list(_key_data(key)),
-                            "config": config.to_dict(),
-                        },
-                    )
-                )
+                rundir = stack.enter_context(_create(out, base_meta, generations, key, config))
                 members.append(_Member(i, key, generations, rundir, base_meta))
         _loop(task, members, config, callback, mesh)
     return [
@@ -158,17 +149,12 @@ def run_lockstep(
 def _reopen(stack, index, out, task, config) -> _Member:
     """A run directory to go on with, checked and rewound as `eant2_jax.resume` does."""
     rundir = stack.enter_context(RunDir.open(out))
-    committed = rundir.read()
-    v = _validate(rundir, committed, task)
+    v = _validate(rundir, rundir.read(), task)
     if v.config != config:
         raise ValueError(f"{out}: its configuration is not the group's; resume it alone")
-    best = None
-    if v.state is not None and not _holds_best(committed.best, v.state):
-        best = _best_text(v.state, task, committed.config)
-    rundir.rewind(v.committed.offsets, best)
-    return _Member(
-        index, v.key, v.generations, rundir, committed.config, v.state, v.records, v.pruning
-    )
+    _rewind(rundir, v, task)
+    meta = v.committed.config
+    return _Member(index, v.key, v.generations, rundir, meta, v.state, v.records, v.pruning)
 
 
 def _group_bucket(members: Sequence[_Member]) -> Bucket | None:
@@ -186,31 +172,28 @@ def _loop(task, members, config, callback, mesh) -> None:
         if not active:
             return
         # Runs a generation behind (a kill between two commits) go first, alone.
-        lowest = min(-1 if m.state is None else m.state.generation for m in active)
-        group = [m for m in active if (-1 if m.state is None else m.state.generation) == lowest]
+        lowest = min(m.generation for m in active)
+        group = [m for m in active if m.generation == lowest]
         broods = [_breed(task, m.state, m.key, config) for m in group]
         parts: list[_Tuned | None] = [None] * len(group)
         genomes = [ind.genome for b in broods for ind in b.new]
         if genomes:
             bucket = grow_bucket(genomes, bucket)
-            parts = _tune_together(task, group, broods, config, bucket, callback, mesh)
+            parts = _tune_together(task, group, broods, genomes, config, bucket, callback, mesh)
         for m, brood, part in zip(group, broods, parts, strict=True):
             m.state, record, prune, _ = _conclude(m.state, m.key, config, brood, part, bucket)
             m.records.append(record)
             m.pruning.extend(prune)
-            if m.rundir is not None:
-                m.rundir.commit(
-                    [record.to_json()],
-                    [r.to_json() for r in prune],
-                    _best_text(m.state, task, m.meta),
-                    m.state.to_json(),
-                )
+            _commit(m.rundir, task, m.meta, m.state, record, prune)
             if callback is not None:
                 callback({"event": "generation", "run": m.index, **record.to_json()})
 
 
-def _tune_together(task, group, broods, config, bucket, callback, mesh) -> list[_Tuned | None]:
-    """One `tune` of every brood's new structures; each brood's part of the result."""
+def _tune_together(
+    task, group, broods, genomes, config, bucket, callback, mesh
+) -> list[_Tuned | None]:
+    """One `tune` of every brood's new structures (``genomes``, in brood order); each brood's
+    part of the result."""
     runs = [m.index for m in group]
     gen = max(b.gen for b in broods)
 
@@ -222,7 +205,6 @@ def _tune_together(task, group, broods, config, bucket, callback, mesh) -> list[
         if callback is not None:
             callback({"event": "compiling", "generation": gen, "runs": runs, **info})
 
-    genomes = [ind.genome for b in broods for ind in b.new]
     starts = None
     if any(b.starts is not None for b in broods):
         starts = [s for b in broods for s in (b.starts or [None] * len(b.new))]
@@ -231,19 +213,18 @@ def _tune_together(task, group, broods, config, bucket, callback, mesh) -> list[
     # Row j of a brood starts from the key it gets in its run alone (`tuning.tune`: row j
     # of a batch tuned with key k starts from fold_in(split(k)[0], j)); padding rows from
     # the last brood's key, past its rows.
-    row_keys = []
-    for b in broods:
-        init_key = jax.random.split(b.exp_key)[0]
-        row_keys += [jax.random.fold_in(init_key, j) for j in range(len(b.new))]
-    last = jax.random.split(broods[-1].exp_key)[0]
-    row_keys += [
-        jax.random.fold_in(last, len(broods[-1].new) + j) for j in range(rows - len(row_keys))
-    ]
+    fold = jax.vmap(jax.random.fold_in, in_axes=(None, 0))
+    counts = [len(b.new) for b in broods]
+    counts[-1] += rows - len(genomes)
+    init_keys = [jax.random.split(b.exp_key)[0] for b in broods]
+    row_keys = jnp.concatenate(
+        [fold(k, jnp.arange(n)) for k, n in zip(init_keys, counts, strict=True)]
+    )
     res = tune(
         genomes,
         task,
         key=broods[0].exp_key,
-        keys=jnp.stack(row_keys),
+        keys=row_keys,
         config=config.exploit,
         bucket=bucket,
         min_rows=min_rows,

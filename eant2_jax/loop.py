@@ -583,10 +583,7 @@ def run(
     if generations < 0:
         raise ValueError(f"generations must be >= 0, got {generations}")
     check_task(task)  # before anything is written
-    # What config.json records of the task; best.genome's header reads it too, in this run
-    # and after a resume alike.
-    spec = spec_of(task) or {"task_type": f"{type(task).__module__}.{type(task).__qualname__}"}
-    meta = {**spec, **(meta or {})}
+    meta = _run_meta(task, meta)
     mesh = distributed.make_mesh(config.devices)  # every check before anything is created
     key = _key_from_data(_key_data(key))
     if out is None:
@@ -594,7 +591,23 @@ def run(
             task, None, key, config, generations, None, callback, mesh, meta,
             solution_test=solution_test,
         )  # fmt: skip
-    with RunDir.create(
+    with _create(out, meta, generations, key, config) as rundir:
+        return _loop(
+            task, None, key, config, generations, rundir, callback, mesh, meta,
+            solution_test=solution_test,
+        )  # fmt: skip
+
+
+def _run_meta(task: Task, meta: dict | None) -> dict:
+    """What ``config.json`` records of the task (and the caller's ``meta``); best.genome's
+    header reads it too, in the run and after a resume alike."""
+    spec = spec_of(task) or {"task_type": f"{type(task).__module__}.{type(task).__qualname__}"}
+    return {**spec, **(meta or {})}
+
+
+def _create(out: str, meta: dict, generations: int, key: jax.Array, config: EANT2Config) -> RunDir:
+    """A new run directory for a run of ``config`` from ``key``."""
+    return RunDir.create(
         out,
         {
             **meta,
@@ -602,11 +615,34 @@ def run(
             "key": list(_key_data(key)),
             "config": config.to_dict(),
         },
-    ) as rundir:
-        return _loop(
-            task, None, key, config, generations, rundir, callback, mesh, meta,
-            solution_test=solution_test,
-        )  # fmt: skip
+    )
+
+
+def _rewind(rundir: RunDir, v: Validated, task: Task) -> None:
+    """Cut a checked run directory back to what it committed (best.genome rewritten when it
+    does not hold the checkpoint's best), before a run goes on in it."""
+    best = None
+    if v.state is not None and not _holds_best(v.committed.best, v.state):
+        best = _best_text(v.state, task, v.committed.config)
+    rundir.rewind(v.committed.offsets, best)
+
+
+def _stopped(state: RunState, config: EANT2Config) -> bool:
+    """Whether a run stops before its next generation: target cost or evaluations reached."""
+    if config.target_cost is not None and state.best().cost <= config.target_cost:
+        return True
+    return config.max_evaluations is not None and state.evaluations >= config.max_evaluations
+
+
+def _commit(rundir: RunDir | None, task: Task, meta: dict, state: RunState, record, prune):
+    """A completed generation into the run directory (if any): records, best, checkpoint."""
+    if rundir is not None:
+        rundir.commit(
+            [record.to_json()],
+            [r.to_json() for r in prune],
+            _best_text(state, task, meta),
+            state.to_json(),
+        )
 
 
 def resume(
@@ -647,10 +683,7 @@ def resume(
         check_task(task)
         v = _validate(rundir, committed, task)
         mesh = distributed.make_mesh(v.config.devices)
-        best = None
-        if v.state is not None and not _holds_best(committed.best, v.state):
-            best = _best_text(v.state, task, committed.config)
-        rundir.rewind(v.committed.offsets, best)
+        _rewind(rundir, v, task)
         total = v.generations if generations is None else generations
         return _loop(
             task, v.state, v.key, v.config, total, rundir, callback, mesh, committed.config,
@@ -835,24 +868,14 @@ def _loop(
     if state is not None and solution_test is not None:  # resumed: test what it holds
         solution = next((ind for ind in state.population if solution_test(ind.genome)), None)
     while solution is None and (state is None or state.generation < generations):
-        if state is not None and config.target_cost is not None:
-            if state.best().cost <= config.target_cost:
-                break
-        if state is not None and config.max_evaluations is not None:
-            if state.evaluations >= config.max_evaluations:
-                break
+        if state is not None and _stopped(state, config):
+            break
         state, record, prune, bucket, solution = _generation(
             task, state, key, config, callback, mesh, bucket, solution_test
         )
         gen_records.append(record)
         prune_records.extend(prune)
-        if rundir is not None:
-            rundir.commit(
-                [record.to_json()],
-                [r.to_json() for r in prune],
-                _best_text(state, task, meta),
-                state.to_json(),
-            )
+        _commit(rundir, task, meta, state, record, prune)
         if callback is not None:
             callback({"event": "generation", **record.to_json()})
             if solution is not None:

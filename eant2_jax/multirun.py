@@ -112,11 +112,9 @@ def run_many(
             return None
 
         def cb(event):
-            event = dict(event)
-            if "run" in event:
-                event["run"] = job[event["run"]] if lockstep else job[0]
-            else:
-                event["run"] = job[0]
+            # A lock-step group's events name their run by its index in the group (exploit
+            # events the group, by "runs"); a run alone's carry no run.
+            event = {**event, "run": job[event.get("run", 0)]}
             if "runs" in event:
                 event["runs"] = [job[r] for r in event["runs"]]
             with lock:

@@ -35,6 +35,14 @@ def _shape(g: E.Genome) -> str:
     return str(g.with_weights(np.zeros(g.n_params)))
 
 
+def _same_networks(a: E.RunResult, b: E.RunResult):
+    """The same structures in the same order, their costs equal up to float rounding."""
+    assert [_shape(i.genome) for i in a.population] == [_shape(i.genome) for i in b.population]
+    np.testing.assert_allclose(
+        [i.cost for i in a.population], [i.cost for i in b.population], rtol=1e-3
+    )
+
+
 def test_each_run_is_the_run_alone_at_a_fixed_popsize():
     # With the popsize fixed, the group's shared padding changes only float rounding (wider
     # sums and eigendecompositions): each structure starts from its solo key and draws its
@@ -44,12 +52,7 @@ def test_each_run_is_the_run_alone_at_a_fixed_popsize():
     group = run_lockstep(task, keys, config=cfg, generations=3)
     for k, r in zip(keys, group, strict=True):
         alone = E.run(task, key=k, config=cfg, generations=3)
-        assert [_shape(i.genome) for i in r.population] == [
-            _shape(i.genome) for i in alone.population
-        ]
-        np.testing.assert_allclose(
-            [i.cost for i in r.population], [i.cost for i in alone.population], rtol=1e-3
-        )
+        _same_networks(r, alone)
         for a, b in zip(r.population, alone.population, strict=True):
             np.testing.assert_allclose(a.genome.weights, b.genome.weights, rtol=1e-3, atol=1e-4)
         assert [x.evaluations for x in r.generations] == [x.evaluations for x in alone.generations]
@@ -114,12 +117,7 @@ def test_warm_starts_and_reexploited_parents_go_to_their_own_runs():
     group = run_lockstep(task, keys, config=cfg, generations=2)
     for k, r in zip(keys, group, strict=True):
         alone = E.run(task, key=k, config=cfg, generations=2)
-        assert [_shape(i.genome) for i in r.population] == [
-            _shape(i.genome) for i in alone.population
-        ]
-        np.testing.assert_allclose(
-            [i.cost for i in r.population], [i.cost for i in alone.population], rtol=1e-3
-        )
+        _same_networks(r, alone)
         for a, b in zip(r.population, alone.population, strict=True):
             assert (a.search is None) == (b.search is None)
             if a.search is not None:

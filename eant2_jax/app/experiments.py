@@ -28,7 +28,7 @@ from ..kernels.pruning import PRUNERS
 from ..loop import EANT2Config
 from ..multirun import run_many
 from ..pruning import kept_genes, reduce, where_rows
-from ..rundir import RunDirError
+from ..rundir import RunDirError, write_atomic
 from ..tasks.base import ReportingTask, Task
 from ..tuning import optimize, prepare, tune
 from .report import report
@@ -313,9 +313,7 @@ def reproduce(
             "condition_dtype": condition_dtype,
         }
         out.mkdir(parents=True, exist_ok=True)
-        tmp = out / (MANIFEST + ".tmp")
-        tmp.write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
-        tmp.replace(out / MANIFEST)  # atomic: a manifest is whole or absent
+        write_atomic(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")  # whole or absent
     t0 = time.perf_counter()
 
     def progress(event):
@@ -373,9 +371,7 @@ def reproduce(
                 inits=condition_inits,
                 dtype=condition_dtype,
             )
-        tmp = out / "condition.json.tmp"
-        tmp.write_text(json.dumps(cond) + "\n", encoding="utf-8")
-        tmp.replace(done)
+        write_atomic(done, json.dumps(cond) + "\n")
     extra["notes"] = _claims(dirs, cond)
     return report([str(d) for d in dirs], out / "report", extra=extra, condition=cond)
 

@@ -133,7 +133,7 @@ def network(layout: Layout, params: jax.Array) -> Network:
     h = layout.is_root.shape[-1]
     n_in, n_out = layout.n_inputs, layout.n_outputs
     values = jnp.where(layout.gene_mask, params, jnp.zeros_like(params))
-    flat = jnp.zeros(buffer_size(h, n_in, n_out), params.dtype).at[layout.slot].add(values)
+    flat = _gather_genes(layout, values, buffer_size(h, n_in, n_out))
     sizes = (h * n_in, h, h * h, h * h, n_out * h)
     offsets = [0]
     for s in sizes:
@@ -166,6 +166,32 @@ def network(layout: Layout, params: jax.Array) -> Network:
         is_root=layout.is_root,
         neuron_mask=layout.neuron_mask,
         sweeps=layout.sweeps,
+    )
+
+
+def _gather_genes(layout: Layout, values: jax.Array, size: int) -> jax.Array:
+    """The flat buffer: each entry the sum of the weights of the genes that point at it.
+
+    Not a scatter-add: a float scatter-add with repeated indices is non-deterministic on GPUs
+    (atomic adds in any order), and XLA's deterministic mode (``--xla_gpu_deterministic_ops``)
+    turns it into a sort. Here the genes that share an entry are summed first, onto the first
+    of them (a masked ``[P, P]`` sum that depends on the layout only, so vmapped over a
+    structure's candidates it is built once), and a scatter with unique indices (deterministic
+    by construction, left alone by that mode) writes one value per entry. Padding genes (all
+    pointing at the trash entry) write nothing, so the trash entry stays 0.
+    """
+    p = values.shape[-1]
+    genes = jnp.arange(p)
+    same = (layout.slot[:, None] == layout.slot[None, :]) & layout.gene_mask[None, :]
+    first = layout.gene_mask & ~jnp.any(same & (genes[None, :] < genes[:, None]), axis=1)
+    summed = jnp.sum(jnp.where(same, values[None, :], jnp.zeros_like(values)[None, :]), axis=1)
+    # Every gene gets its own index: the first of each entry its entry, the others a distinct
+    # index past the end, which mode="drop" discards, so the promise of unique indices holds.
+    target = jnp.where(first, layout.slot, size + genes)
+    return (
+        jnp.zeros(size, values.dtype)
+        .at[target]
+        .set(summed, mode="drop", unique_indices=True, indices_are_sorted=False)
     )
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import threading
 from pathlib import Path
 from typing import NamedTuple
 
@@ -77,15 +78,74 @@ def _outside(s):
     return (abs(s[:, 0]) >= HALF_EXTENT[0]) | (abs(s[:, 1]) >= HALF_EXTENT[1])
 
 
+def _axis_angle_to_quat(axis: jax.Array, angle: jax.Array) -> jax.Array:
+    """``mjx._src.math.axis_angle_to_quat`` without a scatter: the same values, bit for bit.
+
+    MJX writes ``jnp.insert(axis * s, 0, c)``, which JAX lowers to a scatter. Batched over the
+    millions of arm poses of a servo iteration, XLA's deterministic GPU mode
+    (``--xla_gpu_deterministic_ops``, on by default in the ``eant2`` command line) expands
+    each such scatter into a sort: that made one iteration of 200 structures 3.6x slower on an
+    H100 (26.7 ms against 7.4 ms; docs/benchmarks.md, "Determinism"). A concatenation of the
+    same numbers is no scatter, and deterministic by construction.
+    """
+    s, c = jnp.sin(angle * 0.5), jnp.cos(angle * 0.5)
+    return jnp.concatenate([jnp.expand_dims(c, 0), axis * s])
+
+
+# Why a patch: the scatter sits inside MJX's forward kinematics (``smooth.kinematics`` ->
+# ``math.axis_angle_to_quat``; also ``math.quat_integrate``), which offers no hook. It is
+# applied only while this module's own MJX code is traced (`_mjx_numerics`), reference-
+# counted so that concurrent runs in threads nest, and it returns equal values to the last
+# bit (tests/test_servo.py checks both against MJX's own function), so other MJX code traced
+# meanwhile by another thread computes exactly what it would have.
+_PATCH_LOCK = threading.Lock()
+_PATCH_DEPTH = 0
+
+
+def _mjx_math():
+    try:
+        from mujoco.mjx._src import math as mjx_math
+    except ImportError:  # another MJX layout: run MJX's code as it is
+        return None
+    return mjx_math if callable(getattr(mjx_math, "axis_angle_to_quat", None)) else None
+
+
+_MJX_MATH = _mjx_math()
+_MJX_AXIS_ANGLE_TO_QUAT = None if _MJX_MATH is None else _MJX_MATH.axis_angle_to_quat
+
+
+@contextlib.contextmanager
+def _scatter_free_mjx():
+    global _PATCH_DEPTH
+    if _MJX_MATH is None:
+        yield
+        return
+    with _PATCH_LOCK:
+        _PATCH_DEPTH += 1
+        _MJX_MATH.axis_angle_to_quat = _axis_angle_to_quat
+    try:
+        yield
+    finally:
+        with _PATCH_LOCK:
+            _PATCH_DEPTH -= 1
+            if not _PATCH_DEPTH:
+                _MJX_MATH.axis_angle_to_quat = _MJX_AXIS_ANGLE_TO_QUAT
+
+
 @contextlib.contextmanager
 def _mjx_numerics():
     """The numerics MJX code runs under here.
 
     MJX relies on implicit rank promotion internally, which this project's tests turn into an
-    error for its own code (tests/conftest.py); and its small float32 products must not use
-    TF32 on GPUs (1e-3 relative error), so that GPU and CPU runs score alike.
+    error for its own code (tests/conftest.py); its small float32 products must not use
+    TF32 on GPUs (1e-3 relative error), so that GPU and CPU runs score alike; and its
+    quaternion of a hinge angle is built without a scatter (`_axis_angle_to_quat`).
     """
-    with jax.numpy_rank_promotion("allow"), jax.default_matmul_precision("highest"):
+    with (
+        jax.numpy_rank_promotion("allow"),
+        jax.default_matmul_precision("highest"),
+        _scatter_free_mjx(),
+    ):
         yield
 
 

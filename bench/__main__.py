@@ -12,6 +12,7 @@ brax (``eant2 run brax:ENV`` and ``eant2 resume`` from process start, the best n
 return on new episodes).
 field (eant2_jax against TensorNEAT on gymnax and brax environments, issue 18).
 runs (many runs of one configuration on one device: lock-step, threads, one at a time).
+determinism (what XLA's deterministic GPU mode costs; whether runs repeat without it).
 Each writes JSON (device, versions, config, compile time apart from steady state) and a
 markdown table, and never over an existing result file unless ``--force`` is given;
 ``--help`` after the suite name lists its options.
@@ -39,6 +40,7 @@ SUITES = {
     "brax": "bench.bench_brax",
     "field": "bench.bench_field",
     "runs": "bench.bench_runs",
+    "determinism": "bench.bench_determinism",
 }
 
 

@@ -87,3 +87,27 @@ def count_compiles() -> Iterator[Compiles]:
         yield c
     finally:
         _active.remove(c)
+
+
+def nondeterministic_scatters(closed: jax.extend.core.ClosedJaxpr) -> list[str]:
+    """The float scatters of a jaxpr (nested ones included) that do not promise unique
+    indices: on a GPU they add in any order, and XLA's deterministic mode
+    (``--xla_gpu_deterministic_ops``) turns each into a sort. Integer adds are exact in any
+    order and are left out."""
+    found = []
+
+    def walk(jaxpr):
+        for eqn in jaxpr.eqns:
+            if eqn.primitive.name.startswith("scatter"):
+                dtype = eqn.outvars[0].aval.dtype
+                if jax.numpy.issubdtype(dtype, jax.numpy.inexact):
+                    if not eqn.params.get("unique_indices", False):
+                        found.append(f"{eqn.primitive.name} -> {eqn.outvars[0].aval}")
+            for param in eqn.params.values():
+                for sub in param if isinstance(param, (tuple, list)) else (param,):
+                    inner = getattr(sub, "jaxpr", None)
+                    if inner is not None:
+                        walk(getattr(inner, "jaxpr", inner))
+
+    walk(closed.jaxpr)
+    return found

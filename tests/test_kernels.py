@@ -511,3 +511,22 @@ def test_wheel_installs_kernels_inside_the_package(tmp_path):
     assert Path(network).resolve().parent == Path(package).resolve().parent / "kernels"
     assert y == "[1.0, 3.0, 6.0]"
     assert imported == "False"
+
+
+def test_network_build_is_deterministic_by_construction():
+    """No float scatter with repeated indices in the build, batched as the engine batches it
+    (structures x candidates): a GPU would add such entries in any order, and XLA's
+    deterministic mode would sort them, 3.6x slower on the servo task (docs/benchmarks.md).
+    A genome with genes on one entry (R0 three times) exercises the repeated slots."""
+    from compiles import nondeterministic_scatters
+
+    g = Genome.parse("N0/3*0.0 R0*1.3125 R0*0.37656726255360384 R0*-1.6875 N1/1*0.0 B*0.0")
+    layout, w = one_layout(g)
+    layouts = jax.tree.map(lambda a: jnp.stack([a, a]), layout)
+    params = jnp.stack([jnp.stack([w, 2 * w, -w])] * 2)  # [2 structures, 3 candidates, P]
+    build = jax.vmap(jax.vmap(kn.network, in_axes=(None, 0)))
+    assert nondeterministic_scatters(jax.make_jaxpr(build)(layouts, params)) == []
+    # The repeated entry is the sum of its genes (as a float32 add, to the rounding).
+    net = build(layouts, params)
+    want = dense_numpy(g, H, N_IN)["w_rec"]
+    np.testing.assert_allclose(np.asarray(net.w_rec[1, 1]), 2 * want, rtol=1e-6, atol=1e-6)

@@ -385,3 +385,31 @@ def test_network_costs_under_jit_and_vmap_match_numpy():
         held = np.asarray(task.generalisation(nets))
     assert held.shape == (2, 3) and held[0, 0] != got[0, 0]
     assert c.count == 0
+
+
+def test_kinematics_is_scatter_free_and_mjx_is_left_as_it_was():
+    """The kinematic cost has no float scatter that a GPU adds in any order (XLA's
+    deterministic mode made one servo iteration 3.6x slower by sorting MJX's quaternion
+    scatters); the quaternion built instead equals MJX's own to the bit; and MJX's function
+    is back in place outside the task's code, also after nested uses."""
+    from compiles import nondeterministic_scatters
+    from mujoco.mjx._src import math as mjx_math
+
+    from eant2_jax.tasks import servo_scene as scene
+
+    original = scene._MJX_AXIS_ANGLE_TO_QUAT
+    assert original is not None and mjx_math.axis_angle_to_quat is original
+    task = tasks.make("servo", n_starts=4)
+    nets, _ = random_nets(0, (2,))
+    assert nondeterministic_scatters(jax.make_jaxpr(task.cost)(None, nets)) == []
+    rng = np.random.default_rng(7)
+    axes = rng.normal(size=(64, 3)).astype(np.float32)
+    angles = rng.uniform(-7, 7, size=64).astype(np.float32)
+    ours = jax.jit(jax.vmap(scene._axis_angle_to_quat))(axes, angles)
+    theirs = jax.jit(jax.vmap(original))(axes, angles)
+    np.testing.assert_array_equal(np.asarray(ours), np.asarray(theirs))
+    with scene._mjx_numerics():
+        with scene._mjx_numerics():
+            assert mjx_math.axis_angle_to_quat is scene._axis_angle_to_quat
+        assert mjx_math.axis_angle_to_quat is scene._axis_angle_to_quat
+    assert mjx_math.axis_angle_to_quat is original

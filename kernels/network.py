@@ -219,13 +219,24 @@ def step(
     read_in, read_rec, read_ff, read_out = net.reads or (None,) * 4
     base = _dot(net.w_in, read_in, x) + net.bias + _dot(net.w_rec, read_rec, h_prev)
 
-    def sweep(_, h):
-        a = base + _dot(net.w_ff, read_ff, h)
+    def settle(a):
         o = jnp.where(net.is_root, act_o(a), act_h(a))
         # Padding neurons stay at exactly 0 (sigmoid(0) would be 0.5).
         return jnp.where(net.neuron_mask, o, jnp.zeros_like(o))
 
-    h = jax.lax.fori_loop(0, net.sweeps, sweep, jnp.zeros_like(base), unroll=True)
+    def sweep(_, h):
+        return settle(base + _dot(net.w_ff, read_ff, h))
+
+    # The first sweep reads h = 0, so it is settle(base): after it the neurons of depth 1 are
+    # exact, and after `sweeps` >= depth sweeps every neuron is, from any start (``_dot``
+    # keeps a value away from the rows that do not read it). Not written as a sweep over a
+    # zero h: batched over networks and examples that zero is a large constant, and XLA's
+    # constant folding spent 21.6 s of a 25.1 s compile (200 servo structures, CPU) on the
+    # finiteness test of ``_dot`` over it.
+    if net.sweeps == 0:
+        h = jnp.zeros_like(base)
+    else:
+        h = jax.lax.fori_loop(1, net.sweeps, sweep, settle(base), unroll=True)
     y = _dot(net.w_out, read_out, h)
     return y, h
 

@@ -105,9 +105,12 @@ def nondeterministic_scatters(closed: jax.extend.core.ClosedJaxpr) -> list[str]:
                         found.append(f"{eqn.primitive.name} -> {eqn.outvars[0].aval}")
             for param in eqn.params.values():
                 for sub in param if isinstance(param, (tuple, list)) else (param,):
-                    inner = getattr(sub, "jaxpr", None)
-                    if inner is not None:
-                        walk(getattr(inner, "jaxpr", inner))
+                    # A sub-program is a Jaxpr (remat, ...) or a ClosedJaxpr (jit, cond,
+                    # scan, while, custom_jvp, ...).
+                    if hasattr(sub, "eqns"):
+                        walk(sub)
+                    elif hasattr(getattr(sub, "jaxpr", None), "eqns"):
+                        walk(sub.jaxpr)
 
     walk(closed.jaxpr)
     return found

@@ -4,8 +4,9 @@ with the program's name, once per compilation."""
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
-from compiles import count_compiles
+from compiles import count_compiles, nondeterministic_scatters
 
 
 def test_counts_each_new_program_once_by_name():
@@ -51,3 +52,22 @@ def test_compilation_cache_keeps_programs_between_processes(tmp_path):
     second = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert second.returncode == 0, second.stderr[-2000:]
     assert int(second.stdout) >= 1
+
+
+def test_nondeterministic_scatters_finds_them_where_they_hide():
+    """The helper the determinism tests rely on sees float scatter-adds inside jit, remat
+    and scan, and leaves unique-index and integer scatters alone."""
+    idx = jnp.array([0, 1, 1])
+
+    def add(x):
+        return jnp.zeros(4).at[idx].add(x)
+
+    nested = jax.jit(lambda x: jax.lax.scan(lambda c, _: (c + jax.checkpoint(add)(x), None),
+                                            jnp.zeros(4), None, length=2)[0])  # fmt: skip
+    assert nondeterministic_scatters(jax.make_jaxpr(nested)(jnp.ones(3))) == [
+        "scatter-add -> float32[4]"
+    ]
+    unique = lambda x: jnp.zeros(4).at[jnp.arange(3)].set(x, unique_indices=True)  # noqa: E731
+    ints = lambda x: jnp.zeros(4, jnp.int32).at[idx].add(x)  # noqa: E731
+    assert nondeterministic_scatters(jax.make_jaxpr(unique)(jnp.ones(3))) == []
+    assert nondeterministic_scatters(jax.make_jaxpr(ints)(jnp.ones(3, jnp.int32))) == []

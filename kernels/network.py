@@ -13,7 +13,7 @@ twice): their weights add, exactly as the stack semantics add them.
 One step of the network on one example:
 
     base = w_in @ x + bias + w_rec @ h_prev          # inputs, biases, recurrent jumpers
-    h    = 0;  repeat `sweeps` times:  h = act(base + w_ff @ h)
+    h    = act(base);  repeat `sweeps - 1` times:  h = act(base + w_ff @ h)
     y    = w_out @ h
 
 Non-finite inputs follow the stack semantics exactly: a NaN or infinite value reaches only
@@ -23,7 +23,8 @@ the dense matrices (see ``_dot``), as in `eant2_jax.reference.interpret`.
 ``w_ff`` is strictly lower-triangular in slot order (a neuron only reads earlier slots), so
 after ``d`` sweeps every neuron of depth <= d is exact and stays exact: ``sweeps`` must be at
 least the network's depth (the longest chain of neurons). No Python loop over neurons or genes
-and no per-node ``lax.cond``: a step is ``sweeps + 3`` small dense products.
+and no per-node ``lax.cond``: a step is ``sweeps + 2`` small dense products (the first sweep
+starts from h = 0, so it is ``act(base)``).
 
 Everything here is written for ONE network and ONE example; batch with ``jax.vmap``. This
 module imports nothing from the rest of eant2_jax.

@@ -85,8 +85,8 @@ def _axis_angle_to_quat(axis: jax.Array, angle: jax.Array) -> jax.Array:
     millions of arm poses of a servo iteration, XLA's deterministic GPU mode
     (``--xla_gpu_deterministic_ops``, on by default in the ``eant2`` command line) expands
     each such scatter into a sort: that made one iteration of 200 structures 3.6x slower on an
-    H100 (26.7 ms against 7.4 ms; docs/benchmarks.md, "Determinism"). A concatenation of the
-    same numbers is no scatter, and deterministic by construction.
+    H100 (26.7 ms against 7.4 ms; docs/benchmarks.md, "Reproducibility on GPU"). A
+    concatenation of the same numbers is no scatter, and deterministic by construction.
     """
     s, c = jnp.sin(angle * 0.5), jnp.cos(angle * 0.5)
     return jnp.concatenate([jnp.expand_dims(c, 0), axis * s])

@@ -21,14 +21,20 @@ import json
 import os
 import shlex
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 from bench import harness
-from bench.common import BenchInputError, Column, environment, markdown_table, unseen_key
+from bench.common import (
+    BenchInputError,
+    Column,
+    eant2_argv,
+    environment,
+    markdown_table,
+    unseen_key,
+)
 from eant2_jax.tasks.brax_task import PRECISIONS  # (brax itself is imported on first use)
 
 # The spring backend: on an H100 (2026-11-23) a generalized-backend inverted_pendulum run
@@ -45,8 +51,7 @@ QUICK = ("inverted_pendulum --population 2 --max-iters 3 --generations 0 --no-pr
 
 def _cli(args: list[str], *, cwd: str, env: dict, timeout: float) -> tuple[str, float, str]:
     """``eant2 ARGS`` in a new process: ("ok" | "failed" | "timed out", seconds, stderr)."""
-    main = "import sys; from eant2_jax.app.cli import main; sys.exit(main(sys.argv[1:]))"
-    cmd = [sys.executable, "-c", main, *args]
+    cmd = eant2_argv(*args)
     t0 = time.perf_counter()
     try:
         proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True,

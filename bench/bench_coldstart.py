@@ -13,33 +13,28 @@ Run: ``python -m bench coldstart [--task servo] [--population 5] [--generations 
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 from bench import harness
-from bench.common import Column, environment, markdown_table
+from bench.common import Column, child_env, eant2_argv, environment, markdown_table
 
 _GEN = re.compile(r"^gen (\d+)/\d+ \|")
 
 
 def _one(args, cache: str, pythonpath: str | None) -> dict[str, Any]:
     """One ``eant2 run`` in a new process: seconds to each generation's line and to exit."""
-    env = dict(os.environ, EANT2_CACHE_DIR=cache)
-    if pythonpath:
-        env["PYTHONPATH"] = os.pathsep.join(filter(None, [pythonpath, env.get("PYTHONPATH")]))
+    env = child_env(pythonpath, EANT2_CACHE_DIR=cache)
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [
-            sys.executable, "-c", "import sys; from eant2_jax.app.cli import main; "
-            "sys.exit(main(sys.argv[1:]))", "run", args.task,
-            "--population", str(args.population), "--generations", str(args.generations),
-            "--seed", str(args.seed), "--out", str(Path(tmp) / "run"), *args.extra,
-        ]  # fmt: skip
+        cmd = eant2_argv(
+            "run", args.task, "--population", str(args.population), "--generations",
+            str(args.generations), "--seed", str(args.seed), "--out", str(Path(tmp) / "run"),
+            *args.extra,
+        )  # fmt: skip
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, stdout=subprocess.PIPE,
                                 text=True, cwd=tmp)  # fmt: skip

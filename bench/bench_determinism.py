@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -32,7 +31,14 @@ from pathlib import Path
 from typing import Any
 
 from bench import harness
-from bench.common import Column, environment, markdown_table, random_population
+from bench.common import (
+    Column,
+    child_env,
+    eant2_argv,
+    environment,
+    markdown_table,
+    random_population,
+)
 
 FLAG = "--xla_gpu_deterministic_ops=true"
 
@@ -77,11 +83,11 @@ _CHILD = textwrap.dedent(
 
 
 def _env(pythonpath: str | None, **extra: str) -> dict[str, str]:
-    """A child's environment: no persistent cache, no inherited XLA_FLAGS, then ``extra``."""
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    env.update(EANT2_CACHE_DIR="", JAX_ENABLE_COMPILATION_CACHE="false", **extra)
-    if pythonpath:
-        env["PYTHONPATH"] = os.pathsep.join(filter(None, [pythonpath, env.get("PYTHONPATH")]))
+    """A child's environment: no persistent cache, XLA_FLAGS only as ``extra`` sets them."""
+    env = child_env(pythonpath, EANT2_CACHE_DIR="", JAX_ENABLE_COMPILATION_CACHE="false",
+                    **extra)  # fmt: skip
+    if "XLA_FLAGS" not in extra:
+        env.pop("XLA_FLAGS", None)
     return env
 
 
@@ -105,10 +111,9 @@ def _repeat(args, deterministic: bool, index: int) -> dict:
         env = _env(None, EANT2_GPU_DETERMINISTIC="1" if deterministic else "0")
         env["EANT2_CACHE_DIR"] = str(Path(tmp) / "cache")  # empty: compiled afresh
         run_dir = Path(tmp) / "run"
-        cmd = [sys.executable, "-c", "import sys; from eant2_jax.app.cli import main; "
-               "sys.exit(main(sys.argv[1:]))", "run", args.task, "--population",
-               str(args.population), "--generations", str(args.generations), "--seed",
-               str(args.seed), "--out", str(run_dir)]  # fmt: skip
+        cmd = eant2_argv("run", args.task, "--population", str(args.population),
+                         "--generations", str(args.generations), "--seed", str(args.seed),
+                         "--out", str(run_dir))  # fmt: skip
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, env=env, cwd=tmp, capture_output=True, text=True)
         total = time.perf_counter() - t0

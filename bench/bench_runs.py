@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -31,7 +30,7 @@ import time
 from typing import Any
 
 from bench import harness
-from bench.common import Column, environment, markdown_table
+from bench.common import Column, child_env, environment, markdown_table
 from eant2_jax.app.cli import _task_options
 
 _CHILD = textwrap.dedent(
@@ -73,7 +72,7 @@ def _one(args, mode: str) -> dict[str, Any]:
         "max_iters": args.max_iters, "seed": args.seed, "lockstep": lockstep,
         "workers": args.workers if workers == "workers" else 1,
     }  # fmt: skip
-    env = dict(os.environ, EANT2_CACHE_DIR="", JAX_ENABLE_COMPILATION_CACHE="false")
+    env = child_env(EANT2_CACHE_DIR="", JAX_ENABLE_COMPILATION_CACHE="false")
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         proc = subprocess.run([sys.executable, "-c", _CHILD, json.dumps(spec)], env=env,

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import os
 import platform
 import statistics
+import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -28,8 +30,10 @@ __all__ = [
     "CompileClock",
     "Column",
     "Timing",
+    "child_env",
     "default_out",
     "device_tag",
+    "eant2_argv",
     "environment",
     "markdown_table",
     "minimal_genome",
@@ -82,6 +86,22 @@ def device_tag() -> str:
 def default_out(name: str) -> Path:
     """``bench/results/<name>-<device tag>.json``."""
     return RESULTS_DIR / f"{name}-{device_tag()}.json"
+
+
+# ------------------------------------------------------------------------ child processes
+def eant2_argv(*args: str) -> list[str]:
+    """The argv of ``eant2 ARGS`` run by this interpreter (no console script needed)."""
+    main = "import sys; from eant2_jax.app.cli import main; sys.exit(main(sys.argv[1:]))"
+    return [sys.executable, "-c", main, *args]
+
+
+def child_env(pythonpath: str | None = None, **extra: str) -> dict[str, str]:
+    """This process's environment for a child, with ``extra`` set and ``pythonpath`` (another
+    install of eant2_jax, timed side by side) put first on ``PYTHONPATH``."""
+    env = dict(os.environ, **extra)
+    if pythonpath:
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [pythonpath, env.get("PYTHONPATH")]))
+    return env
 
 
 # ------------------------------------------------------------------------------ compiling

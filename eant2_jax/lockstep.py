@@ -1,11 +1,13 @@
 """Independent EANT2 runs in lock-step: every generation of every run tuned in ONE batch.
 
-A servo generation is latency-bound on a GPU: one engine iteration of 20 structures costs
-about the same as one of 200 (docs/benchmarks.md). Runs side by side in threads
-(`eant2_jax.run_many`'s workers) do not overlap there, because one device runs one program
-at a time, so ten runs cost ten times one. In lock-step the runs' new structures of a
-generation go into one `eant2_jax.tuning.tune` call instead, and ten runs cost little more
-than one.
+A small generation is latency-bound on a GPU: the device waits on the host between short
+kernels, and one device runs one program at a time, so runs side by side in threads
+(`eant2_jax.run_many`'s workers) overlap little. In lock-step the runs' new structures of a
+generation go into one `eant2_jax.tuning.tune` call instead: fewer, larger programs, one
+padding bucket and fewer compilations per group. How much that saves depends on how full
+one run's batch already keeps the device: on the servo task 200 structures fill an H100,
+and ten runs in lock-step took 485 s against 510 s as ten threads (docs/benchmarks.md,
+"Many runs on one GPU").
 
 Each run keeps its own key, state, records and run directory; only the tuning is shared.
 A structure's CMA-ES starts from the key it would get in the run alone and draws its own

@@ -69,9 +69,10 @@ def run_many(
         its last complete generation).
       lockstep: runs of equal configs go in lock-step (`eant2_jax.run_lockstep`: each
         generation of all of them tuned in one batch), split into one group per device;
-        the groups are what the workers take. Much faster on a GPU, where a generation is
-        latency-bound; a run then shares its padding bucket with its group (see
-        `eant2_jax.lockstep`). ``exploit``/``compiling`` events carry ``runs``.
+        the groups are what the workers take. On a GPU this saves the most where one run's
+        generation is too small to keep the device busy; a run then shares its padding
+        bucket with its group (see `eant2_jax.lockstep`). ``exploit``/``compiling``
+        events carry ``runs``.
 
     Returns:
       The results, in the order of ``keys``.

@@ -572,8 +572,8 @@ def _parser() -> argparse.ArgumentParser:
         "--lockstep",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="tune each generation of an arm's runs in one batch (default; several times "
-        "faster on a GPU); --no-lockstep runs each alone",
+        help="tune each generation of an arm's runs in one batch (default; fewer "
+        "compilations); --no-lockstep runs each alone",
     )
     rep.add_argument(
         "--condition-iters",

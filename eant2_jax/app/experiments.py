@@ -272,8 +272,9 @@ def reproduce(
         another's device work).
       lockstep: an arm's runs go in lock-step, each generation of all of them tuned in one
         batch (`eant2_jax.run_lockstep`; one group per device); False: each run alone, in
-        ``workers_per_device`` threads per device. On a GPU lock-step is several times
-        faster (docs/reproduce.md); a run then shares its padding bucket with its arm.
+        ``workers_per_device`` threads per device. On one H100 the servo arm took 485 s in
+        lock-step against 510 s in threads (docs/benchmarks.md); a run then shares its
+        padding bucket with its arm.
       condition: also run the V.A condition experiment.
       condition_iters: CMA-ES budget of each run of that experiment from random weights.
       condition_inits: random initialisations of each network in it.

@@ -58,3 +58,42 @@ def test_arms_name_a_pruner_and_its_rule():
     for bad in ("covariance-exact", "none-literal", "lottery"):
         with pytest.raises(ValueError, match="unknown arm"):
             arm_config(base, bad)
+
+
+@pytest.mark.slow
+def test_the_condition_experiment_in_a_background_thread_gives_the_same_result(tmp_path):
+    """``overlap_condition`` runs the experiment in a thread (float64 there alone) while the
+    main thread goes on; its result equals the inline one's. (The pruning arms themselves
+    are not overlapped here: on a CPU two programs at once can deadlock XLA's thread pool,
+    which is why the overlap is off there by default.)"""
+    import jax
+
+    from eant2_jax import tasks
+    from eant2_jax.app.experiments import reproduce
+    from eant2_jax.loop import EANT2Config
+
+    events = []
+    settings = dict(
+        task_meta={"task": "xor", "task_options": {}}, runs=1, generations=1, pruners=("none",),
+        config=EANT2Config(population=3), devices=1, condition_iters=40, condition_inits=2,
+        callback=events.append,
+    )  # fmt: skip
+    task = tasks.make("xor")
+    for overlap in (False, True):
+        reproduce(task, tmp_path / str(overlap), overlap_condition=overlap, **settings)
+        assert not jax.config.jax_enable_x64  # float64 stayed inside the experiment
+    cond = [json.loads((tmp_path / str(o) / "condition.json").read_text()) for o in (False, True)]
+    assert cond[0] == cond[1] and cond[0]["dtype"] == "float64"
+    phases = [e["phase"] for e in events if e["event"] == "condition"]
+    assert phases == ["start", "done", "start", "done"]
+
+
+def test_a_background_error_reaches_the_caller():
+    from eant2_jax.app.experiments import _Background
+
+    def boom(x):
+        raise ValueError(f"bad {x}")
+
+    with pytest.raises(ValueError, match="bad 3"):
+        _Background(boom, 3).result()
+    assert _Background(lambda x: x + 1, 3).result() == 4

@@ -47,7 +47,7 @@ def test_a_killed_reproduction_resumes_to_the_uninterrupted_result(tmp_path, cap
     # are the float32 runs of the first (compared below).
     assert not jax.config.jax_enable_x64
 
-    def kill(event):  # Ctrl-C in the second arm's first run, after its generation 1
+    def kill(event):  # Ctrl-C in the unpruned arm (run first), after its generation 1
         if event["event"] == "generation" and event["arm"] == "none" and event["generation"] == 1:
             raise KeyboardInterrupt
 

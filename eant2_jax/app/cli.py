@@ -203,12 +203,17 @@ def _reproduce_progress(total):
 
     def progress(event: dict) -> None:
         if event["event"] == "generation":
-            print(
+            line = (
                 f"[{event['arm']} run {event['run']}] gen {event['generation']}/{total} "
-                f"best {event['best_cost']:.4g} size {event['best_size']}",
-                file=sys.stderr,
-                flush=True,
+                f"best {event['best_cost']:.4g} size {event['best_size']}"
             )
+        elif event["event"] == "condition" and event["phase"] == "start":
+            line = f"[condition] started on the best unpruned network ({event['size']} weights)"
+        elif event["event"] == "condition":
+            line = f"[condition] done in {event['wall_s']:.1f} s"
+        else:
+            return
+        print(line, file=sys.stderr, flush=True)
 
     return progress
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -248,6 +249,7 @@ def reproduce(
     condition_iters: int = 10_000,
     condition_inits: int = 5,
     condition_dtype: str = "float64",
+    overlap_condition: bool | None = None,
     callback: Callable[[dict], None] | None = None,
     _resume: bool = False,
 ) -> Path:
@@ -281,7 +283,15 @@ def reproduce(
       condition_dtype: the CMA-ES state's dtype in it; ``float64`` turns on JAX's x64 mode
         for that experiment alone (``jax.enable_x64``, once the evolution runs are done:
         they stay in float32).
-      callback: progress events (with ``run`` and ``arm``).
+      overlap_condition: run the condition experiment in a background thread while the
+        pruning arms run (the arm without pruning goes first: the experiment starts from its
+        best network). The experiment is a chain of small, latency-bound programs that
+        leaves an accelerator mostly idle, so the overlap hides most of it; the results are
+        the same either way. ``None`` (default): on unless the default backend is a CPU,
+        where two programs at once can deadlock XLA's CPU thread pool
+        (`eant2_jax.multirun`).
+      callback: progress events: ``generation`` events with ``run`` and ``arm``; a
+        ``condition`` event with ``phase`` ``"start"`` or ``"done"`` (and ``wall_s``).
 
     Returns:
       The path of ``report/report.md``.
@@ -321,10 +331,45 @@ def reproduce(
         if callback is not None:
             callback({**event, "arm": jobs[event["run"]][0]})
 
-    results = []
-    for arm in arms:  # one meta per arm, so each run directory names its arm
+    if overlap_condition is None:
+        overlap_condition = jax.default_backend() != "cpu"
+    done = out / "condition.json"
+    cond_cached = condition and _resume and done.is_file()  # written whole, at its end
+    background: _Background | None = None
+
+    def run_condition(best: Genome) -> dict:
+        """The condition experiment (V.A) on ``best``; writes ``condition.json``."""
+        t = time.perf_counter()
+        if callback is not None:
+            callback({"event": "condition", "phase": "start", "size": best.n_params})
+        # x64 for this experiment alone: the mode is global JAX state (thread-local under
+        # this context manager), and the evolution runs, and a run started after this call
+        # (a second reproduction in one process), must not see it.
+        x64 = jax.enable_x64(True) if condition_dtype == "float64" else contextlib.nullcontext()
+        with x64:
+            result = condition_experiment(
+                best,
+                task,
+                key=jax.random.key(seed + 10_000),
+                iters=condition_iters,
+                # The pruning rounds from the tuned weights need no more than the runs from
+                # random weights (and a short setting stays short).
+                prune_iters=min(condition_iters, 2000),
+                inits=condition_inits,
+                dtype=condition_dtype,
+            )
+        write_atomic(done, json.dumps(result) + "\n")
+        if callback is not None:
+            callback({"event": "condition", "phase": "done", "wall_s": time.perf_counter() - t})
+        return result
+
+    results: list = [None] * len(jobs)
+    # The arm without pruning runs first: the condition experiment needs its best network
+    # and can then overlap the other arms. The order changes no result (each run has its
+    # own key) and not the report's (``jobs``' order).
+    for arm in ["none"] + [a for a in arms if a != "none"]:  # one meta per arm
         idx = [i for i, (a, _) in enumerate(jobs) if a == arm]
-        results += run_many(
+        arm_results = run_many(
             task,
             [jax.random.key(jobs[i][1]) for i in idx],
             config=[configs[i] for i in idx],
@@ -339,6 +384,10 @@ def reproduce(
             resume=_resume,
             lockstep=lockstep,
         )
+        for i, r in zip(idx, arm_results, strict=True):
+            results[i] = r
+        if arm == "none" and condition and not cond_cached and overlap_condition:
+            background = _Background(run_condition, _best_unpruned(jobs, results))
     wall = time.perf_counter() - t0
     extra: dict = {"wall_s": wall, "device": jax.devices()[0].device_kind}
     if _resume:
@@ -351,30 +400,44 @@ def reproduce(
             gen.setdefault(arm, []).append(float(np.asarray(task.generalisation(nets))[0]))
         extra["generalisation"] = gen
     cond = None
-    done = out / "condition.json"
-    if condition and _resume and done.is_file():  # written whole, after the experiment
+    if cond_cached:
         cond = json.loads(done.read_text(encoding="utf-8"))
+    elif background is not None:
+        cond = background.result()
     elif condition:
-        unpruned = [r for (arm, _), r in zip(jobs, results, strict=True) if arm == "none"]
-        best = min(unpruned, key=lambda r: r.generations[-1].best_cost)
-        # x64 for this experiment alone: the mode is global JAX state, and a run started
-        # after this call (a second reproduction in one process) must not see it.
-        x64 = jax.enable_x64(True) if condition_dtype == "float64" else contextlib.nullcontext()
-        with x64:
-            cond = condition_experiment(
-                best.best,
-                task,
-                key=jax.random.key(seed + 10_000),
-                iters=condition_iters,
-                # The pruning rounds from the tuned weights need no more than the runs from
-                # random weights (and a short setting stays short).
-                prune_iters=min(condition_iters, 2000),
-                inits=condition_inits,
-                dtype=condition_dtype,
-            )
-        write_atomic(done, json.dumps(cond) + "\n")
+        cond = run_condition(_best_unpruned(jobs, results))
     extra["notes"] = _claims(dirs, cond)
     return report([str(d) for d in dirs], out / "report", extra=extra, condition=cond)
+
+
+def _best_unpruned(jobs: Sequence[tuple[str, int]], results: Sequence) -> Genome:
+    """The best network of the arm without pruning (by its last generation's cost)."""
+    unpruned = [r for (arm, _), r in zip(jobs, results, strict=True) if arm == "none"]
+    return min(unpruned, key=lambda r: r.generations[-1].best_cost).best
+
+
+class _Background:
+    """``fn(*args)`` in a daemon thread; `result` joins it and re-raises its error. A
+    daemon, so that an interrupted reproduction exits without waiting for it (its output
+    is written whole at its end or not at all)."""
+
+    def __init__(self, fn: Callable, *args):
+        self._out: dict = {}
+
+        def target():
+            try:
+                self._out["value"] = fn(*args)
+            except BaseException as e:  # noqa: BLE001 -- handed to the joining thread
+                self._out["error"] = e
+
+        self._thread = threading.Thread(target=target, name="eant2-condition", daemon=True)
+        self._thread.start()
+
+    def result(self):
+        self._thread.join()
+        if "error" in self._out:
+            raise self._out["error"]
+        return self._out["value"]
 
 
 def resume_reproduction(out: str | Path, *, callback: Callable[[dict], None] | None = None) -> Path:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import statistics
 import subprocess
 import tempfile
 import time
@@ -21,7 +22,14 @@ from pathlib import Path
 from typing import Any
 
 from bench import harness
-from bench.common import Column, child_env, eant2_argv, environment, markdown_table
+from bench.common import (
+    BenchInputError,
+    Column,
+    child_env,
+    eant2_argv,
+    environment,
+    markdown_table,
+)
 
 _GEN = re.compile(r"^gen (\d+)/\d+ \|")
 
@@ -57,13 +65,40 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     payload: dict[str, Any] = {"environment": environment(), "config": harness.settings(args),
                                "rows": []}  # fmt: skip
     installs = [("this", None)] + [(f"other:{p}", p) for p in args.pythonpath]
-    for label, path in installs:
-        with tempfile.TemporaryDirectory() as cache:
-            for case in ("cold", "warm"):
-                r = _one(args, cache, path)
-                payload["rows"].append({"install": label, "cache": case, **r})
-                save(payload)
+    # Rounds alternate the installs, so that a drift of the machine (another tenant, a
+    # clock) falls on all of them alike.
+    for rnd in range(args.rounds):
+        for label, path in installs:
+            with tempfile.TemporaryDirectory() as cache:
+                for case in ("cold", "warm"):
+                    r = _one(args, cache, path)
+                    payload["rows"].append({"install": label, "cache": case, "round": rnd, **r})
+                    save(payload)
     return payload
+
+
+def medians(rows: list[dict]) -> list[dict]:
+    """Per install and cache, the median over rounds of each generation's time and of the
+    time to exit (the rows of one (install, cache) have the same generations)."""
+    out = []
+    for key in dict.fromkeys((r["install"], r["cache"]) for r in rows):
+        group = [r for r in rows if (r["install"], r["cache"]) == key]
+        gens = list(zip(*(r["generations_s"] for r in group), strict=True))
+        out.append({
+            "install": key[0], "cache": key[1], "round": f"median of {len(group)}",
+            "generations_s": [statistics.median(g) for g in gens],
+            "total_s": statistics.median(r["total_s"] for r in group),
+            "compiling_events": group[0]["compiling_events"],
+        })  # fmt: skip
+    return out
+
+
+def _render(payload: dict) -> str:
+    rows = payload["rows"]
+    if len({r.get("round", 0) for r in rows}) < 2:
+        return markdown_table(rows, COLUMNS)
+    return (markdown_table(medians(rows), COLUMNS) + "\n\nEach round:\n\n"
+            + markdown_table(rows, COLUMNS))  # fmt: skip
 
 
 def _options(p: argparse.ArgumentParser) -> None:
@@ -73,11 +108,15 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--pythonpath", nargs="*", default=[],
                    help="other installs of eant2_jax to time side by side")  # fmt: skip
+    p.add_argument("--rounds", type=int, default=1,
+                   help="cold and warm runs of each install, N times, alternating")  # fmt: skip
     p.add_argument("--extra", nargs=argparse.REMAINDER, default=[],
                    help="further arguments of eant2 run (last)")  # fmt: skip
 
 
 def _prepare(args: argparse.Namespace) -> None:
+    if args.rounds < 1:
+        raise BenchInputError("--rounds must be at least 1")
     if args.quick:
         args.task, args.population, args.generations = "xor", 2, 1
 
@@ -85,6 +124,7 @@ def _prepare(args: argparse.Namespace) -> None:
 COLUMNS = [
     Column("install", "install"),
     Column("cache", "cache"),
+    Column(lambda r: r.get("round", 0), "round"),
     Column(
         lambda r: " / ".join(f"{s:.1f}" for s in r["generations_s"]), "s to end of gen 0 / 1 / ..."
     ),  # fmt: skip
@@ -98,7 +138,7 @@ SUITE = harness.Suite(
     description=__doc__,
     options=_options,
     run=run,
-    render=lambda payload: markdown_table(payload["rows"], COLUMNS),
+    render=_render,
     prepare=_prepare,
 )
 

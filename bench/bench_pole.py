@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
+import contextlib
 import json
 import statistics
 import threading
@@ -59,7 +60,7 @@ from eant2_jax.compiler import networks
 from eant2_jax.genome import Genome
 from eant2_jax.tasks import pole
 
-__all__ = ["PUBLISHED", "main", "solution_test", "solve_once"]
+__all__ = ["PUBLISHED", "main", "solution_test", "solve_once", "test_device"]
 
 # Gomez, Schmidhuber & Miikkulainen (2008), JMLR 9: table 3 (DPV) and table 4 (DPNV, damping
 # fitness); mean evaluations to solve.
@@ -82,18 +83,25 @@ class _OverBudget(Exception):
     pass
 
 
-def solution_test(task, passed: list | None = None) -> Callable[[Genome], bool]:
+def solution_test(
+    task, passed: list | None = None, device: jax.Device | None = None
+) -> Callable[[Genome], bool]:
     """The bench's ``solution_test``: `pole.solved` of one genome, screened first.
 
     The screen is `pole.solved` with a 1,000-step long run (the 625 starts included): a
     network that fails it fails the full test, which then runs only for the rest (its
     100,000-step run is the slow part, seconds on a GPU). Neither is counted as evaluations.
-    A genome that passes is appended to ``passed``.
+    A genome that passes is appended to ``passed``. ``device``: where the test runs (the
+    task and the network are put there; default: JAX's default device).
     """
+    if device is not None:
+        task = jax.device_put(task, device)
 
     def test(genome: Genome) -> bool:
-        net = jax.tree.map(lambda a: a[0], networks([genome], task.n_inputs))
-        ok = pole.solved(task, net, long_steps=1000)["solved"] and pole.solved(task, net)["solved"]
+        with _on(device):
+            net = jax.tree.map(lambda a: a[0], networks([genome], task.n_inputs))
+            ok = (pole.solved(task, net, long_steps=1000)["solved"]
+                  and pole.solved(task, net)["solved"])  # fmt: skip
         if ok and passed is not None:
             passed.append(genome)
         return ok
@@ -101,7 +109,19 @@ def solution_test(task, passed: list | None = None) -> Callable[[Genome], bool]:
     return test
 
 
-def solve_once(task, seed: int, config: loop.EANT2Config, budget: int) -> dict:
+def _on(device: jax.Device | None):
+    """``jax.default_device(device)``, or nothing for None."""
+    return contextlib.nullcontext() if device is None else jax.default_device(device)
+
+
+def test_device(name: str) -> jax.Device | None:
+    """``--test-device``: ``cpu`` (the host's CPU; also on a GPU machine) or ``default``."""
+    return None if name == "default" else jax.devices("cpu")[0]
+
+
+def solve_once(
+    task, seed: int, config: loop.EANT2Config, budget: int, device: jax.Device | None = None
+) -> dict:
     """One EANT2 run until its solution test passes or ``budget`` evaluations; its record.
 
     A run is solved when a network passes the test with at most ``budget`` evaluations
@@ -127,14 +147,16 @@ def solve_once(task, seed: int, config: loop.EANT2Config, budget: int) -> dict:
             config=config,
             generations=10**6,
             callback=on_event,
-            solution_test=solution_test(task, passed),
+            solution_test=solution_test(task, passed, device),
         )
     except _OverBudget:
         result = None
     if result is not None and result.solution is not None and info["evaluations"] <= budget:
         genome = result.solution.genome
-        net = jax.tree.map(lambda a: a[0], networks([genome], task.n_inputs))
-        info.update(solved=True, genome=str(genome), check=pole.solved(task, net))
+        with _on(device):
+            net = jax.tree.map(lambda a: a[0], networks([genome], task.n_inputs))
+            check = pole.solved(jax.device_put(task, device) if device else task, net)
+        info.update(solved=True, genome=str(genome), check=check)
         info["solution_cost"] = result.solution.cost
     info["wall_s"] = time.perf_counter() - t0
     return info
@@ -217,6 +239,13 @@ def _options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--workers", type=int, default=1, help="runs in flight at once (threads; default 1)"
+    )
+    p.add_argument(
+        "--test-device",
+        choices=["cpu", "default"],
+        default="cpu",
+        help="where the solution test runs: the host's CPU (default; on a GPU machine the "
+        "evolution stays on the GPU) or JAX's default device",
     )
     p.add_argument(
         "--merge",
@@ -329,10 +358,11 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     for name in args.tasks:
         runs[name] = []
     lock = threading.Lock()
+    device = test_device(args.test_device)
 
     def one(job):
         name, s = job
-        info = solve_once(tasks[name], s, configs[name], args.budget)
+        info = solve_once(tasks[name], s, configs[name], args.budget, device)
         with lock:
             runs[name].append(info)
             runs[name].sort(key=lambda r: r["seed"])

@@ -408,14 +408,23 @@ class _Tuned(NamedTuple):
     solution: int | None
 
 
+@jax.jit
+def _generation_keys(key: jax.Array, gen: int | jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``split(fold_in(key, gen))``: a generation's mutation and exploitation keys. One
+    program: run eagerly, the same integer operations compile four (the conversion,
+    ``fold_in``, ``split`` and the unpacking), each a fraction of a second on a GPU when the
+    cache is cold."""
+    mut_key, exp_key = jax.random.split(jax.random.fold_in(key, gen))
+    return mut_key, exp_key
+
+
 def _breed(task: Task, state: RunState | None, key: jax.Array, config: EANT2Config) -> _Brood:
     """A generation's start: the initial structures (generation 0), else the parents'
     offspring (and the parents themselves with ``reexploit``)."""
     t0 = time.perf_counter()
     compiled = compilestats.snapshot()
     gen = 0 if state is None else state.generation + 1
-    gkey = jax.random.fold_in(key, gen)
-    mut_key, exp_key = jax.random.split(gkey)
+    mut_key, exp_key = _generation_keys(key, gen)
     starts: list[Search | None] | None = None  # warm starts (inherit_search)
     if state is None:
         genomes, next_id = _initialise(task, mut_key, config)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import math
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
@@ -155,6 +156,14 @@ class Prepared(NamedTuple):
     popsize: int
 
 
+@functools.partial(jax.jit, static_argnums=1)
+def _row_keys(key: jax.Array, rows: int, count: int | jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``fold_in(key, i)`` for each row ``i`` and whether the row holds a structure (``i <
+    count``), in one program (eagerly, four small ones: see `eant2_jax.loop`)."""
+    i = jnp.arange(rows)
+    return jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, i), i < count
+
+
 def prepare(
     genomes: Sequence[Genome],
     task: Task,
@@ -184,11 +193,10 @@ def prepare(
     )
     rows = batch.layout.slot.shape[0]
     popsize = popsize_for(config, batch)
-    if keys is None:
-        keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, jnp.arange(rows))
-    elif keys.shape[0] != rows:
+    if keys is not None and keys.shape[0] != rows:
         raise ValueError(f"keys: {keys.shape[0]} keys for a batch of {rows} rows")
-    active = jnp.arange(rows) < batch.count
+    row_keys, active = _row_keys(key, rows, batch.count)
+    keys = row_keys if keys is None else keys
     cov = sigma = None
     if start is not None and any(w is not None for w in start):
         width = batch.weights.shape[-1]

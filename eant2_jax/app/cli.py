@@ -696,6 +696,7 @@ def main(argv: list[str] | None = None) -> int:
     from eant2_jax.distributed import initialize
 
     initialize()  # joins a multi-process run when EANT2_COORDINATOR etc. are set
+    backend = _start_backend() if args.func in (_run, _resume, _reproduce) else None
     try:
         return args.func(args)
     except KeyboardInterrupt:
@@ -710,6 +711,31 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as e:
         print(f"eant2: error: {e}", file=sys.stderr)
         return 2
+    finally:
+        if backend is not None:  # never exit while it is inside the runtime's start
+            backend.join()
+
+
+def _start_backend():
+    """Start JAX's backend in a daemon thread and return the thread: the runtime's start and
+    the first transfer to the default device (on a GPU, the context and the allocator's
+    pool: about 1 s on an H100 host, docs/benchmarks.md, "Cold start") then overlap the
+    imports of the task (MuJoCo MJX: 2-3 s there) instead of following them. Nothing is
+    computed; an error is left for the main thread to meet at its first JAX call. JAX itself
+    is imported here, in this thread, so that the two threads never import it at once."""
+    import threading
+
+    import jax
+
+    def start():
+        try:
+            jax.device_put(np.float32(0)).block_until_ready()
+        except Exception:  # noqa: BLE001, S110 -- the main thread raises it, with context
+            pass
+
+    thread = threading.Thread(target=start, name="eant2-backend", daemon=True)
+    thread.start()
+    return thread
 
 
 def entry() -> None:

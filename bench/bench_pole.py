@@ -91,8 +91,9 @@ def solution_test(
     The screen is `pole.solved` with a 1,000-step long run (the 625 starts included): a
     network that fails it fails the full test, which then runs only for the rest (its
     100,000-step run is the slow part, seconds on a GPU). Neither is counted as evaluations.
-    A genome that passes is appended to ``passed``. ``device``: where the test runs (the
-    task and the network are put there; default: JAX's default device).
+    A genome that passes is appended to ``passed`` with its full check (`pole.solved`'s
+    dict). ``device``: where the test runs (the task and the network are put there;
+    default: JAX's default device).
     """
     if device is not None:
         task = jax.device_put(task, device)
@@ -100,11 +101,12 @@ def solution_test(
     def test(genome: Genome) -> bool:
         with _on(device):
             net = jax.tree.map(lambda a: a[0], networks([genome], task.n_inputs))
-            ok = (pole.solved(task, net, long_steps=1000)["solved"]
-                  and pole.solved(task, net)["solved"])  # fmt: skip
-        if ok and passed is not None:
-            passed.append(genome)
-        return ok
+            if not pole.solved(task, net, long_steps=1000)["solved"]:
+                return False
+            check = pole.solved(task, net)
+        if check["solved"] and passed is not None:
+            passed.append((genome, check))
+        return check["solved"]
 
     return test
 
@@ -129,7 +131,7 @@ def solve_once(
     """
     t0 = time.perf_counter()
     info: dict[str, Any] = {"seed": seed, "solved": False, "evaluations": None, "generations": 0}
-    passed: list[Genome] = []
+    passed: list[tuple[Genome, dict]] = []
 
     def on_event(event):
         if event["event"] != "generation":
@@ -153,9 +155,8 @@ def solve_once(
         result = None
     if result is not None and result.solution is not None and info["evaluations"] <= budget:
         genome = result.solution.genome
-        with _on(device):
-            net = jax.tree.map(lambda a: a[0], networks([genome], task.n_inputs))
-            check = pole.solved(jax.device_put(task, device) if device else task, net)
+        # The solution is the genome that passed the test, which checked it in full.
+        check = next(c for g, c in passed if str(g) == str(genome))
         info.update(solved=True, genome=str(genome), check=check)
         info["solution_cost"] = result.solution.cost
     info["wall_s"] = time.perf_counter() - t0

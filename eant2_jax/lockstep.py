@@ -57,7 +57,7 @@ from .loop import (
 from .rundir import RunDir
 from .tasks import check_task
 from .tasks.base import Task
-from .tuning import tune
+from .tuning import start_keys, tune
 
 __all__ = ["run_lockstep"]
 
@@ -215,13 +215,10 @@ def _tune_together(
     # Row j of a brood starts from the key it gets in its run alone (`tuning.tune`: row j
     # of a batch tuned with key k starts from fold_in(split(k)[0], j)); padding rows from
     # the last brood's key, past its rows.
-    fold = jax.vmap(jax.random.fold_in, in_axes=(None, 0))
     counts = [len(b.new) for b in broods]
     counts[-1] += rows - len(genomes)
     init_keys = [jax.random.split(b.exp_key)[0] for b in broods]
-    row_keys = jnp.concatenate(
-        [fold(k, jnp.arange(n)) for k, n in zip(init_keys, counts, strict=True)]
-    )
+    row_keys = jnp.concatenate([start_keys(k, n) for k, n in zip(init_keys, counts, strict=True)])
     res = tune(
         genomes,
         task,

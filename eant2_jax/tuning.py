@@ -157,11 +157,12 @@ class Prepared(NamedTuple):
 
 
 @functools.partial(jax.jit, static_argnums=1)
-def _row_keys(key: jax.Array, rows: int, count: int | jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``fold_in(key, i)`` for each row ``i`` and whether the row holds a structure (``i <
-    count``), in one program (eagerly, four small ones: see `eant2_jax.loop`)."""
-    i = jnp.arange(rows)
-    return jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, i), i < count
+def start_keys(key: jax.Array, rows: int) -> jax.Array:
+    """``[rows]`` keys ``fold_in(key, i)``: row ``i``'s start key in a batch that `tune`
+    starts with ``key`` (`eant2_jax.run_lockstep` builds its rows from the same rule). One
+    program: eagerly, the index vector, its conversion and the ``fold_in`` compile one
+    small program each, a fraction of a second apiece on a GPU when the cache is cold."""
+    return jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, jnp.arange(rows))
 
 
 def prepare(
@@ -193,10 +194,12 @@ def prepare(
     )
     rows = batch.layout.slot.shape[0]
     popsize = popsize_for(config, batch)
-    if keys is not None and keys.shape[0] != rows:
+    if keys is None:
+        keys = start_keys(key, rows)
+    elif keys.shape[0] != rows:
         raise ValueError(f"keys: {keys.shape[0]} keys for a batch of {rows} rows")
-    row_keys, active = _row_keys(key, rows, batch.count)
-    keys = row_keys if keys is None else keys
+    # Made on the host and transferred: no program to compile (`jnp` would compile two).
+    active = jax.device_put(np.arange(rows) < batch.count)
     cov = sigma = None
     if start is not None and any(w is not None for w in start):
         width = batch.weights.shape[-1]

@@ -95,5 +95,5 @@ def test_a_background_error_reaches_the_caller():
         raise ValueError(f"bad {x}")
 
     with pytest.raises(ValueError, match="bad 3"):
-        _Background(boom, 3).result()
-    assert _Background(lambda x: x + 1, 3).result() == 4
+        _Background("t", boom, 3).result()
+    assert _Background("t", lambda x: x + 1, 3).result() == 4

@@ -340,7 +340,9 @@ def reproduce(
     # The reference controllers' costs need nothing from the runs: with the overlap they
     # are computed in the background while the first arm runs.
     reporting = isinstance(task, ReportingTask)
-    baselines = _Background(task.baselines) if reporting and overlap_condition else None
+    baselines = None
+    if reporting and overlap_condition:
+        baselines = _Background("eant2-baselines", task.baselines)
 
     def run_condition(best: Genome) -> dict:
         """The condition experiment (V.A) on ``best``; writes ``condition.json``."""
@@ -392,7 +394,9 @@ def reproduce(
         for i, r in zip(idx, arm_results, strict=True):
             results[i] = r
         if arm == "none" and condition and not cond_cached and overlap_condition:
-            background = _Background(run_condition, _best_unpruned(jobs, results))
+            background = _Background(
+                "eant2-condition", run_condition, _best_unpruned(jobs, results)
+            )
     wall = time.perf_counter() - t0
     extra: dict = {"wall_s": wall, "device": jax.devices()[0].device_kind}
     if _resume:
@@ -427,11 +431,12 @@ def _best_unpruned(jobs: Sequence[tuple[str, int]], results: Sequence) -> Genome
 
 
 class _Background:
-    """``fn(*args)`` in a daemon thread; `result` joins it and re-raises its error. A
-    daemon, so that an interrupted reproduction exits without waiting for it (its output
-    is written whole at its end or not at all)."""
+    """``fn(*args)`` in a daemon thread named ``name``; `result` joins it and re-raises its
+    error. A daemon (unlike a ``concurrent.futures`` worker, which the interpreter joins at
+    exit), so that an interrupted reproduction exits without waiting for it (its output is
+    written whole at its end or not at all)."""
 
-    def __init__(self, fn: Callable, *args):
+    def __init__(self, name: str, fn: Callable, *args):
         self._out: dict = {}
 
         def target():
@@ -440,7 +445,7 @@ class _Background:
             except BaseException as e:  # noqa: BLE001 -- handed to the joining thread
                 self._out["error"] = e
 
-        self._thread = threading.Thread(target=target, name="eant2-condition", daemon=True)
+        self._thread = threading.Thread(target=target, name=name, daemon=True)
         self._thread.start()
 
     def result(self):

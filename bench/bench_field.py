@@ -21,7 +21,8 @@ environment's default budget), or at ``--deadline-s`` seconds from its start.
 environment's ``episodes`` episodes (TensorNEAT's ``repeat_times``), at most ``max_steps``
 steps each, ended when the environment says done; the environment's own reward. Each
 method keeps its own input and output conventions: eant2_jax maps bounded observation
-dimensions to [-1, 1] (docs/tasks-custom.md), TensorNEAT feeds raw observations; a discrete
+dimensions to [-1, 1] (docs/tasks-custom.md; raw on Acrobot, ``Env.normalize``),
+TensorNEAT feeds raw observations; a discrete
 action is the argmax of one output per action on both; a continuous one is ``tanh`` of the
 outputs scaled onto the action bounds on both. brax runs the same ``--backend`` on both.
 On ``servo`` (the paper's task, deterministic: ``tasks.make("servo")``) TensorNEAT's
@@ -79,6 +80,11 @@ class Env:
       max_steps: steps per episode at most.
       budget: default evaluation budget per run.
       population, max_iters: eant2_jax's settings for it.
+      normalize: eant2_jax's gymnax input convention (`eant2_jax.tasks.gymnax_task`):
+        ``"bounds"`` maps bounded observation dimensions to [-1, 1], ``"none"`` feeds them
+        raw, as TensorNEAT does. Acrobot's velocity bounds (4 pi and 9 pi rad/s) lie far
+        beyond an episode's velocities, so bound-scaling shrinks the input a good policy
+        turns on (the direction of swing) by 10-30x: it runs raw.
       tensorneat: options of TensorNEAT's own example for it, where they differ from its
         cartpole/hopper examples: ``max_nodes``, ``max_conns``, ``activation`` (an
         ``ACT`` name) and ``obs_norm_episodes`` (observation normalisation from that many
@@ -97,13 +103,19 @@ class Env:
     population: int
     max_iters: int
     tensorneat: tuple[tuple[str, Any], ...] = ()
+    normalize: str = "bounds"
 
 
 ENVS = {
     "cartpole": Env("gymnax", "CartPole-v1", 4, 2, True, 1.0, 5, 500, 20_000, 10, 100),
-    "acrobot": Env("gymnax", "Acrobot-v1", 6, 3, True, 1.0, 5, 500, 20_000, 10, 100),
+    "acrobot": Env(
+        "gymnax", "Acrobot-v1", 6, 3, True, 1.0, 5, 500, 20_000, 10, 100, normalize="none"
+    ),
     "pendulum": Env("gymnax", "Pendulum-v1", 3, 1, False, 2.0, 5, 200, 50_000, 10, 200),
-    "hopper": Env("brax", "hopper", 11, 3, False, 1.0, 1, 1000, 50_000, 10, 100),
+    # brax: 20 CMA-ES iterations per generation, not 100. An iteration is a 1,000-step
+    # episode run one step after another whatever the batch, so a generation's wall time
+    # is its iterations; shorter ones report champions (and select structures) 5x as often.
+    "hopper": Env("brax", "hopper", 11, 3, False, 1.0, 1, 1000, 50_000, 10, 20),
     # TensorNEAT's examples/brax/halfcheetah.py: bigger genomes, scaled tanh, normalisation.
     "halfcheetah": Env(
         "brax",
@@ -145,7 +157,8 @@ def _task(env: Env, args: argparse.Namespace, episodes: int):
     if env.family == "servo":
         return tasks.make("servo")
     if env.family == "gymnax":
-        return tasks.make(f"gymnax:{env.name}", episodes=episodes, max_steps=env.max_steps)
+        return tasks.make(f"gymnax:{env.name}", episodes=episodes, max_steps=env.max_steps,
+                          normalize=env.normalize)  # fmt: skip
     return tasks.make(
         f"brax:{env.name}", episodes=episodes, max_steps=env.max_steps, backend=args.backend
     )
@@ -425,8 +438,26 @@ def summarise(runs: list[dict]) -> list[dict]:
             tn_hit = first_reaching(tn["curve"], target)
             row["tn_wall_to_own_s"] = None if tn_hit is None else tn_hit["wall_s"]
             row["tn_evals_to_own"] = None if tn_hit is None else tn_hit["evaluations"]
+        row["verdict"] = _verdict(row)
         rows.append(row)
     return rows
+
+
+def _verdict(row: dict) -> str | None:
+    """The issue's test of one seed: ``"win"`` when eant2_jax's champion at TensorNEAT's
+    evaluations matches or beats TensorNEAT's final test return AND its champion reached
+    that return no later (wall time from process start) than TensorNEAT did; else what
+    failed (``"loss: return"``, ``"loss: wall"``, or both). None without both runs."""
+    target, at = row.get("tensorneat_return"), row.get("eant2_return_at_tn_evals")
+    if target is None or at is None:
+        return None
+    lost = []
+    if at < target:
+        lost.append("return")
+    mine, theirs = row.get("eant2_wall_to_tn_s"), row.get("tn_wall_to_own_s")
+    if mine is None or (theirs is not None and mine > theirs):
+        lost.append("wall")
+    return "win" if not lost else "loss: " + ", ".join(lost)
 
 
 def _status(run: dict | None) -> str:
@@ -488,7 +519,10 @@ def _options(p: argparse.ArgumentParser) -> None:
                    help="wall seconds per run from its process start")  # fmt: skip
     p.add_argument("--grace-s", type=float, default=300.0,
                    help="after its deadline a run has this long to test its champions")  # fmt: skip
-    p.add_argument("--test-episodes", type=int, default=20)
+    # 100: on Acrobot one champion's mean over 20 episodes still moved by +-4, the size of
+    # the differences between the methods.
+    p.add_argument("--test-episodes", type=int, default=100,
+                   help="new episodes each champion plays after the run")  # fmt: skip
     p.add_argument("--backend", default="spring", help="brax physics backend, both methods")
     p.add_argument("--population", type=int, default=None, help="eant2 population override")
     p.add_argument("--max-iters", type=int, default=None, help="eant2 CMA-ES iterations override")
@@ -559,12 +593,15 @@ def render(payload: dict[str, Any]) -> str:
                "wall s to TN's return (eant2 / TN)"),
         Column(_pair("eant2_size", "tensorneat_size"), "weights (eant2 / TN)"),
         Column(_pair("eant2_status", "tensorneat_status"), "status (eant2 / TN)"),
+        Column(lambda r: _fmt(r.get("verdict")), "verdict"),
     ]  # fmt: skip
     cfg = payload.get("config", {})
     note = (
         f"Test return: mean over {cfg.get('test_episodes', '?')} new episodes of the champion "
         f"at the end of the run. Wall time from process start, cold compilation cache. brax "
-        f"backend {cfg.get('backend', '?')}; TensorNEAT population {cfg.get('tensorneat_pop')}."
+        f"backend {cfg.get('backend', '?')}; TensorNEAT population {cfg.get('tensorneat_pop')}. "
+        "Verdict: a win when eant2_jax's champion at TensorNEAT's evaluations matches or "
+        "beats TensorNEAT's final test return and reached it no later from process start."
     )
     return markdown_table(rows, cols) + "\n" + note + "\n"
 

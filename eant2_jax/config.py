@@ -86,7 +86,10 @@ _STATIC_TYPES = {
     "prune_reference": str,
     "prune_at_stop": bool,
     "lazy_eigen": float,
+    "recommend": str,
+    "rescore": int,
 }
+RECOMMEND = ("best", "mean", "both")
 DTYPES = ("float32", "float64")
 # The default bound on cond(C) by the dtype of the CMA-ES state: float32 resolves an
 # eigenvalue to about 1e-7 of the largest, so a larger bound lets rounding noise through
@@ -162,6 +165,19 @@ class ExploitConfig:
         decomposes a structure's C only every ``f / (n (c_1 + c_mu))`` iterations (at least
         1; `kernels.cmaes.eigen_interval`): Hansen's tutorial uses f = 0.1, pycma 0.5. A
         pruning attempt always starts from a fresh decomposition.
+      recommend: *static*. On a noisy task (``task.noisy``), which point of each search
+        becomes the tuned network: ``"best"``, the best candidate the search saw (on its
+        iterations' episodes, so the luckiest draw as much as the best weights);
+        ``"mean"``, the final distribution mean (pycma's ``xfavorite``, the usual
+        recommendation under noise); or ``"both"`` (default), whichever of the two scores
+        the lower cost on the fresh episodes of ``rescore``. A task that is not noisy
+        always takes the best candidate. Static only because it rides in this config: the
+        engine program does not read it.
+      rescore: *static*. On a noisy task, the tuned networks are scored on this many
+        fresh draws of the task's cost (each its own ``episodes``), averaged: a lower-noise
+        cost for selection and reports. Each draw counts one evaluation per scored
+        network. Run directories written before these two fields existed resume with
+        ``recommend="best"``, ``rescore=1``, as they ran.
 
     The defaults prune tentatively (re-fit, acceptance against the best cost, an attempt at
     every stop); `literal` gives the paper's rule as written. docs/pruning.md says why.
@@ -191,6 +207,8 @@ class ExploitConfig:
     prune_reference: str = _static("best")
     prune_at_stop: bool = _static(True)
     lazy_eigen: float = _static(0.0)
+    recommend: str = _static("both")
+    rescore: int = _static(4)
 
     def __post_init__(self):
         # JAX rebuilds this pytree with tracers (or other placeholders) as leaves when it
@@ -273,6 +291,8 @@ class ExploitConfig:
             ),
             ("prune_reference", self.prune_reference in ("mean", "best"), "'mean' or 'best'"),
             ("prune_at_stop", isinstance(self.prune_at_stop, bool), "True or False"),
+            ("recommend", self.recommend in RECOMMEND, f"one of {', '.join(RECOMMEND)}"),
+            ("rescore", self.rescore >= 1, ">= 1"),
         ]
         for name, ok, want in checks:
             if not ok:
@@ -364,7 +384,7 @@ _ADDED_LATER = {
     "max_evaluations": None,
     "inherit_search": False,
 }
-_EXPLOIT_ADDED_LATER = {"lazy_eigen": 0.0, "tolfun": None}
+_EXPLOIT_ADDED_LATER = {"lazy_eigen": 0.0, "tolfun": None, "recommend": "best", "rescore": 1}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -11,7 +11,9 @@ tests — goes through `tune`, which does the whole round trip once:
 6. gather the result to the host and turn each structure back into a genome, with the
    pruned genes dropped (`eant2_jax.pruning.prune_genome`);
 7. on a noisy task (``task.noisy``), score each tuned genome again on fresh episodes: the
-   best cost seen during a search is the best of many draws, an optimistic estimate.
+   best cost seen during a search is the best of many draws, an optimistic estimate. The
+   distribution mean is scored too, and the lower of the two kept
+   (``ExploitConfig.recommend``, ``ExploitConfig.rescore``).
 
 `cost` is the other host entry point: the task's cost of genomes as they stand.
 """
@@ -22,6 +24,7 @@ import dataclasses
 import difflib
 import functools
 import math
+import threading
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
@@ -239,6 +242,9 @@ class Tuned:
         not noisy).
       solution: the index of the structure whose best network passed ``solution_test``
         (its entry in ``genomes`` is that network), or None.
+      picked: which point of each search the entry in ``genomes`` is: ``"best"`` (the
+        best candidate seen) or, on a noisy task with ``config.recommend`` other than
+        "best", ``"mean"`` (the distribution mean scored lower on the fresh episodes).
       searches: with ``keep_search``, each structure's final search distribution on the
         genes of its entry in ``genomes`` (None where no cost was finite, or where the
         network is the solution found mid-search); else None.
@@ -254,6 +260,7 @@ class Tuned:
     search_costs: list[float]
     solution: int | None = None
     searches: list[Search | None] | None = None
+    picked: list[str] | None = None
 
 
 class _Watch:
@@ -345,6 +352,12 @@ def tune(
         start=start,
     )
     watch = None if solution_test is None else _Watch(genomes, solution_test)
+    rescorer = None
+    if getattr(task, "noisy", False):
+        rescorer = _Rescorer(
+            genomes, task, key, config,
+            rows=prep.batch.layout.slot.shape[0], bucket=prep.batch.bucket, pad_count=pad_count,
+        )  # fmt: skip
     st, hist = ex.run(
         prep.state,
         prep.batch.layout,
@@ -393,22 +406,14 @@ def tune(
     count = len(genomes)
     evaluations = [int(e) for e in spent[:count]]
     search_costs = list(costs)
-    if getattr(task, "noisy", False):
-        # A key no CMA-ES iteration used (those fold the iteration number into run_key).
-        fresh_key = jax.random.split(key, 3)[2]
-        batch = compile_genomes(
-            tuned,
-            task.n_inputs,
-            bucket=prep.batch.bucket,
-            min_rows=prep.batch.layout.slot.shape[0],
-            pad_count=pad_count,
+    picked = ["best"] * count
+    if rescorer is not None:
+        mean = None
+        if config.recommend != "best":
+            mean = np.asarray(distributed.gather(st.cma.mean), np.float64)
+        tuned, costs, evaluations, picked = _rescore(
+            genomes, tuned, costs, evaluations, mean, mask, solution, config, rescorer
         )
-        fresh = np.asarray(_cost_batch(batch.layout, batch.weights, task, fresh_key), np.float64)
-        costs = [
-            float(f) if np.isfinite(c) and np.isfinite(f) else float("inf")
-            for c, f in zip(costs, fresh[:count], strict=True)
-        ]
-        evaluations = [e + 1 for e in evaluations]
     return Tuned(
         genomes=tuned,
         costs=costs,
@@ -420,7 +425,111 @@ def tune(
         search_costs=search_costs,
         solution=solution,
         searches=searches,
+        picked=picked,
     )
+
+
+def _rescore(genomes, tuned, costs, evaluations, mean, mask, solution, config, rescorer):
+    """`tune`'s step 7 on a noisy task: each structure's candidates (its best point, and
+    with ``config.recommend`` != "best" its distribution mean) scored on ``config.rescore``
+    fresh draws of the task's cost, and the one to keep: ``(tuned, costs, evaluations,
+    picked)``. The network that passed a solution test stays as it is (only re-scored)."""
+    cands: list[tuple[int, str, Genome]] = []
+    for i, g in enumerate(genomes):
+        has_mean = mean is not None and i != solution and np.isfinite(costs[i])
+        if config.recommend != "mean" or not has_mean:
+            cands.append((i, "best", tuned[i]))
+        if has_mean:
+            n = g.n_params
+            cands.append((i, "mean", prune_genome(g, mask[i, :n], mean[i, :n])))
+    fresh = rescorer([c[2] for c in cands])
+    tuned, evaluations = list(tuned), list(evaluations)
+    new_costs = [float("inf")] * len(genomes)
+    picked = ["best"] * len(genomes)
+    seen: set[int] = set()
+    for (i, which, g), f in zip(cands, fresh, strict=True):
+        evaluations[i] += config.rescore
+        f = float(f) if np.isfinite(costs[i]) and np.isfinite(f) else float("inf")
+        if i not in seen or f < new_costs[i]:  # the lower fresh cost; a tie keeps the best
+            tuned[i], new_costs[i], picked[i] = g, f, which
+        seen.add(i)
+    return tuned, new_costs, evaluations, picked
+
+
+def _compile_ahead() -> bool:
+    """Whether `_Rescorer` compiles in a background thread (on an accelerator)."""
+    return jax.default_backend() != "cpu"
+
+
+class _Rescorer:
+    """The program that scores tuned networks on fresh episodes (`tune`'s step 7).
+
+    Its inputs' shapes are known before the engine runs: the engine's bucket, and a row
+    count fixed by the engine's (twice it when the mean is scored too), so the program is
+    compiled once per bucket, not per generation. On an accelerator it is compiled in a
+    background thread while the engine runs, off the critical path (a brax episode program
+    takes seconds to compile). Not on a CPU, where XLA's compiler would compete with the
+    engine for the few cores (and two programs at once can deadlock XLA's thread pool).
+    Calling it waits for that compilation and scores a list of genomes:
+    ``float64[len(genomes)]``.
+    """
+
+    def __init__(self, genomes, task, key, config, *, rows, bucket, pad_count):
+        self._genomes, self._task, self._key = list(genomes), task, key
+        self._rescore = config.rescore
+        per_row = 1 if config.recommend == "best" else 2
+        self._compile_args = dict(bucket=bucket, min_rows=rows * per_row, pad_count=pad_count)
+        self._compiled = None
+        self._thread = None
+        self.used_ahead = False  # whether the program compiled ahead was the one called
+        if _compile_ahead():
+            self._thread = threading.Thread(
+                target=self._compile, name="eant2-rescore-compile", daemon=True
+            )
+            self._thread.start()
+
+    def _batch(self, genomes):
+        return compile_genomes(genomes, self._task.n_inputs, **self._compile_args)
+
+    def _program(self):
+        # A key no CMA-ES iteration used (those fold the iteration number into run_key).
+        fresh_key = jax.random.split(self._key, 3)[2]
+        if self._rescore == 1:  # one draw: the key itself, as runs before `rescore` drew it
+            return _cost_batch, fresh_key
+        return _cost_draws, jax.random.split(fresh_key, self._rescore)
+
+    def _compile(self):
+        try:
+            batch = self._batch(self._genomes)
+            fn, keys = self._program()
+            self._compiled = fn.lower(batch.layout, batch.weights, self._task, keys).compile()
+        except Exception:  # noqa: BLE001 - the call below compiles it the usual way
+            self._compiled = None
+
+    def __call__(self, genomes) -> np.ndarray:
+        batch = self._batch(genomes)
+        fn, keys = self._program()
+        if self._thread is not None:
+            self._thread.join()
+        costs = None
+        if self._compiled is not None:
+            try:
+                costs = self._compiled(batch.layout, batch.weights, self._task, keys)
+                self.used_ahead = True
+            except (TypeError, ValueError):  # other shapes than foreseen: jit's own path
+                costs = None
+        if costs is None:
+            costs = fn(batch.layout, batch.weights, self._task, keys)
+        return np.asarray(costs, np.float64)[: len(genomes)]
+
+
+@jax.jit
+def _cost_draws(layout, weights, task, keys):
+    """The mean cost over ``keys`` (one draw of the task's episodes each), all in one
+    batch."""
+    nets = network_batch(layout, weights)
+    costs = jax.vmap(lambda k: task.cost(k, nets))(keys)
+    return check_costs(task, jnp.mean(costs, axis=0), weights.shape[:1])
 
 
 class OptimizeResult(NamedTuple):

@@ -33,6 +33,10 @@ def test_summary_compares_at_tensorneats_final_return_and_budget():
     assert (row["tn_wall_to_own_s"], row["tn_evals_to_own"]) == (25.0, 2000)
     assert (row["eant2_size"], row["tensorneat_size"]) == (7, 31)
     assert (row["eant2_status"], row["tensorneat_status"]) == ("ok", "ok")
+    assert row["verdict"] == "win"
+    # Later than TensorNEAT from process start: a loss on wall time alone.
+    slow = _run("eant2", [(100, 5.0, 50.0, 9), (300, 26.0, 420.0, 9), (900, 29.0, 500.0, 7)])
+    assert bench_field.summarise([slow, tn])[0]["verdict"] == "loss: wall"
 
 
 def test_summary_says_never_reached_killed_and_not_run():
@@ -41,8 +45,10 @@ def test_summary_says_never_reached_killed_and_not_run():
     (row,) = bench_field.summarise([eant2, tn])
     assert row["eant2_evals_to_tn"] is None and row["eant2_wall_to_tn_s"] is None
     assert (row["eant2_status"], row["tensorneat_status"]) == ("killed", "deadline")
+    assert row["verdict"] == "loss: return, wall"
     (alone,) = bench_field.summarise([_run("eant2", [(100, 5.0, 10.0, 9)], seed=3)])
     assert alone["tensorneat_status"] == "not run" and alone["eant2_evals_to_tn"] is None
+    assert alone["verdict"] is None
     assert bench_field.first_reaching(eant2["curve"], -math.inf) == eant2["curve"][0]
     md = bench_field.render({"runs": [eant2, tn], "config": {"test_episodes": 20}})
     assert "| cartpole | 0 | 10 / 300 |" in md and "killed / deadline" in md

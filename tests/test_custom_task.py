@@ -22,6 +22,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 from flax import struct
 
@@ -279,20 +280,90 @@ class Coin:
 
 @pytest.mark.parametrize("noisy", [True, False])
 def test_noisy_costs_are_reevaluated_on_fresh_episodes(noisy):
+    """Legacy settings (``recommend="best"``, ``rescore=1``): one fresh draw, of the key
+    ``split(key, 3)[2]``, one more evaluation."""
     key = jax.random.key(3)
-    config = ExploitConfig(max_iters=30, patience=1000)
+    config = ExploitConfig(max_iters=30, patience=1000, recommend="best", rescore=1)
     res = eant2_jax.tuning.tune(
         [eant2_jax.Genome.parse(XOR_GENOME)], Coin(noisy=noisy), key=key, config=config
     )
     # The search keeps the lowest of 30 draws: optimistic.
     assert res.search_costs[0] < 0.2
     engine_evals = int(res.history.evaluations[-1, 0])
+    assert res.picked == ["best"]
     if noisy:
         fresh = float(jax.random.uniform(jax.random.split(key, 3)[2]))
         assert res.costs[0] == pytest.approx(fresh, rel=1e-6)
         assert res.evaluations[0] == engine_evals + 1
     else:
         assert res.costs == res.search_costs and res.evaluations[0] == engine_evals
+
+
+@pytest.mark.parametrize("ahead", [False, True])
+def test_default_rescoring_averages_fresh_draws_of_both_points(monkeypatch, ahead):
+    """Default settings: the best point and the mean are each scored on ``rescore`` = 4
+    fresh draws (keys ``split(split(key, 3)[2], 4)``), averaged; the evaluations count both
+    candidates' draws; Coin's cost ignores the network, so the tie keeps the best point.
+    ``ahead``: the program compiled in a background thread (as on an accelerator) is the
+    one called, with the same result."""
+    made = []
+
+    class Spy(eant2_jax.tuning._Rescorer):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            made.append(self)
+
+    monkeypatch.setattr(eant2_jax.tuning, "_Rescorer", Spy)
+    monkeypatch.setattr(eant2_jax.tuning, "_compile_ahead", lambda: ahead)
+    key = jax.random.key(3)
+    config = ExploitConfig(max_iters=30, patience=1000)
+    assert (config.recommend, config.rescore) == ("both", 4)
+    res = eant2_jax.tuning.tune([eant2_jax.Genome.parse(XOR_GENOME)], Coin(), key=key,
+                                config=config)  # fmt: skip
+    keys = jax.random.split(jax.random.split(key, 3)[2], 4)
+    want = float(np.mean([float(jax.random.uniform(k)) for k in keys]))
+    assert res.costs[0] == pytest.approx(want, rel=1e-6)
+    assert res.evaluations[0] == int(res.history.evaluations[-1, 0]) + 2 * 4
+    assert res.picked == ["best"]
+    assert len(made) == 1 and made[0].used_ahead is ahead
+
+
+def test_rescoring_keeps_the_point_of_lower_fresh_cost():
+    """`_rescore`: per structure the candidate of lower fresh cost (a tie keeps the best
+    point); "mean" scores only the mean; a structure with no finite cost, and the network
+    that passed a solution test, keep their best point."""
+    from eant2_jax.tuning import _rescore
+
+    g = eant2_jax.Genome.parse(XOR_GENOME)
+    n = g.n_params
+    mask = np.ones((4, n), bool)
+    mean = np.full((4, n), 0.25)
+    tuned = [g, g, g, g]
+    calls = []
+
+    def rescorer(fresh):
+        def score(genomes):
+            calls.append(len(genomes))
+            return np.asarray(fresh[: len(genomes)], np.float64)
+
+        return score
+
+    costs = [1.0, 1.0, float("inf"), 1.0]
+    # candidates, "both": 0 best, 0 mean, 1 best, 1 mean, 2 best (inf), 3 best (solution)
+    out, new, evals, picked = _rescore(
+        [g] * 4, tuned, costs, [10] * 4, mean, mask, 3, ExploitConfig(rescore=3),
+        rescorer([0.5, 0.4, 0.3, 0.3, 0.1, 0.2]),
+    )  # fmt: skip
+    assert picked == ["mean", "best", "best", "best"]
+    assert new == [pytest.approx(0.4), pytest.approx(0.3), float("inf"), pytest.approx(0.2)]
+    assert evals == [16, 16, 13, 13]
+    assert np.allclose([gene.weight for gene in out[0].genes], 0.25) and out[1] is g and out[3] is g
+    out, new, evals, picked = _rescore(
+        [g] * 4, tuned, costs, [10] * 4, mean, mask, 3, ExploitConfig(recommend="mean"),
+        rescorer([0.9, 0.3, 0.1, 0.2]),
+    )  # fmt: skip
+    assert picked == ["mean", "mean", "best", "best"] and evals == [14, 14, 14, 14]
+    assert calls == [6, 4]
 
 
 def test_progress_reporter_announces_compilation(monkeypatch):

@@ -112,10 +112,10 @@ ENVS = {
         "gymnax", "Acrobot-v1", 6, 3, True, 1.0, 5, 500, 20_000, 10, 100, normalize="none"
     ),
     "pendulum": Env("gymnax", "Pendulum-v1", 3, 1, False, 2.0, 5, 200, 50_000, 10, 200),
-    # brax: 20 CMA-ES iterations per generation, not 100. An iteration is a 1,000-step
+    # brax: 10 CMA-ES iterations per generation, not 100. An iteration is a 1,000-step
     # episode run one step after another whatever the batch, so a generation's wall time
-    # is its iterations; shorter ones report champions (and select structures) 5x as often.
-    "hopper": Env("brax", "hopper", 11, 3, False, 1.0, 1, 1000, 50_000, 10, 20),
+    # is its iterations; shorter ones report champions (and select structures) 10x as often.
+    "hopper": Env("brax", "hopper", 11, 3, False, 1.0, 1, 1000, 50_000, 10, 10),
     # TensorNEAT's examples/brax/halfcheetah.py: bigger genomes, scaled tanh, normalisation.
     "halfcheetah": Env(
         "brax",

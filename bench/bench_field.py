@@ -513,6 +513,8 @@ def _options(p: argparse.ArgumentParser) -> None:
                    help="default: all (with --quick: cartpole)")  # fmt: skip
     p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
     p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--first-seed", type=int, default=0,
+                   help="seeds are first-seed .. first-seed + seeds - 1")  # fmt: skip
     p.add_argument("--budget", type=int, default=None,
                    help="evaluations per run (default: each environment's, ENVS)")  # fmt: skip
     p.add_argument("--deadline-s", type=float, default=600.0,
@@ -547,6 +549,8 @@ def _prepare(args: argparse.Namespace) -> None:
     for name in ("seeds", "test_episodes", "tensorneat_pop"):
         if getattr(args, name) < 1:
             raise BenchInputError(f"--{name.replace('_', '-')} must be at least 1")
+    if args.first_seed < 0:
+        raise BenchInputError("--first-seed must be at least 0")
     if args.budget is not None and args.budget < 1:
         raise BenchInputError("--budget must be at least 1")
 
@@ -557,7 +561,7 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="eant2-field-") as work:
         for env in args.envs:
             budget = args.budget or ENVS[env].budget
-            for seed in range(args.seeds):
+            for seed in range(args.first_seed, args.first_seed + args.seeds):
                 for method in args.methods:
                     harness.log(f"field: {env} seed {seed} {method} (budget {budget})")
                     r = _spawn(method, env, seed, args, budget, Path(work))

@@ -456,6 +456,11 @@ def _rescore(genomes, tuned, costs, evaluations, mean, mask, solution, config, r
     return tuned, new_costs, evaluations, picked
 
 
+# `_Rescorer`'s programs compiled ahead, by signature (one per bucket and task).
+_AHEAD: dict = {}
+_AHEAD_LOCK = threading.Lock()
+
+
 def _compile_ahead() -> bool:
     """Whether `_Rescorer` compiles in a background thread (on an accelerator)."""
     return jax.default_backend() != "cpu"
@@ -502,7 +507,18 @@ class _Rescorer:
         try:
             batch = self._batch(self._genomes)
             fn, keys = self._program()
-            self._compiled = fn.lower(batch.layout, batch.weights, self._task, keys).compile()
+            args = (batch.layout, batch.weights, self._task, keys)
+            # Programs compiled ahead are not in jit's own cache: keep them for the next
+            # generations of the same bucket (as jit would), keyed as jit keys its cache.
+            leaves, treedef = jax.tree.flatten(args)
+            sig = (fn, treedef, tuple((x.shape, x.dtype) for x in leaves))
+            with _AHEAD_LOCK:
+                compiled = _AHEAD.get(sig)
+            if compiled is None:
+                compiled = fn.lower(*args).compile()
+                with _AHEAD_LOCK:
+                    _AHEAD[sig] = compiled
+            self._compiled = compiled
         except Exception:  # noqa: BLE001 - the call below compiles it the usual way
             self._compiled = None
 

@@ -315,6 +315,7 @@ def test_default_rescoring_averages_fresh_draws_of_both_points(monkeypatch, ahea
 
     monkeypatch.setattr(eant2_jax.tuning, "_Rescorer", Spy)
     monkeypatch.setattr(eant2_jax.tuning, "_compile_ahead", lambda: ahead)
+    monkeypatch.setattr(eant2_jax.tuning, "_AHEAD", {})
     key = jax.random.key(3)
     config = ExploitConfig(max_iters=30, patience=1000)
     assert (config.recommend, config.rescore) == ("both", 4)
@@ -326,6 +327,12 @@ def test_default_rescoring_averages_fresh_draws_of_both_points(monkeypatch, ahea
     assert res.evaluations[0] == int(res.history.evaluations[-1, 0]) + 2 * 4
     assert res.picked == ["best"]
     assert len(made) == 1 and made[0].used_ahead is ahead
+    # The next tuning of the same bucket reuses the program compiled ahead.
+    assert len(eant2_jax.tuning._AHEAD) == int(ahead)
+    again = eant2_jax.tuning.tune([eant2_jax.Genome.parse(XOR_GENOME)], Coin(),
+                                  key=jax.random.key(4), config=config)  # fmt: skip
+    assert len(eant2_jax.tuning._AHEAD) == int(ahead) and made[1].used_ahead is ahead
+    assert again.costs[0] != res.costs[0]  # other keys, other draws
 
 
 def test_rescoring_keeps_the_point_of_lower_fresh_cost():

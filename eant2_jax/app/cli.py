@@ -128,6 +128,9 @@ def _run(args: argparse.Namespace) -> int:
     if args.max_iters is not None:
         exploit["max_iters"] = args.max_iters
     exploit["lazy_eigen"] = args.lazy_eigen
+    for name in ("recommend", "rescore"):  # unset: ExploitConfig's default
+        if getattr(args, name) is not None:
+            exploit[name] = getattr(args, name)
     config = EANT2Config(
         population=args.population,
         init_recurrent=args.recurrent_start,
@@ -406,6 +409,7 @@ def _devices(text: str) -> int | str:
 
 
 def _parser() -> argparse.ArgumentParser:
+    from eant2_jax.config import RECOMMEND
     from eant2_jax.kernels.pruning import PRUNERS
 
     p = argparse.ArgumentParser(prog="eant2", description="EANT2 neuro-evolution in JAX.")
@@ -493,6 +497,20 @@ def _parser() -> argparse.ArgumentParser:
         metavar="F",
         help="decompose C only every F / (n (c1 + cmu)) iterations (pycma: 0.5; "
         "default 0: every iteration)",
+    )
+    run.add_argument(
+        "--recommend",
+        choices=RECOMMEND,
+        default=None,
+        help="on a noisy task, the tuned network: the search's best candidate, its "
+        "distribution mean, or (default) whichever scores lower on fresh episodes",
+    )
+    run.add_argument(
+        "--rescore",
+        type=_positive,
+        default=None,
+        metavar="K",
+        help="on a noisy task, fresh draws of the cost that score each tuned network (default 4)",
     )
     run.add_argument(
         "--devices",

@@ -843,3 +843,47 @@ def _record_json() -> dict:
         "population": 1, "exploited": 1, "generation_s": 0.1, "best_genome": "N0/1*1 I0*1",
         "compiles": 2, "compile_s": 1.5, "cache_hits": 1, "cache_misses": 1,
     }  # fmt: skip
+
+
+def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
+    """On an accelerator the loop guesses the next bucket and compiles its engine program in
+    a background thread (`loop._compile_next_bucket`). Forced on here, with the threads
+    joined at once (two programs at once on a CPU can deadlock XLA's thread pool): a run
+    whose buckets were guessed uses the programs compiled ahead, and gives exactly the run
+    of the usual path."""
+    from eant2_jax import exploitation, loop, tuning
+
+    config = EANT2Config(population=10, exploit=ExploitConfig(max_iters=50, pruner="covariance"))
+
+    def run():
+        return eant2_jax.run(tasks.make("xor"), key=jax.random.key(1), config=config,
+                             generations=9)  # fmt: skip
+
+    plain = run()
+    guess = loop._compile_next_bucket
+
+    def joined(*args):
+        thread = guess(*args)
+        if thread is not None:
+            thread.join()
+            for ahead in list(exploitation._AHEAD.values()):
+                ahead.get()
+        return thread
+
+    used = []
+    with_fallback = exploitation._with_fallback
+
+    def spy(compiled, chunk):
+        used.append(compiled)
+        return with_fallback(compiled, chunk)
+
+    monkeypatch.setattr(tuning, "_compile_ahead", lambda: True)
+    monkeypatch.setattr(loop, "_compile_next_bucket", joined)
+    monkeypatch.setattr(exploitation, "_with_fallback", spy)
+    monkeypatch.setattr(exploitation, "_AHEAD", {})
+    monkeypatch.setattr(exploitation, "_SEEN", set())  # as in a fresh process
+    ahead = run()
+    assert used, "no generation ran a program compiled ahead"
+    assert ahead.best == plain.best
+    assert _without_wall(_json(ahead.generations)) == _without_wall(_json(plain.generations))
+    assert _without_wall(_json(ahead.pruning)) == _without_wall(_json(plain.pruning))

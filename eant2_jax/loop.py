@@ -572,8 +572,14 @@ def _generation(
     network passed ``solution_test`` (None if none did)."""
     brood = _breed(task, state, key, config)
     gen = brood.gen
+    ahead = []  # the next bucket's compilation, started once this generation's program runs
 
     def progress(info):
+        if not ahead and mesh is None:
+            # After the first chunk: this generation's own program is compiled by then, so
+            # the guess's tracing and compiling do not compete with it (started at the
+            # generation's start, they delayed its first chunk as much as they saved later).
+            ahead.append(_compile_next_bucket(state, brood, task, config, bucket))
         if callback is not None:
             callback({"event": "exploit", "generation": gen, **info})
 
@@ -584,8 +590,6 @@ def _generation(
     part = None
     if brood.new:
         bucket = grow_bucket([ind.genome for ind in brood.new], bucket)
-        if mesh is None:
-            _compile_next_bucket(state, brood, task, config, bucket)
         res = tune(
             [ind.genome for ind in brood.new],
             task,

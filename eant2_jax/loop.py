@@ -503,6 +503,7 @@ def _compile_next_bucket(state, brood, task, config, bucket) -> threading.Thread
 
     thread = threading.Thread(target=work, name="eant2-next-bucket", daemon=True)
     thread.start()
+    exploitation.join_at_exit(thread)
     return thread
 
 
@@ -566,20 +567,22 @@ def _generation(
     mesh=None,
     bucket: Bucket | None = None,
     solution_test: Callable[[Genome], bool] | None = None,
+    ahead: bool = True,
 ) -> tuple[RunState, GenerationRecord, list[PruneAttempt], Bucket | None, Individual | None]:
     """One generation (generation 0 initialises); returns the new state, its records, the
     bucket it compiled into (`grow_bucket` of ``bucket``) and the new structure whose best
-    network passed ``solution_test`` (None if none did)."""
+    network passed ``solution_test`` (None if none did). ``ahead``: compile the guessed next
+    bucket (False in a run's last generation)."""
     brood = _breed(task, state, key, config)
     gen = brood.gen
-    ahead = []  # the next bucket's compilation, started once this generation's program runs
+    started = []  # the next bucket's compilation, started once this generation's program runs
 
     def progress(info):
-        if not ahead and mesh is None:
+        if ahead and not started and mesh is None:
             # After the first chunk: this generation's own program is compiled by then, so
             # the guess's tracing and compiling do not compete with it (started at the
             # generation's start, they delayed its first chunk as much as they saved later).
-            ahead.append(_compile_next_bucket(state, brood, task, config, bucket))
+            started.append(_compile_next_bucket(state, brood, task, config, bucket))
         if callback is not None:
             callback({"event": "exploit", "generation": gen, **info})
 
@@ -942,8 +945,9 @@ def _loop(
     while solution is None and (state is None or state.generation < generations):
         if state is not None and _stopped(state, config):
             break
+        last = (0 if state is None else state.generation + 1) >= generations
         state, record, prune, bucket, solution = _generation(
-            task, state, key, config, callback, mesh, bucket, solution_test
+            task, state, key, config, callback, mesh, bucket, solution_test, ahead=not last
         )
         gen_records.append(record)
         prune_records.extend(prune)

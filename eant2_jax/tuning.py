@@ -492,6 +492,7 @@ class _Rescorer:
                 target=self._compile, name="eant2-rescore-compile", daemon=True
             )
             self._thread.start()
+            ex.join_at_exit(self._thread)
 
     def _batch(self, genomes):
         return compile_genomes(genomes, self._task.n_inputs, **self._compile_args)

@@ -304,13 +304,15 @@ def test_default_rescoring_averages_fresh_draws_of_both_points(monkeypatch, ahea
     """Default settings: the best point and the mean are each scored on ``rescore`` = 4
     fresh draws (keys ``split(split(key, 3)[2], 4)``), averaged; the evaluations count both
     candidates' draws; Coin's cost ignores the network, so the tie keeps the best point.
-    ``ahead``: the program compiled in a background thread (as on an accelerator) is the
-    one called, with the same result."""
+    ``ahead``: the program compiled in a background thread (as on an accelerator; joined
+    at once here) is the one called, with the same result."""
     made = []
 
     class Spy(eant2_jax.tuning._Rescorer):
         def __init__(self, *a, **k):
             super().__init__(*a, **k)
+            if self._thread is not None:  # no two programs at once on a CPU
+                self._thread.join()
             made.append(self)
 
     monkeypatch.setattr(eant2_jax.tuning, "_Rescorer", Spy)

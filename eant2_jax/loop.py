@@ -484,7 +484,7 @@ def _compile_next_bucket(state, brood, task, config, bucket) -> threading.Thread
     (`eant2_jax.exploitation.compile_ahead`): a new bucket's program takes seconds to tens
     of seconds to compile there, which otherwise stall the generation that meets it. The
     program is the one that generation would compile, so results do not change."""
-    if not tuning._compile_ahead():
+    if not exploitation.compile_ahead_enabled():
         return None
 
     def work():

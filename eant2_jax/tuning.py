@@ -24,7 +24,6 @@ import dataclasses
 import difflib
 import functools
 import math
-import threading
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
@@ -456,16 +455,6 @@ def _rescore(genomes, tuned, costs, evaluations, mean, mask, solution, config, r
     return tuned, new_costs, evaluations, picked
 
 
-# `_Rescorer`'s programs compiled ahead, by signature (one per bucket and task).
-_AHEAD: dict = {}
-_AHEAD_LOCK = threading.Lock()
-
-
-def _compile_ahead() -> bool:
-    """Whether `_Rescorer` compiles in a background thread (on an accelerator)."""
-    return jax.default_backend() != "cpu"
-
-
 class _Rescorer:
     """The program that scores tuned networks on fresh episodes (`tune`'s step 7).
 
@@ -473,70 +462,43 @@ class _Rescorer:
     count fixed by the engine's (twice it when the mean is scored too), so the program is
     compiled once per bucket, not per generation. On an accelerator it is compiled in a
     background thread while the engine runs, off the critical path (a brax episode program
-    takes seconds to compile). Not on a CPU, where XLA's compiler would compete with the
-    engine for the few cores (and two programs at once can deadlock XLA's thread pool).
-    Calling it waits for that compilation and scores a list of genomes:
-    ``float64[len(genomes)]``.
+    takes seconds to compile): `eant2_jax.exploitation.ahead`. Calling it waits for that
+    compilation and scores a list of genomes: ``float64[len(genomes)]``.
     """
 
     def __init__(self, genomes, task, key, config, *, rows, bucket, pad_count):
-        self._genomes, self._task, self._key = list(genomes), task, key
+        self._task, self._key = task, key
         self._rescore = config.rescore
         per_row = 1 if config.recommend == "best" else 2
         self._compile_args = dict(bucket=bucket, min_rows=rows * per_row, pad_count=pad_count)
-        self._compiled = None
-        self._thread = None
+        self._ahead = None
         self.used_ahead = False  # whether the program compiled ahead was the one called
-        if _compile_ahead():
-            self._thread = threading.Thread(
-                target=self._compile, name="eant2-rescore-compile", daemon=True
-            )
-            self._thread.start()
-            ex.join_at_exit(self._thread)
+        if ex.compile_ahead_enabled():
+            self._ahead = ex.ahead(*self._inputs(genomes))
 
-    def _batch(self, genomes):
-        return compile_genomes(genomes, self._task.n_inputs, **self._compile_args)
-
-    def _program(self):
+    def _inputs(self, genomes):
+        """The program and its arguments for ``genomes``."""
+        batch = compile_genomes(genomes, self._task.n_inputs, **self._compile_args)
         # A key no CMA-ES iteration used (those fold the iteration number into run_key).
         fresh_key = jax.random.split(self._key, 3)[2]
         if self._rescore == 1:  # one draw: the key itself, as runs before `rescore` drew it
-            return _cost_batch, fresh_key
-        return _cost_draws, jax.random.split(fresh_key, self._rescore)
-
-    def _compile(self):
-        try:
-            batch = self._batch(self._genomes)
-            fn, keys = self._program()
-            args = (batch.layout, batch.weights, self._task, keys)
-            # Programs compiled ahead are not in jit's own cache: keep them for the next
-            # generations of the same bucket (as jit would), keyed as jit keys its cache.
-            leaves, treedef = jax.tree.flatten(args)
-            sig = (fn, treedef, tuple((x.shape, x.dtype) for x in leaves))
-            with _AHEAD_LOCK:
-                compiled = _AHEAD.get(sig)
-            if compiled is None:
-                compiled = fn.lower(*args).compile()
-                with _AHEAD_LOCK:
-                    _AHEAD[sig] = compiled
-            self._compiled = compiled
-        except Exception:  # noqa: BLE001 - the call below compiles it the usual way
-            self._compiled = None
+            fn, keys = _cost_batch, fresh_key
+        else:
+            fn, keys = _cost_draws, jax.random.split(fresh_key, self._rescore)
+        return fn, (batch.layout, batch.weights, self._task, keys)
 
     def __call__(self, genomes) -> np.ndarray:
-        batch = self._batch(genomes)
-        fn, keys = self._program()
-        if self._thread is not None:
-            self._thread.join()
+        fn, args = self._inputs(genomes)
+        compiled = None if self._ahead is None else self._ahead.get()
         costs = None
-        if self._compiled is not None:
+        if compiled is not None:
             try:
-                costs = self._compiled(batch.layout, batch.weights, self._task, keys)
+                costs = compiled(*args)
                 self.used_ahead = True
             except (TypeError, ValueError):  # other shapes than foreseen: jit's own path
                 costs = None
         if costs is None:
-            costs = fn(batch.layout, batch.weights, self._task, keys)
+            costs = fn(*args)
         return np.asarray(costs, np.float64)[: len(genomes)]
 
 

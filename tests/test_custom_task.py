@@ -311,13 +311,13 @@ def test_default_rescoring_averages_fresh_draws_of_both_points(monkeypatch, ahea
     class Spy(eant2_jax.tuning._Rescorer):
         def __init__(self, *a, **k):
             super().__init__(*a, **k)
-            if self._thread is not None:  # no two programs at once on a CPU
-                self._thread.join()
+            if self._ahead is not None:  # no two programs at once on a CPU
+                self._ahead.get()
             made.append(self)
 
     monkeypatch.setattr(eant2_jax.tuning, "_Rescorer", Spy)
-    monkeypatch.setattr(eant2_jax.tuning, "_compile_ahead", lambda: ahead)
-    monkeypatch.setattr(eant2_jax.tuning, "_AHEAD", {})
+    monkeypatch.setattr(eant2_jax.exploitation, "compile_ahead_enabled", lambda: ahead)
+    monkeypatch.setattr(eant2_jax.exploitation, "_AHEAD", {})
     key = jax.random.key(3)
     config = ExploitConfig(max_iters=30, patience=1000)
     assert (config.recommend, config.rescore) == ("both", 4)
@@ -330,10 +330,10 @@ def test_default_rescoring_averages_fresh_draws_of_both_points(monkeypatch, ahea
     assert res.picked == ["best"]
     assert len(made) == 1 and made[0].used_ahead is ahead
     # The next tuning of the same bucket reuses the program compiled ahead.
-    assert len(eant2_jax.tuning._AHEAD) == int(ahead)
+    assert len(eant2_jax.exploitation._AHEAD) == int(ahead)
     again = eant2_jax.tuning.tune([eant2_jax.Genome.parse(XOR_GENOME)], Coin(),
                                   key=jax.random.key(4), config=config)  # fmt: skip
-    assert len(eant2_jax.tuning._AHEAD) == int(ahead) and made[1].used_ahead is ahead
+    assert len(eant2_jax.exploitation._AHEAD) == int(ahead) and made[1].used_ahead is ahead
     assert again.costs[0] != res.costs[0]  # other keys, other draws
 
 

@@ -851,7 +851,7 @@ def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
     joined at once (two programs at once on a CPU can deadlock XLA's thread pool): a run
     whose buckets were guessed uses the programs compiled ahead, and gives exactly the run
     of the usual path."""
-    from eant2_jax import exploitation, loop, tuning
+    from eant2_jax import exploitation, loop
 
     config = EANT2Config(population=10, exploit=ExploitConfig(max_iters=50, pruner="covariance"))
 
@@ -877,7 +877,7 @@ def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
         used.append(compiled)
         return with_fallback(compiled, chunk)
 
-    monkeypatch.setattr(tuning, "_compile_ahead", lambda: True)
+    monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
     monkeypatch.setattr(loop, "_compile_next_bucket", joined)
     monkeypatch.setattr(exploitation, "_with_fallback", spy)
     monkeypatch.setattr(exploitation, "_AHEAD", {})

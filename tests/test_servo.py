@@ -397,8 +397,10 @@ def test_kinematics_is_scatter_free_and_mjx_is_left_as_it_was():
 
     from eant2_jax.tasks import servo_scene as scene
 
-    original = scene._MJX_AXIS_ANGLE_TO_QUAT
-    assert original is not None and mjx_math.axis_angle_to_quat is original
+    found = scene._mjx_math()
+    assert found is not None
+    original = found[1]
+    assert mjx_math.axis_angle_to_quat is original
     task = tasks.make("servo", n_starts=4)
     nets, _ = random_nets(0, (2,))
     assert nondeterministic_scatters(jax.make_jaxpr(task.cost)(None, nets)) == []

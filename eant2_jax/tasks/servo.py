@@ -9,8 +9,9 @@ penalties. The task's cost is the mean over 1023 fixed start poses (paper: "the 
 1023 robot movements"); fitness = -cost (paper fig. 8).
 
 Everything is batched over (networks x start poses) in one jit-compiled call: the network's
-forward pass over all starts, the joint targets, the arm (``mjx.kinematics``, or position
-servos integrated with ``mjx.step`` inside ``lax.scan``), the projection and the cost.
+forward pass over all starts, the joint targets, the arm (MJX's forward kinematics along the
+arm's chain, `eant2_jax.kernels.kinematics`, or position servos integrated with ``mjx.step``
+inside ``lax.scan``), the projection and the cost.
 
 Every constant is documented here and in ``docs/tasks.md``:
 
@@ -32,7 +33,7 @@ Every constant is documented here and in ``docs/tasks.md``:
   ``q*``, kept only if all 5 markers are inside the image; NumPy generator seeded
   ``[2009, 0]`` (training) and ``[2009, 1]`` (held out, a disjoint set for generalisation).
 * **Modes**: ``kinematic`` (default): the new joint angles are the clipped targets, the camera
-  pose comes from ``mjx.kinematics``. ``dynamic``: the position servos track the target for
+  pose comes from the arm's forward kinematics (``mjx.kinematics``'s values). ``dynamic``: the position servos track the target for
   ``substeps = 60`` ``mjx.step`` calls of 5 ms (0.3 s) from the arm's current state, and the
   pose reached is measured. Both modes use `stripped_model` (``arm.xml`` without its
   visual-only parts). Its joint limit *constraints* are off: targets are clamped to the ranges
@@ -56,8 +57,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from ..kernels import kinematics as kin
 from ..kernels import network as kn
-from .mjx_quiet import mjx
 
 __all__ = [
     "ARM_XML",
@@ -108,6 +109,7 @@ from .servo_scene import (  # noqa: F401
     _arm,
     _features_host,
     _mjx_model,
+    _stripped,
     _mjx_numerics,
     _outside,
     _start_poses,
@@ -121,15 +123,21 @@ from .servo_scene import (  # noqa: F401
 class Servo:
     """The visual servoing task (see the module docstring for every constant).
 
-    The MJX model is a pytree *leaf field*, not a static field: ``mjx.Model`` is itself a pytree
-    whose array fields are leaves and whose NumPy fields (joint types, tree structure) are
-    static metadata hashed and compared by content. So the task's arrays are passed into jit as
-    arguments (never baked into a program), and two separately built tasks with equal options
-    share one compiled program. A static field would need the model to be hashable, which an
-    object holding JAX arrays is not.
+    The arm's pose comes from `eant2_jax.kernels.kinematics` (MJX's forward kinematics
+    written along the arm's chain of hinges: the same values as ``mjx.kinematics`` to the last
+    bit, in a few fused operations, without importing MJX); the dynamic mode's physics from
+    ``mjx.step``. Both models are pytree *leaf fields*, not static fields: ``mjx.Model`` is
+    itself a pytree whose array fields are leaves and whose NumPy fields (joint types, tree
+    structure) are static metadata hashed and compared by content. So the task's arrays are
+    passed into jit as arguments (never baked into a program), and two separately built tasks
+    with equal options share one compiled program. A static field would need the model to be
+    hashable, which an object holding JAX arrays is not.
 
     Attributes:
-      model: the MJX arm, `stripped_model` (no geoms, no limit constraints).
+      model: the MJX arm, `stripped_model` (no geoms, no limit constraints), in dynamic mode;
+        ``None`` in kinematic mode, which never imports MJX (2-3 s of a GPU process's start).
+      chain: the arm's chain of hinges from the world to the camera site
+        (`eant2_jax.kernels.kinematics.Chain` of `stripped_model`).
       q_start: ``[N, 3]`` start joint angles (rad).
       x_start: ``[N, 10]`` the 10 normalised image measurements at each start.
       q_test, x_test: the same for the disjoint held-out start poses.
@@ -144,7 +152,8 @@ class Servo:
       hidden, output: activation names of the networks' hidden and output neurons (static).
     """
 
-    model: mjx.Model
+    model: Any  # mjx.Model in dynamic mode, else None
+    chain: kin.Chain
     q_start: jax.Array
     x_start: jax.Array
     q_test: jax.Array
@@ -177,10 +186,8 @@ class Servo:
     # ------------------------------------------------------------------ one arm, one pose
     def features(self, q: jax.Array) -> jax.Array:
         """``[5, 2]`` normalised marker image coordinates at joint angles ``q`` ``[3]``."""
-        with _mjx_numerics():
-            d = mjx.kinematics(self.model, mjx.make_data(self.model).replace(qpos=q))
-        c = self.camera_site
-        return project(d.site_xpos[c], d.site_xmat[c], self.markers)
+        pose = kin.forward(self.chain, q)
+        return project(pose.site_xpos, pose.site_xmat, self.markers)
 
     def measure(self, q: jax.Array) -> jax.Array:
         """``[10]`` network inputs at ``q``: image coordinates minus the goal image."""
@@ -197,6 +204,8 @@ class Servo:
 
     def simulate(self, q: jax.Array, qd: jax.Array, target: jax.Array):
         """``substeps`` physics steps of the servos tracking ``target``; ``(q, qd)`` after."""
+        from .mjx_quiet import mjx
+
         d0 = mjx.make_data(self.model).replace(ctrl=target)
 
         # Only (qpos, qvel) are carried: nothing else of mjx.Data is state for this model
@@ -268,15 +277,13 @@ class Servo:
         Chaumette & Hutchinson 2006, eq. 11) times the arm Jacobian of the camera (its linear
         and angular velocity per joint velocity, rotated into the optical frame).
 
-        The arm Jacobian is built from the joint anchors and axes that ``mjx.kinematics``
-        returns (hinge j: ``axis_j x (camera - anchor_j)`` and ``axis_j``), which is what
-        ``mjx.jac`` computes for a chain of hinges; ``mjx.jac`` would also need
-        ``mjx.com_pos`` and triples the compile time on a CPU.
+        The arm Jacobian is built from the joint anchors and axes of the arm's kinematics
+        (`eant2_jax.kernels.kinematics.forward`, ``mjx.kinematics``'s values; hinge j:
+        ``axis_j x (camera - anchor_j)`` and ``axis_j``), which is what ``mjx.jac`` computes
+        for a chain of hinges.
         """
-        c = self.camera_site
-        with _mjx_numerics():
-            d = mjx.kinematics(self.model, mjx.make_data(self.model).replace(qpos=q))
-        pos, mat = d.site_xpos[c], d.site_xmat[c]
+        d = kin.forward(self.chain, q)
+        pos, mat = d.site_xpos, d.site_xmat
         # Every joint is an ancestor of the camera (a serial arm); [nv, 3] each.
         jacp = jnp.cross(d.xaxis, pos[None, :] - d.xanchor)
         jacr = d.xaxis
@@ -416,7 +423,7 @@ def servo(
     """The 3-DOF visual servoing task (``tasks.make("servo", ...)``).
 
     Args:
-      mode: ``"kinematic"`` (default; targets reached exactly, ``mjx.kinematics``) or
+      mode: ``"kinematic"`` (default; targets reached exactly, the arm's kinematics) or
         ``"dynamic"`` (position servos, ``substeps`` ``mjx.step`` calls per move).
       moves_per_start: moves per start pose, closed loop (1 = the paper).
       n_starts: number of start poses (1023 = the paper); smaller sets are prefixes.
@@ -444,7 +451,9 @@ def servo(
             raise ValueError(f"servo: {name} must be in [1, {top}]; got {value}")
     kn.activation(hidden), kn.activation(output)
     arm = _arm()
-    model, camera_site, camera_body = _mjx_model()
+    mj, camera_site, camera_body = _stripped()
+    # MJX (and its import) only where its physics runs.
+    model = _mjx_model()[0] if mode == "dynamic" else None
     sets = [start_poses(n_starts, held_out=h) for h in (held_out, not held_out)]
     (q_tr, s_tr), (q_te, s_te) = sets
     goal = arm.goal[None]
@@ -456,6 +465,7 @@ def servo(
 
     return Servo(
         model=model,
+        chain=kin.Chain.from_model(mj, camera_site),
         q_start=f32(q_tr),
         x_start=f32((s_tr - goal).reshape(len(q_tr), -1)),
         q_test=f32(q_te),

@@ -11,14 +11,21 @@ import contextlib
 import functools
 import threading
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from .mjx_quiet import mjx
+from ..kernels import kinematics as kin
+
+if TYPE_CHECKING:
+    from mujoco import mjx
+
+# MJX itself is imported only where its physics runs (`_mjx_model`, the dynamic mode): the
+# kinematic mode computes the arm's pose with eant2_jax.kernels.kinematics, and MJX's import
+# (trimesh, scipy, its warp probe) took 2-3 s of a process's start on a GPU host.
 
 ARM_XML = Path(__file__).with_name("arm.xml")
 
@@ -78,18 +85,15 @@ def _outside(s):
     return (abs(s[:, 0]) >= HALF_EXTENT[0]) | (abs(s[:, 1]) >= HALF_EXTENT[1])
 
 
-def _axis_angle_to_quat(axis: jax.Array, angle: jax.Array) -> jax.Array:
-    """``mjx._src.math.axis_angle_to_quat`` without a scatter: the same values, bit for bit.
-
-    MJX writes ``jnp.insert(axis * s, 0, c)``, which JAX lowers to a scatter. Batched over the
-    millions of arm poses of a servo iteration, XLA's deterministic GPU mode
-    (``--xla_gpu_deterministic_ops``, on by default in the ``eant2`` command line) expands
-    each such scatter into a sort: that made one iteration of 200 structures 3.6x slower on an
-    H100 (26.7 ms against 7.4 ms; docs/benchmarks.md, "Reproducibility on GPU"). A
-    concatenation of the same numbers is no scatter, and deterministic by construction.
-    """
-    s, c = jnp.sin(angle * 0.5), jnp.cos(angle * 0.5)
-    return jnp.concatenate([jnp.expand_dims(c, 0), axis * s])
+# ``mjx._src.math.axis_angle_to_quat`` without a scatter: the same values, bit for bit.
+#
+# MJX writes ``jnp.insert(axis * s, 0, c)``, which JAX lowers to a scatter. Batched over the
+# millions of arm poses of a servo iteration, XLA's deterministic GPU mode
+# (``--xla_gpu_deterministic_ops``, on by default in the ``eant2`` command line) expands each
+# such scatter into a sort: that made one iteration of 200 structures 3.6x slower on an H100
+# (26.7 ms against 7.4 ms; docs/benchmarks.md, "Reproducibility on GPU"). A concatenation of
+# the same numbers is no scatter, and deterministic by construction.
+_axis_angle_to_quat = kin.axis_angle_to_quat
 
 
 # Why a patch: the scatter sits inside MJX's forward kinematics (``smooth.kinematics`` ->
@@ -102,34 +106,38 @@ _PATCH_LOCK = threading.Lock()
 _PATCH_DEPTH = 0
 
 
+@functools.cache
 def _mjx_math():
+    """MJX's math module and its own ``axis_angle_to_quat``, or None (read once, at first
+    use: importing MJX is left to the code that runs it)."""
+    from . import mjx_quiet  # noqa: F401  (drop MJX's lines about an absent warp)
+
     try:
         from mujoco.mjx._src import math as mjx_math
     except ImportError:  # another MJX layout: run MJX's code as it is
         return None
-    return mjx_math if callable(getattr(mjx_math, "axis_angle_to_quat", None)) else None
-
-
-_MJX_MATH = _mjx_math()
-_MJX_AXIS_ANGLE_TO_QUAT = None if _MJX_MATH is None else _MJX_MATH.axis_angle_to_quat
+    original = getattr(mjx_math, "axis_angle_to_quat", None)
+    return (mjx_math, original) if callable(original) else None
 
 
 @contextlib.contextmanager
 def _scatter_free_mjx():
     global _PATCH_DEPTH
-    if _MJX_MATH is None:
+    found = _mjx_math()
+    if found is None:
         yield
         return
+    mjx_math, original = found
     with _PATCH_LOCK:
         _PATCH_DEPTH += 1
-        _MJX_MATH.axis_angle_to_quat = _axis_angle_to_quat
+        mjx_math.axis_angle_to_quat = _axis_angle_to_quat
     try:
         yield
     finally:
         with _PATCH_LOCK:
             _PATCH_DEPTH -= 1
             if not _PATCH_DEPTH:
-                _MJX_MATH.axis_angle_to_quat = _MJX_AXIS_ANGLE_TO_QUAT
+                mjx_math.axis_angle_to_quat = original
 
 
 @contextlib.contextmanager
@@ -261,9 +269,18 @@ def stripped_model() -> mujoco.MjModel:
 
 
 @functools.cache
-def _mjx_model() -> tuple[mjx.Model, int, int]:
-    """The task's MJX model, its camera site id and the id of the body carrying the camera."""
+def _stripped() -> tuple[mujoco.MjModel, int, int]:
+    """`stripped_model`, its camera site id and the id of the body carrying the camera."""
     mj = stripped_model()
     site = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SITE, _CAMERA_SITE)
     body = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_BODY, _CAMERA_BODY)
+    return mj, site, body
+
+
+@functools.cache
+def _mjx_model() -> tuple[mjx.Model, int, int]:
+    """The task's MJX model, its camera site id and the id of the body carrying the camera."""
+    from .mjx_quiet import mjx
+
+    mj, site, body = _stripped()
     return mjx.put_model(mj), site, body

@@ -1,0 +1,241 @@
+"""Forward kinematics of a serial chain of hinge joints, as MJX computes it, in a few ops.
+
+``mjx.kinematics`` walks a general body tree (`mujoco.mjx._src.scan.body_tree`): for a
+3-link arm it traces about 1,700 small jitted helpers (half of tracing the servo task's
+program), gathers and scatters every level's bodies into the model-wide arrays, and brings
+in MJX's import (2-3 s on a GPU host, with trimesh and scipy). When a task needs only the
+pose of one site on a chain of hinges, the same arithmetic written straight along the chain
+is a handful of elementwise operations that XLA fuses whole.
+
+The formulas are MJX's, in MJX's order (``smooth.kinematics`` with ``math.rotate``,
+``math.quat_mul``, ``math.axis_angle_to_quat`` and ``support.local_to_global``), so the
+pose of a chain based at the world equals ``mjx.kinematics``'s to the last bit on a CPU
+(tests/test_kinematics.py checks it on random joint angles and random chains, and against
+MuJoCo C in float64). Quaternions are ``(w, x, y, z)``.
+
+Written for ONE configuration ``q``; batch with ``jax.vmap``. This module imports nothing
+from the rest of eant2_jax (nor MuJoCo: `Chain.from_model` reads a ``mujoco.MjModel``'s
+arrays by name).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+__all__ = ["Chain", "ChainPose", "forward", "rotate", "quat_mul", "quat_to_mat"]
+
+_HINGE = 3  # mujoco.mjtJoint.mjJNT_HINGE
+
+
+def rotate(vec: jax.Array, quat: jax.Array) -> jax.Array:
+    """``vec`` ``[3]`` rotated by the unit quaternion ``quat`` ``[4]`` (MJX's formula)."""
+    s, u = quat[0], quat[1:]
+    # jnp.dot, as MJX: written as an elementwise sum, a quarter of random poses differ from
+    # MJX in the last bit on a CPU (the dot's own rounding), which would change every run.
+    r = 2 * (_dot(u, vec) * u) + (s * s - _dot(u, u)) * vec
+    return r + 2 * s * jnp.cross(u, vec)
+
+
+def _dot(a: jax.Array, b: jax.Array) -> jax.Array:
+    return jnp.dot(a, b, precision="highest")
+
+
+def quat_mul(u: jax.Array, v: jax.Array) -> jax.Array:
+    """The quaternion product ``u * v`` (MJX's formula)."""
+    return jnp.stack(
+        [
+            u[0] * v[0] - u[1] * v[1] - u[2] * v[2] - u[3] * v[3],
+            u[0] * v[1] + u[1] * v[0] + u[2] * v[3] - u[3] * v[2],
+            u[0] * v[2] - u[1] * v[3] + u[2] * v[0] + u[3] * v[1],
+            u[0] * v[3] + u[1] * v[2] - u[2] * v[1] + u[3] * v[0],
+        ]
+    )
+
+
+def quat_to_mat(q: jax.Array) -> jax.Array:
+    """``[3, 3]`` rotation matrix of the unit quaternion ``q`` (MJX's formula)."""
+    q = jnp.outer(q, q)
+    return jnp.stack(
+        [
+            jnp.stack(
+                [
+                    q[0, 0] + q[1, 1] - q[2, 2] - q[3, 3],
+                    2 * (q[1, 2] - q[0, 3]),
+                    2 * (q[1, 3] + q[0, 2]),
+                ]
+            ),
+            jnp.stack(
+                [
+                    2 * (q[1, 2] + q[0, 3]),
+                    q[0, 0] - q[1, 1] + q[2, 2] - q[3, 3],
+                    2 * (q[2, 3] - q[0, 1]),
+                ]
+            ),
+            jnp.stack(
+                [
+                    2 * (q[1, 3] - q[0, 2]),
+                    2 * (q[2, 3] + q[0, 1]),
+                    q[0, 0] - q[1, 1] - q[2, 2] + q[3, 3],
+                ]
+            ),
+        ]
+    )
+
+
+def axis_angle_to_quat(axis: jax.Array, angle: jax.Array) -> jax.Array:
+    """The quaternion of a rotation by ``angle`` about the unit ``axis`` ``[3]``.
+
+    MJX's values, built by concatenation: MJX's ``jnp.insert`` is a scatter, which XLA's
+    deterministic GPU mode turns into a sort (docs/benchmarks.md, "Reproducibility on GPU").
+    """
+    s, c = jnp.sin(angle * 0.5), jnp.cos(angle * 0.5)
+    return jnp.concatenate([jnp.expand_dims(c, 0), axis * s])
+
+
+@struct.dataclass
+class Chain:
+    """A serial chain of hinge joints ending in one site, as plain arrays (a pytree).
+
+    Link ``i`` is a body with one hinge joint, child of link ``i - 1``; link 0's parent is
+    the chain's ``base`` body (fixed in the world). The site is fixed to the last link.
+
+    Attributes:
+      base_pos, base_quat: ``[3]``, ``[4]`` the base body's pose in the world.
+      body_pos, body_quat: ``[L, 3]``, ``[L, 4]`` each link's frame in its parent's.
+      jnt_pos, jnt_axis: ``[L, 3]`` each hinge's anchor and (unit) axis in its link's frame.
+      qpos0: ``[L]`` the joint angles at which each link's frame is ``body_pos/body_quat``.
+      site_pos, site_quat: ``[3]``, ``[4]`` the site's frame in the last link's.
+    """
+
+    base_pos: jax.Array
+    base_quat: jax.Array
+    body_pos: jax.Array
+    body_quat: jax.Array
+    jnt_pos: jax.Array
+    jnt_axis: jax.Array
+    qpos0: jax.Array
+    site_pos: jax.Array
+    site_quat: jax.Array
+
+    @property
+    def n_joints(self) -> int:
+        return self.qpos0.shape[-1]
+
+    @classmethod
+    def from_model(cls, model: Any, site: int, dtype: Any = np.float32) -> Chain:
+        """The chain from the world to ``site`` of a ``mujoco.MjModel`` (host side).
+
+        Every body between the world and the site's body must carry exactly one hinge joint,
+        except a first run of fixed bodies (the base), and the model's joints must be exactly
+        these, in chain order (so ``q`` is the model's ``qpos``); and the world's pose is the
+        identity.
+
+        Raises:
+          ValueError: the model is not such a chain (naming what breaks it).
+        """
+        nsite = int(model.nsite)
+        if not 0 <= int(site) < nsite:
+            raise ValueError(f"Chain.from_model: site {site} is not in [0, {nsite})")
+        path = []
+        body = int(model.site_bodyid[site])
+        while body != 0:
+            path.append(body)
+            body = int(model.body_parentid[body])
+        path.reverse()
+        jointed = [b for b in path if int(model.body_jntnum[b]) > 0]
+        base = path[: len(path) - len(jointed)]
+        if path[len(base) :] != jointed:
+            raise ValueError(
+                "Chain.from_model: a body without a joint lies between two jointed bodies "
+                f"on the path to site {site} (bodies {path})"
+            )
+        for b in jointed:
+            j = int(model.body_jntadr[b])
+            if int(model.body_jntnum[b]) != 1 or int(model.jnt_type[j]) != _HINGE:
+                raise ValueError(
+                    f"Chain.from_model: body {b} must carry exactly one hinge joint "
+                    f"(it has {int(model.body_jntnum[b])}, type {int(model.jnt_type[j])})"
+                )
+        if not jointed:
+            raise ValueError(f"Chain.from_model: no joint between the world and site {site}")
+        joints = [int(model.body_jntadr[b]) for b in jointed]
+        if joints != list(range(int(model.njnt))) or int(model.nq) != len(joints):
+            raise ValueError(
+                "Chain.from_model: the model's joints must be exactly the chain's hinges, in "
+                f"order (chain joints {joints}, njnt {int(model.njnt)}, nq {int(model.nq)})"
+            )
+        # The base: the world, then the fixed bodies, composed on the host in float64.
+        pos, quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
+        if np.any(model.body_pos[0] != 0) or np.any(model.body_quat[0] != quat):
+            raise ValueError("Chain.from_model: the world body's pose must be the identity")
+        for b in base:
+            pos = pos + _rotate_np(np.asarray(model.body_pos[b], np.float64), quat)
+            quat = _quat_mul_np(quat, np.asarray(model.body_quat[b], np.float64))
+
+        def a(x):
+            return jnp.asarray(np.asarray(x, dtype))
+
+        return cls(
+            base_pos=a(pos),
+            base_quat=a(quat),
+            body_pos=a(model.body_pos[jointed]),
+            body_quat=a(model.body_quat[jointed]),
+            jnt_pos=a(model.jnt_pos[joints]),
+            jnt_axis=a(model.jnt_axis[joints]),
+            qpos0=a(model.qpos0[joints]),
+            site_pos=a(model.site_pos[site]),
+            site_quat=a(model.site_quat[site]),
+        )
+
+
+class ChainPose(NamedTuple):
+    """`forward`'s result: what ``mjx.kinematics`` gives for the chain's joints and site."""
+
+    xanchor: jax.Array  # [L, 3] each hinge's anchor in the world (mjx.Data.xanchor)
+    xaxis: jax.Array  # [L, 3] each hinge's axis in the world (mjx.Data.xaxis)
+    site_xpos: jax.Array  # [3] the site's position (mjx.Data.site_xpos[site])
+    site_xmat: jax.Array  # [3, 3] the site's orientation (mjx.Data.site_xmat[site])
+
+
+def forward(chain: Chain, q: jax.Array) -> ChainPose:
+    """The chain's joint anchors and axes and its site's pose at joint angles ``q`` ``[L]``.
+
+    MJX's ``smooth.kinematics`` for each link in turn, then ``support.local_to_global`` for
+    the site. Every product is elementwise (no matrix unit, so no TF32 on GPUs).
+    """
+    pos, quat = chain.base_pos, chain.base_quat
+    anchors, axes = [], []
+    for i in range(chain.n_joints):
+        pos = pos + rotate(chain.body_pos[i], quat)
+        quat = quat_mul(quat, chain.body_quat[i])
+        anchor = rotate(chain.jnt_pos[i], quat) + pos
+        axes.append(rotate(chain.jnt_axis[i], quat))
+        anchors.append(anchor)
+        quat = quat_mul(quat, axis_angle_to_quat(chain.jnt_axis[i], q[i] - chain.qpos0[i]))
+        pos = anchor - rotate(chain.jnt_pos[i], quat)  # off-centre rotation
+    site_pos = pos + rotate(chain.site_pos, quat)
+    site_mat = quat_to_mat(quat_mul(quat, chain.site_quat))
+    return ChainPose(jnp.stack(anchors), jnp.stack(axes), site_pos, site_mat)
+
+
+def _rotate_np(vec: np.ndarray, quat: np.ndarray) -> np.ndarray:
+    s, u = quat[0], quat[1:]
+    return 2 * (u @ vec) * u + (s * s - u @ u) * vec + 2 * s * np.cross(u, vec)
+
+
+def _quat_mul_np(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    w0, x0, y0, z0 = u
+    w1, x1, y1, z1 = v
+    return np.array(
+        [
+            w0 * w1 - x0 * x1 - y0 * y1 - z0 * z1,
+            w0 * x1 + x0 * w1 + y0 * z1 - z0 * y1,
+            w0 * y1 - x0 * z1 + y0 * w1 + z0 * x1,
+            w0 * z1 + x0 * y1 - y0 * x1 + z0 * w1,
+        ]
+    )

@@ -89,6 +89,10 @@ class Env:
         cartpole/hopper examples: ``max_nodes``, ``max_conns``, ``activation`` (an
         ``ACT`` name) and ``obs_norm_episodes`` (observation normalisation from that many
         random-action episodes at setup, counted in its wall time, not in evaluations).
+      min_bucket: eant2_jax's `EANT2Config.min_bucket`, the smallest padding bucket
+        ``(neurons, genes, sweeps)``: sized for the networks a run reaches, so that it
+        compiles its engine program once (as TensorNEAT pads every genome to its
+        ``max_nodes``/``max_conns`` and compiles once); None grows buckets as needed.
     """
 
     family: str
@@ -104,6 +108,7 @@ class Env:
     max_iters: int
     tensorneat: tuple[tuple[str, Any], ...] = ()
     normalize: str = "bounds"
+    min_bucket: tuple[int, int, int] | None = (12, 64, 4)
 
 
 ENVS = {
@@ -115,7 +120,9 @@ ENVS = {
     # brax: 10 CMA-ES iterations per generation, not 100. An iteration is a 1,000-step
     # episode run one step after another whatever the batch, so a generation's wall time
     # is its iterations; shorter ones report champions (and select structures) 10x as often.
-    "hopper": Env("brax", "hopper", 11, 3, False, 1.0, 1, 1000, 50_000, 10, 10),
+    "hopper": Env(
+        "brax", "hopper", 11, 3, False, 1.0, 1, 1000, 50_000, 10, 10, min_bucket=(16, 96, 4)
+    ),
     # TensorNEAT's examples/brax/halfcheetah.py: bigger genomes, scaled tanh, normalisation.
     "halfcheetah": Env(
         "brax",
@@ -135,11 +142,12 @@ ENVS = {
             ("activation", "scaled_tanh"),
             ("obs_norm_episodes", 1000),
         ),
+        min_bucket=(16, 192, 4),
     ),
     # The paper's task (kinematic, one move from each of 1023 starts; deterministic): the
     # "return" is minus the task's cost. TensorNEAT's outputs go through the task's own
     # tanh step (bench_peers.outputs_cost), as eant2_jax's identity outputs do.
-    "servo": Env("servo", "servo", 10, 3, False, 1.0, 1, 1, 200_000, 20, 1000),
+    "servo": Env("servo", "servo", 10, 3, False, 1.0, 1, 1, 200_000, 20, 1000, min_bucket=None),
 }
 TENSORNEAT_POP = 1000
 QUICK = {"seeds": 1, "budget": 300, "deadline_s": 240.0,
@@ -196,6 +204,7 @@ def _worker_eant2(env: Env, args: argparse.Namespace, log: _Log) -> None:
     config = eant2_jax.EANT2Config(
         population=args.population or env.population,
         max_evaluations=args.budget,
+        min_bucket=env.min_bucket,
         exploit=eant2_jax.ExploitConfig(
             pruner="covariance", max_iters=args.max_iters or env.max_iters
         ),

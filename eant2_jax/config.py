@@ -375,6 +375,10 @@ _EANT2_TYPES = {
 }
 
 
+# EANT2Config.min_bucket's bound on each entry: far beyond any network a generation compiles
+# (the flat parameter buffer's int32 index allows 24,576 neuron slots: compiler.MAX_BUFFER).
+_MAX_BUCKET = 16384
+
 # Fields added after the run-directory format 2 was fixed: a file written before them lacks
 # them, so ``complete`` does not require them and fills in the value that reproduces what
 # that version did (not necessarily today's default).
@@ -383,6 +387,7 @@ _ADDED_LATER = {
     "init_mutations": 0,
     "max_evaluations": None,
     "inherit_search": False,
+    "min_bucket": None,
 }
 _EXPLOIT_ADDED_LATER = {"lazy_eigen": 0.0, "tolfun": None, "recommend": "best", "rescore": 1}
 
@@ -430,6 +435,15 @@ class EANT2Config:
       devices: where exploitation runs: None (the default device), ``"all"`` or a count N —
         the structures are split over a 1-D mesh of those devices (every process's, in a
         multi-process run). Placement only: the results are identical.
+      min_bucket: the smallest padding bucket ``(neurons, genes, sweeps)`` a generation
+        compiles into (each rounded up to the bucket series; `loop.grow_bucket`), or None
+        (the default: the smallest that fits, with one of each to spare). Every new bucket
+        is a new program to compile: a second or so on a CPU for small tasks, 10 s on a GPU
+        for servo, 30-40 s for a brax episode, while a generation is latency-bound and
+        padding costs it little. A floor sized for the networks a run will reach compiles
+        once. The default CMA-ES population follows the gene bucket
+        (`eant2_jax.tuning.popsize_for`), so a floor also raises it (fix it with
+        ``exploit.popsize``); the same key and config give the same run either way.
     """
 
     population: int = 20
@@ -450,6 +464,7 @@ class EANT2Config:
     target_cost: float | None = None
     max_evaluations: int | None = None
     devices: int | str | None = None
+    min_bucket: tuple[int, int, int] | None = None
     exploit: ExploitConfig = dataclasses.field(
         default_factory=lambda: ExploitConfig(pruner="covariance")
     )
@@ -484,6 +499,19 @@ class EANT2Config:
             )
         w = tuple(float(x) for x in self.operator_weights)
         object.__setattr__(self, "operator_weights", w)
+        if self.min_bucket is not None:
+            b = self.min_bucket
+            if not (
+                isinstance(b, list | tuple)
+                and len(b) == 3
+                and all(isinstance(x, int) and not isinstance(x, bool) for x in b)
+                and all(1 <= x <= _MAX_BUCKET for x in b)
+            ):
+                raise ValueError(
+                    "EANT2Config.min_bucket must be None or three integers (neurons, genes, "
+                    f"sweeps) in [1, {_MAX_BUCKET}], got {b!r:.60}"
+                )
+            object.__setattr__(self, "min_bucket", tuple(b))
         checks = [
             ("population", 1 <= self.population <= MAX_POPULATION, f"in [1, {MAX_POPULATION}]"),
             (
@@ -526,6 +554,7 @@ class EANT2Config:
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["operator_weights"] = list(self.operator_weights)
+        d["min_bucket"] = None if self.min_bucket is None else list(self.min_bucket)
         d["exploit"] = self.exploit.to_dict()
         return d
 

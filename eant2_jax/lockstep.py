@@ -180,7 +180,7 @@ def _loop(task, members, config, callback, mesh) -> None:
         parts: list[_Tuned | None] = [None] * len(group)
         genomes = [ind.genome for b in broods for ind in b.new]
         if genomes:
-            bucket = grow_bucket(genomes, bucket)
+            bucket = grow_bucket(genomes, bucket, config.min_bucket)
             parts = _tune_together(task, group, broods, genomes, config, bucket, callback, mesh)
         for m, brood, part in zip(group, broods, parts, strict=True):
             m.state, record, prune, _ = _conclude(m.state, m.key, config, brood, part, bucket)

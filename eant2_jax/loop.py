@@ -359,10 +359,13 @@ def _generation_record(
     )
 
 
-def grow_bucket(genomes: Sequence[Genome], current: Bucket | None) -> Bucket:
+def grow_bucket(
+    genomes: Sequence[Genome], current: Bucket | None, floor: Sequence[int] | None = None
+) -> Bucket:
     """The bucket a generation compiles into: ``current`` while the genomes fit, else one
     with headroom, the smallest bucket for one more neuron, gene and sweep than they need
-    (at least two sweeps: a first hidden neuron adds one).
+    (at least two sweeps: a first hidden neuron adds one) and at least ``floor``
+    (`EANT2Config.min_bucket`: ``(neurons, genes, sweeps)``).
 
     Each new bucket is a new program to compile (seconds on a CPU, more on a GPU), while the
     padding costs little (a generation is latency-bound: docs/benchmarks.md). A structure's
@@ -377,10 +380,13 @@ def grow_bucket(genomes: Sequence[Genome], current: Bucket | None) -> Bucket:
         neurons <= current.neurons and genes <= current.genes and depth <= current.sweeps
     ):
         return current
+    need = (neurons + 1, genes + 1, max(depth + 1, 2))
+    if floor is not None:
+        need = tuple(max(n, f) for n, f in zip(need, floor, strict=True))
     return Bucket(
-        neurons=bucket_size(neurons + 1, NEURON_FLOOR),
-        genes=bucket_size(genes + 1, GENE_FLOOR),
-        sweeps=bucket_size(max(depth + 1, 2)),
+        neurons=bucket_size(need[0], NEURON_FLOOR),
+        genes=bucket_size(need[1], GENE_FLOOR),
+        sweeps=bucket_size(need[2]),
     )
 
 
@@ -465,7 +471,7 @@ def _next_bucket_guess(
     for t in range(_GUESS_TRIES):
         rng = np.random.default_rng([brood.gen, t])
         dry = [ind.genome for ind in _explore(rng, pool, task, 2**30, config)[0]]
-        b = grow_bucket(dry, bucket) if dry else bucket
+        b = grow_bucket(dry, bucket, config.min_bucket) if dry else bucket
         if b != bucket:
             grown.setdefault(b, dry)
             votes[b] = votes.get(b, 0) + 1
@@ -592,7 +598,7 @@ def _generation(
 
     part = None
     if brood.new:
-        bucket = grow_bucket([ind.genome for ind in brood.new], bucket)
+        bucket = grow_bucket([ind.genome for ind in brood.new], bucket, config.min_bucket)
         res = tune(
             [ind.genome for ind in brood.new],
             task,

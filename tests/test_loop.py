@@ -650,6 +650,47 @@ def test_bucket_grows_with_headroom_and_is_kept_while_it_fits():
     deep = Genome.parse("N0/1*1 N1/1*1 N2/1*1 I0*1")  # depth 3: a new, larger bucket
     grown = grow_bucket([deep, small], first)
     assert grown.sweeps == 4 and grown.neurons >= 4 and grown.genes >= 8
+    # A floor (EANT2Config.min_bucket): every bucket is at least it, rounded to the series.
+    floored = grow_bucket([small], None, (5, 40, 3))
+    assert floored == Bucket(neurons=6, genes=48, sweeps=3)
+    assert grow_bucket([hidden, small], floored, (5, 40, 3)) is floored
+    assert grow_bucket([deep], floored, (5, 40, 3)) is floored  # depth 3: 3 sweeps do
+    deeper = Genome.parse("N0/1*1 N1/1*1 N2/1*1 N3/1*1 I0*1")  # depth 4: 5 sweeps, then 6
+    assert grow_bucket([deeper], floored, (5, 40, 3)) == Bucket(neurons=6, genes=48, sweeps=6)
+
+
+def test_min_bucket_compiles_once_and_is_a_checked_option(tmp_path):
+    """A run with a bucket floor large enough for its networks compiles its engine program
+    in generation 0 only (the default grows into new buckets, each compiled), repeats with
+    the same key, and writes the floor into its run directory; bad floors are one clear
+    error, and configurations written before the option read as no floor."""
+    from eant2_jax.app.cli import _parser
+
+    config = EANT2Config(
+        population=4, min_bucket=(8, 40, 4), exploit=ExploitConfig(max_iters=60, pruner="none")
+    )
+    runs = [
+        eant2_jax.run(tasks.make("xor"), key=jax.random.key(5), config=config, generations=4,
+                      out=str(tmp_path / f"r{i}"))  # fmt: skip
+        for i in range(2)
+    ]
+    assert _without_wall(_json(runs[0].generations)) == _without_wall(_json(runs[1].generations))
+    gens = runs[0].generations
+    assert max(g.best_size for g in gens) > 3  # networks grew (hidden neurons) within it
+    assert all(g.compile_s == 0 for g in gens[1:])  # nothing compiled after generation 0
+    state = json.loads((tmp_path / "r0" / "checkpoint.json").read_text())["state"]
+    assert state["bucket"] == [8, 48, 4]
+    written = json.loads((tmp_path / "r0" / "config.json").read_text())["config"]
+    assert written["min_bucket"] == [8, 40, 4]
+    assert EANT2Config.from_dict(written, complete=True) == config
+    old = CONFIG.to_dict()
+    del old["min_bucket"]
+    assert EANT2Config.from_dict(old, complete=True) == CONFIG
+    for bad in ((8, 40), (8, 0, 4), (8, 40, 4.0), (8, 40, True), "8,40,4", (8, 40, 10**6)):
+        with pytest.raises(ValueError, match="min_bucket must be None or three integers"):
+            EANT2Config(min_bucket=bad)
+    assert _parser().parse_args(["run", "xor", "--min-bucket", "8,40,4"]).min_bucket == (8, 40, 4)
+    assert _parser().parse_args(["run", "xor"]).min_bucket is None
 
 
 # --------------------------------------------------------------------- the solution test

@@ -523,6 +523,8 @@ def test_report_of_malformed_records_is_one_line(tmp_path, capsys, monkeypatch):
         (["run", "xor", "--devices", "99"], "device"),
         (["run", "xor", "--target-cost", "nan"], "target_cost"),
         (["run", "xor", "--max-evaluations", "0"], "max_evaluations"),
+        (["run", "xor", "--min-bucket", "8,40"], "--min-bucket"),
+        (["run", "xor", "--min-bucket", "8,40,99999"], "min_bucket"),
         (["run", "xor", "--population", "99999999999999999999999"], "population"),
     ],
 )

@@ -140,6 +140,7 @@ def _run(args: argparse.Namespace) -> int:
         devices=args.devices,
         target_cost=args.target_cost,
         max_evaluations=args.max_evaluations,
+        min_bucket=args.min_bucket,
         exploit=ExploitConfig(**exploit),
     )
     out = Path(args.out) if args.out else _free_dir(spec, args.seed)
@@ -408,6 +409,20 @@ def _devices(text: str) -> int | str:
         raise argparse.ArgumentTypeError(f"expected 'all' or a count >= 1, got {text!r}") from None
 
 
+def _bucket(text: str) -> tuple[int, int, int]:
+    """``N,G,S``: three integers >= 1 (EANT2Config.min_bucket checks their range)."""
+    parts = text.split(",")
+    try:
+        values = tuple(int(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or min(values) < 1:
+        raise argparse.ArgumentTypeError(
+            f"expected three integers >= 1 as NEURONS,GENES,SWEEPS, got {text!r:.40}"
+        )
+    return values
+
+
 def _parser() -> argparse.ArgumentParser:
     from eant2_jax.config import RECOMMEND
     from eant2_jax.kernels.pruning import PRUNERS
@@ -535,6 +550,14 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         metavar="N",
         help="stop after the generation in which the run's evaluations reach N",
+    )
+    run.add_argument(
+        "--min-bucket",
+        type=_bucket,
+        default=None,
+        metavar="N,G,S",
+        help="the smallest padding bucket (neurons, genes, sweeps) a generation compiles into: "
+        "fewer programs to compile when networks grow (default: the smallest that fits)",
     )
     run.add_argument(
         "--task-option",

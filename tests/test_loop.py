@@ -670,8 +670,13 @@ def test_min_bucket_compiles_once_and_is_a_checked_option(tmp_path):
         population=4, min_bucket=(8, 40, 4), exploit=ExploitConfig(max_iters=60, pruner="none")
     )
     runs = [
-        eant2_jax.run(tasks.make("xor"), key=jax.random.key(5), config=config, generations=4,
-                      out=str(tmp_path / f"r{i}"))  # fmt: skip
+        eant2_jax.run(
+            tasks.make("xor"),
+            key=jax.random.key(5),
+            config=config,
+            generations=4,
+            out=str(tmp_path / f"r{i}"),
+        )  # fmt: skip
         for i in range(2)
     ]
     assert _without_wall(_json(runs[0].generations)) == _without_wall(_json(runs[1].generations))

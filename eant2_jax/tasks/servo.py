@@ -33,12 +33,13 @@ Every constant is documented here and in ``docs/tasks.md``:
   ``q*``, kept only if all 5 markers are inside the image; NumPy generator seeded
   ``[2009, 0]`` (training) and ``[2009, 1]`` (held out, a disjoint set for generalisation).
 * **Modes**: ``kinematic`` (default): the new joint angles are the clipped targets, the camera
-  pose comes from the arm's forward kinematics (``mjx.kinematics``'s values). ``dynamic``: the position servos track the target for
-  ``substeps = 60`` ``mjx.step`` calls of 5 ms (0.3 s) from the arm's current state, and the
-  pose reached is measured. Both modes use `stripped_model` (``arm.xml`` without its
-  visual-only parts). Its joint limit *constraints* are off: targets are clamped to the ranges
-  and the servos are critically damped, so a joint passes a limit by at most about 1 mrad
-  (0.7 seen, < 2 tested), while the constraint solver would make a step 3x slower (H200).
+  pose comes from the arm's forward kinematics (``mjx.kinematics``'s values). ``dynamic``: the
+  position servos track the target for ``substeps = 60`` ``mjx.step`` calls of 5 ms (0.3 s)
+  from the arm's current state, and the pose reached is measured. Both modes use
+  `stripped_model` (``arm.xml`` without its visual-only parts). Its joint limit
+  *constraints* are off: targets are clamped to the ranges and the servos are critically
+  damped, so a joint passes a limit by at most about 1 mrad (0.7 seen, < 2 tested), while
+  the constraint solver would make a step 3x slower (H200).
 * ``moves_per_start > 1``: closed-loop servoing; the network is applied again to the new
   measurements, carrying its recurrent state (and the arm its velocity), and the start's cost
   is the mean over its moves. Default 1, as in the paper.
@@ -109,10 +110,10 @@ from .servo_scene import (  # noqa: F401
     _arm,
     _features_host,
     _mjx_model,
-    _stripped,
     _mjx_numerics,
     _outside,
     _start_poses,
+    _stripped,
     project,
     start_poses,
     stripped_model,

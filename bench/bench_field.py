@@ -133,7 +133,6 @@ ENVS = {
     # brax: 10 CMA-ES iterations per generation, not 100. An iteration is a 1,000-step
     # episode run one step after another whatever the batch, so a generation's wall time
     # is its iterations; shorter ones report champions (and select structures) 10x as often.
-    # fmt: off
     "hopper": Env(
         "brax",
         "hopper",
@@ -149,7 +148,6 @@ ENVS = {
         min_bucket=(16, 96, 4),
         popsize=48,
     ),
-    # fmt: on
     # TensorNEAT's examples/brax/halfcheetah.py: bigger genomes, scaled tanh, normalisation.
     "halfcheetah": Env(
         "brax",

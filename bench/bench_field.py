@@ -102,6 +102,10 @@ class Env:
         the default of the gene bucket, 4 + 3 ln n). On brax an iteration is a 1,000-step
         episode run step after step and a step costs about the same for 170 networks as for
         1,000 (TensorNEAT's batch), so a larger population buys evaluations at no wall time.
+      reexploit: eant2_jax's ``reexploit`` and ``inherit_search`` together: surviving
+        parents go on tuning each generation from their own CMA-ES state (a policy on a
+        long-horizon task improves over many more iterations than one short generation
+        gives; without it hopper's best structure stalled for 8 generations).
     """
 
     family: str
@@ -120,8 +124,11 @@ class Env:
     min_bucket: tuple[int, int, int] | None = (12, 64, 4)
     rescore: int = 16
     popsize: int | None = None
+    reexploit: bool = False
 
 
+# eant2_jax's settings shared by the brax rows (see Env).
+_BRAX_EANT2 = {"min_bucket": (16, 96, 4), "reexploit": True}
 ENVS = {
     "cartpole": Env("gymnax", "CartPole-v1", 4, 2, True, 1.0, 5, 500, 20_000, 10, 100),
     # Acrobot: 50 CMA-ES iterations per generation (its small networks converge within
@@ -134,19 +141,7 @@ ENVS = {
     # episode run one step after another whatever the batch, so a generation's wall time
     # is its iterations; shorter ones report champions (and select structures) 10x as often.
     "hopper": Env(
-        "brax",
-        "hopper",
-        11,
-        3,
-        False,
-        1.0,
-        1,
-        1000,
-        50_000,
-        10,
-        10,
-        min_bucket=(16, 96, 4),
-        popsize=48,
+        "brax", "hopper", 11, 3, False, 1.0, 1, 1000, 50_000, 10, 10, **_BRAX_EANT2, popsize=24
     ),
     # TensorNEAT's examples/brax/halfcheetah.py: bigger genomes, scaled tanh, normalisation.
     "halfcheetah": Env(
@@ -169,6 +164,7 @@ ENVS = {
         ),
         min_bucket=(16, 192, 4),
         popsize=48,
+        reexploit=True,
     ),
     # The paper's task (kinematic, one move from each of 1023 starts; deterministic): the
     # "return" is minus the task's cost. TensorNEAT's outputs go through the task's own
@@ -230,6 +226,8 @@ def _worker_eant2(env: Env, args: argparse.Namespace, log: _Log) -> None:
     config = eant2_jax.EANT2Config(
         population=args.population or env.population,
         max_evaluations=args.budget,
+        reexploit=env.reexploit,
+        inherit_search=env.reexploit,
         min_bucket=env.min_bucket,
         exploit=eant2_jax.ExploitConfig(
             pruner="covariance",

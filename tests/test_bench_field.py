@@ -100,3 +100,31 @@ def test_quick_eant2_run_in_a_fresh_process(env, tmp_path, capsys):
     assert json.loads(out.read_text())["runs"][0]["curve"] == curve
     assert f"| {env} | 0 |" in out.with_suffix(".md").read_text()
     capsys.readouterr()
+
+
+def test_figure_draws_the_curves_and_never_replaces_a_file(tmp_path):
+    """``python -m bench field figure``: one PNG from result files (a row per environment),
+    refused over an existing file, and one clear error for a file that is not a result."""
+    payload = {
+        "environment": {"device_kind": "cpu", "date_utc": "2026-11-24T00:00:00Z"},
+        "runs": [
+            _run("eant2", [(100, 5.0, 50.0, 9), (900, 9.0, 500.0, 7)]),
+            _run("tensorneat", [(1000, 20.0, 300.0, 30)]),
+            _run("eant2", [(10, 1.0, -90.0, 20)], env="acrobot", seed=2),
+        ],
+    }
+    results = tmp_path / "field.json"
+    results.write_text(json.dumps(payload))
+    out = tmp_path / "img" / "curves.png"
+    bench_field.main(["figure", str(out), str(results)])
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    before = out.read_bytes()
+    with pytest.raises(BenchInputError, match="never replaces"):
+        bench_field.main(["figure", str(out), str(results)])
+    assert out.read_bytes() == before
+    (tmp_path / "bad.json").write_text("{}")
+    for bad, phrase in ((tmp_path / "bad.json", "with runs"), (tmp_path / "no.json", "readable")):
+        with pytest.raises(BenchInputError, match=phrase):
+            bench_field.main(["figure", str(tmp_path / "other.png"), str(bad)])
+    with pytest.raises(BenchInputError, match="usage"):
+        bench_field.main(["figure", str(tmp_path / "x.png")])

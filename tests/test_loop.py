@@ -389,6 +389,34 @@ def test_cli_ctrl_c_exits_130_and_resumes(cli_reference, cli_cache, tmp_path):
     assert f"eant2 resume {out}" in err and "Traceback" not in err
 
 
+def test_a_ctrl_c_swallowed_by_a_callback_still_stops_the_command():
+    """Python raises KeyboardInterrupt where SIGINT lands; inside a callback run from C (the
+    garbage collector's) it is printed as ignored. The command remembers the signal and its
+    progress callbacks raise it again, on the main thread; `main` puts the previous SIGINT
+    handler back."""
+    import threading
+
+    from eant2_jax.app import cli
+
+    before = signal.getsignal(signal.SIGINT)
+    seen = []
+    checked = cli._interruptible(seen.append)
+    checked({"event": "exploit"})
+    assert seen == [{"event": "exploit"}]
+    cli._SIGINT.set()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            checked({"event": "exploit"})
+        worker = threading.Thread(target=checked, args=({"event": "generation"},))
+        worker.start()
+        worker.join()
+        assert seen[-1] == {"event": "generation"}  # a worker thread reports, never raises
+    finally:
+        cli._SIGINT.clear()
+    assert cli.main(["tasks"]) == 0
+    assert signal.getsignal(signal.SIGINT) is before
+
+
 def _run_main(argv: list[str], capsys, monkeypatch) -> tuple[int, list[str], str]:
     """``eant2 ARGV`` in-process: (exit code, non-empty stderr lines, stdout)."""
     monkeypatch.setenv("EANT2_CACHE_DIR", "")  # leave the JAX configuration alone

@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import signal
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -152,7 +154,9 @@ def _run(args: argparse.Namespace) -> int:
         config=config,
         generations=args.generations,
         out=str(out),
-        callback=ProgressReporter(args.generations, header=f"eant2 run {spec}: writing {out}"),
+        callback=_interruptible(
+            ProgressReporter(args.generations, header=f"eant2 run {spec}: writing {out}")
+        ),
         meta=meta,
     )
     return _finish(result, out)
@@ -178,7 +182,7 @@ def _resume(args: argparse.Namespace) -> int:
     result = eant2_jax.resume(
         args.dir,
         generations=args.generations,
-        callback=ProgressReporter(total, header=f"eant2 resume {args.dir}"),
+        callback=_interruptible(ProgressReporter(total, header=f"eant2 resume {args.dir}")),
     )
     return _finish(result, Path(args.dir))
 
@@ -197,7 +201,7 @@ def _resume_reproduction(args: argparse.Namespace) -> int:
     except (OSError, ValueError, KeyError, TypeError):
         total = "?"
     print(f"eant2 resume: finishing the reproduction in {args.dir}", file=sys.stderr)
-    path = resume_reproduction(args.dir, callback=_reproduce_progress(total))
+    path = resume_reproduction(args.dir, callback=_interruptible(_reproduce_progress(total)))
     print(f"report: {path}")
     return 0
 
@@ -361,7 +365,7 @@ def _reproduce(args: argparse.Namespace) -> int:
         condition_iters=args.condition_iters,
         condition_inits=args.condition_inits,
         condition_dtype=args.condition_dtype,
-        callback=progress,
+        callback=_interruptible(progress),
     )
     print(f"report: {path}")
     return 0
@@ -725,7 +729,45 @@ def _deterministic_gpu(environ=None) -> bool:
     return True
 
 
+# Ctrl-C, remembered. Python raises KeyboardInterrupt wherever the signal lands; when that is
+# inside a callback the interpreter runs from C (the garbage collector's: XLA registers one),
+# the exception is printed as "ignored" and the run went on (tests/test_loop.py's Ctrl-C test
+# saw it once). The command's progress callbacks raise it again (`_interruptible`).
+_SIGINT = threading.Event()
+
+
+def _on_sigint(signum, frame):
+    _SIGINT.set()
+    raise KeyboardInterrupt
+
+
+def _interruptible(callback):
+    """``callback`` (progress events, or None), first raising KeyboardInterrupt if a Ctrl-C
+    has arrived since the command started (`_SIGINT`); on the main thread only, where
+    `main` turns it into exit 130 (worker threads of `eant2 reproduce` report too)."""
+
+    def checked(event):
+        if _SIGINT.is_set() and threading.current_thread() is threading.main_thread():
+            raise KeyboardInterrupt
+        if callback is not None:
+            callback(event)
+
+    return checked
+
+
 def main(argv: list[str] | None = None) -> int:
+    _SIGINT.clear()
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGINT, _on_sigint)
+    try:
+        return _main(argv)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+
+
+def _main(argv: list[str] | None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
     _deterministic_gpu()

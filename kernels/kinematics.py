@@ -14,8 +14,8 @@ pose of a chain based at the world equals ``mjx.kinematics``'s to the last bit o
 MuJoCo C in float64). Quaternions are ``(w, x, y, z)``.
 
 Written for ONE configuration ``q``; batch with ``jax.vmap``. This module imports nothing
-from the rest of eant2_jax (nor MuJoCo: `Chain.from_model` reads a ``mujoco.MjModel``'s
-arrays by name).
+from the rest of eant2_jax (nor MuJoCo, but for `Chain.from_model`, which reads a
+``mujoco.MjModel``).
 """
 
 from __future__ import annotations
@@ -132,8 +132,7 @@ class Chain:
 
         Every body between the world and the site's body must carry exactly one hinge joint,
         except a first run of fixed bodies (the base), and the model's joints must be exactly
-        these, in chain order (so ``q`` is the model's ``qpos``); and the world's pose is the
-        identity.
+        these, in chain order (so ``q`` is the model's ``qpos``).
 
         Raises:
           ValueError: the model is not such a chain (naming what breaks it).
@@ -169,16 +168,19 @@ class Chain:
                 "Chain.from_model: the model's joints must be exactly the chain's hinges, in "
                 f"order (chain joints {joints}, njnt {int(model.njnt)}, nq {int(model.nq)})"
             )
-        # The base: the world, then the fixed bodies, composed on the host in float64.
-        pos, quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
-        if np.any(model.body_pos[0] != 0) or np.any(model.body_quat[0] != quat):
-            raise ValueError("Chain.from_model: the world body's pose must be the identity")
-        for b in base:
-            pos = pos + _rotate_np(np.asarray(model.body_pos[b], np.float64), quat)
-            quat = _quat_mul_np(quat, np.asarray(model.body_quat[b], np.float64))
+        # The base's pose does not depend on q: MuJoCo C's own kinematics (float64) gives it.
+        pos, quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])  # the world
+        if base:
+            import mujoco
+
+            data = mujoco.MjData(model)
+            mujoco.mj_kinematics(model, data)
+            pos, quat = data.xpos[base[-1]].copy(), data.xquat[base[-1]].copy()
 
         def a(x):
-            return jnp.asarray(np.asarray(x, dtype))
+            # Converted on the host, then copied: jnp.asarray of a host array compiled a
+            # one-operation program per new shape (a cold-start cost on a GPU).
+            return jax.device_put(np.asarray(x, dtype))
 
         return cls(
             base_pos=a(pos),
@@ -221,21 +223,3 @@ def forward(chain: Chain, q: jax.Array) -> ChainPose:
     site_pos = pos + rotate(chain.site_pos, quat)
     site_mat = quat_to_mat(quat_mul(quat, chain.site_quat))
     return ChainPose(jnp.stack(anchors), jnp.stack(axes), site_pos, site_mat)
-
-
-def _rotate_np(vec: np.ndarray, quat: np.ndarray) -> np.ndarray:
-    s, u = quat[0], quat[1:]
-    return 2 * (u @ vec) * u + (s * s - u @ u) * vec + 2 * s * np.cross(u, vec)
-
-
-def _quat_mul_np(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    w0, x0, y0, z0 = u
-    w1, x1, y1, z1 = v
-    return np.array(
-        [
-            w0 * w1 - x0 * x1 - y0 * y1 - z0 * z1,
-            w0 * x1 + x0 * w1 + y0 * z1 - z0 * y1,
-            w0 * y1 - x0 * z1 + y0 * w1 + z0 * x1,
-            w0 * z1 + x0 * y1 - y0 * x1 + z0 * w1,
-        ]
-    )

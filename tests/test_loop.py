@@ -649,6 +649,48 @@ def test_cli_asks_for_deterministic_gpu_programs_unless_told_otherwise():
     assert not _deterministic_gpu(env) and "XLA_FLAGS" not in env
 
 
+def test_cli_process_defaults_yield_to_the_environment():
+    from eant2_jax.app.cli import _process_defaults
+
+    env = {}
+    assert (
+        _process_defaults(env)
+        == env
+        == {
+            "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
+            "MUJOCO_GL": "disable",
+        }
+    )
+    # Any allocator setting of the user's keeps JAX's allocator as they chose it.
+    for var in ("XLA_PYTHON_CLIENT_PREALLOCATE", "XLA_PYTHON_CLIENT_MEM_FRACTION",
+                "XLA_PYTHON_CLIENT_ALLOCATOR"):  # fmt: skip
+        env = {var: "0.5", "MUJOCO_GL": "egl"}
+        assert _process_defaults(env) == {} and env == {var: "0.5", "MUJOCO_GL": "egl"}
+
+
+def test_cli_sets_process_defaults_before_mujoco_and_the_backend(tmp_path):
+    """In a fresh `eant2 run` process, MuJoCo is imported with MUJOCO_GL=disable (no OpenGL
+    library loaded) and JAX's backend starts without preallocating."""
+    probe = (
+        "import os, sys\n"
+        "from eant2_jax.app import cli\n"
+        "rc = cli.main(sys.argv[1:])\n"
+        "import mujoco.rendering.classic.gl_context as g\n"
+        "print(os.environ['XLA_PYTHON_CLIENT_PREALLOCATE'], os.environ['MUJOCO_GL'],\n"
+        "      'GLContext' in vars(g), 'glfw' in sys.modules, rc)\n"
+    )
+    unset = ("MUJOCO_GL", "XLA_PYTHON_CLIENT_PREALLOCATE")
+    env = {k: v for k, v in os.environ.items() if k not in unset}
+    env["EANT2_CACHE_DIR"] = ""
+    proc = subprocess.run(
+        [sys.executable, "-c", probe, "run", "servo", "--population", "2", "--generations", "0",
+         "--max-iters", "2", "--no-prune", "--out", str(tmp_path / "r")],
+        capture_output=True, text=True, env=env, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split()[-5:] == ["false", "disable", "False", "False", "0"], proc.stdout
+
+
 @pytest.mark.slow
 def test_cli_x64_run_records_float64_and_resumes(cli_cache, tmp_path):
     """``eant2 run --x64`` keeps the CMA-ES state in float64; resume turns x64 on again."""

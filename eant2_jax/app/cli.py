@@ -729,6 +729,40 @@ def _deterministic_gpu(environ=None) -> bool:
     return True
 
 
+# The process's settings `_process_defaults` chooses when the environment names none.
+_ALLOCATOR_VARS = (
+    "XLA_PYTHON_CLIENT_PREALLOCATE",
+    "XLA_PYTHON_CLIENT_MEM_FRACTION",
+    "XLA_PYTHON_CLIENT_ALLOCATOR",
+)
+
+
+def _process_defaults(environ=None) -> dict[str, str]:
+    """The command's own process settings, each only where the environment sets none (the
+    application's choice; the library never touches them). Returns what it set.
+
+    * ``XLA_PYTHON_CLIENT_PREALLOCATE=false`` (unless any ``XLA_PYTHON_CLIENT_*`` allocator
+      variable is set): JAX's GPU backend otherwise reserves 75% of the GPU's memory when it
+      starts. On an H100 host that reservation was most of the backend's start: 1.5-2.9 s
+      against 0.4 s without it (docs/benchmarks.md, "Cold start"), and a run uses a few
+      hundred MB. Memory is then taken as programs need it and kept; results do not change.
+    * ``MUJOCO_GL=disable``: ``import mujoco`` otherwise loads an OpenGL (GLFW) library for
+      rendering, 0.4 s on that host; the command never renders.
+
+    Must run before JAX starts its backend and before MuJoCo is imported.
+    """
+    import os
+
+    environ = os.environ if environ is None else environ
+    chosen = {}
+    if not any(v in environ for v in _ALLOCATOR_VARS):
+        chosen["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
+    if "MUJOCO_GL" not in environ:
+        chosen["MUJOCO_GL"] = "disable"
+    environ.update(chosen)
+    return chosen
+
+
 # Ctrl-C, remembered. Python raises KeyboardInterrupt wherever the signal lands; when that is
 # inside a callback the interpreter runs from C (the garbage collector's: XLA registers one),
 # the exception is printed as "ignored" and the run went on (tests/test_loop.py's Ctrl-C test
@@ -771,6 +805,8 @@ def _main(argv: list[str] | None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
     _deterministic_gpu()
+    if args.func in (_run, _resume, _reproduce):
+        _process_defaults()
     from eant2_jax.config import enable_compilation_cache
 
     # Compiled programs kept between runs (the application's choice; the library never

@@ -513,6 +513,35 @@ def _compile_next_bucket(state, brood, task, config, bucket) -> threading.Thread
     return thread
 
 
+def _compile_first_ahead(task: Task, key: jax.Array, config: EANT2Config) -> bool:
+    """On an accelerator, start compiling generation 0's engine program at once, from
+    shapes alone (`eant2_jax.tuning.compile_ahead`): the generation's keys, its engine start
+    and their small programs then compile and run while it does, instead of before it
+    (on a GPU with a cold cache those were 1.7 s of a servo run's first generation,
+    docs/benchmarks.md, "Cold start"). Only where generation 0's structure does not depend
+    on the run's draws: minimal starts of full connectivity without initial mutations
+    (the defaults); their weights are the only draws, and they do not shape the program."""
+    if not exploitation.compile_ahead_enabled():
+        return False
+    if config.init_mutations or config.init_connectivity < 1:
+        return False
+    rng = np.random.default_rng(0)  # weights only, see above
+    genome = initial_genome(
+        rng,
+        task.n_inputs,
+        task.n_outputs,
+        connectivity=1.0,
+        weight_scale=config.init_weight_scale,
+        recurrent=config.init_recurrent,
+    )
+    bucket = grow_bucket([genome], None, config.min_bucket)
+    exp_key = jax.eval_shape(_generation_keys, key, 0)[1]
+    return tuning.compile_ahead(
+        [genome], task, key=exp_key, config=config.exploit, bucket=bucket,
+        min_rows=_rows(config),
+    )  # fmt: skip
+
+
 def _rows(config: EANT2Config) -> int:
     """Rows of every generation's batch of one run: one program per bucket."""
     return (config.offspring or config.population) + (config.population if config.reexploit else 0)
@@ -946,6 +975,11 @@ def _loop(
     # from the checkpoint's.
     bucket = None if state is None or state.bucket is None else Bucket(*state.bucket)
     solution = None
+    if state is None and mesh is None:
+        try:
+            _compile_first_ahead(task, key, config)
+        except Exception:  # noqa: BLE001, S110 - generation 0 then compiles it as usual
+            pass
     if state is not None and solution_test is not None:  # resumed: test what it holds
         solution = next((ind for ind in state.population if solution_test(ind.genome)), None)
     while solution is None and (state is None or state.generation < generations):

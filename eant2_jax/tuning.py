@@ -220,6 +220,43 @@ def prepare(
     return Prepared(batch, st, tables_for(genomes, batch.bucket.genes, rows), popsize)
 
 
+def compile_ahead(
+    genomes: Sequence[Genome],
+    task: Task,
+    *,
+    key: jax.Array,
+    config: ex.ExploitConfig,
+    bucket: Bucket | None = None,
+    min_rows: int = 1,
+) -> bool:
+    """Start compiling, in a background thread, the engine program that ``tune(genomes,
+    task, key=key, config=config, bucket=bucket, min_rows=min_rows)`` will run, from shapes
+    alone: no key is split and no engine state is made (`jax.eval_shape`), so it needs
+    none of the small programs `prepare` runs first (on a GPU with a cold cache a few
+    tenths of a second each to compile); those then compile while this one does. The
+    program is the one `tune` would compile, so results do not change; `tune` waits for it
+    instead of compiling it again. Returns whether a compilation was started (not on a
+    CPU, see `eant2_jax.exploitation.compile_ahead_enabled`; not with a warm start).
+    """
+    if not ex.compile_ahead_enabled():
+        return False
+    genomes = list(genomes)
+    check_task(task, genomes)
+    batch = compile_genomes(genomes, task.n_inputs, bucket=bucket, min_rows=min_rows)
+    rows = batch.layout.slot.shape[0]
+    popsize = popsize_for(config, batch)
+    init_key, run_key = jax.eval_shape(lambda k: tuple(jax.random.split(k)), key)
+    keys = jax.eval_shape(start_keys, init_key, rows)
+    st = jax.eval_shape(
+        functools.partial(ex.init, config=config, popsize=popsize),
+        keys, batch.weights, batch.layout.gene_mask, active=np.arange(rows) < batch.count,
+    )  # fmt: skip
+    tables = tables_for(genomes, batch.bucket.genes, rows)
+    return ex.compile_ahead_abstract(
+        st, batch.layout, task, key=run_key, config=config, tables=tables
+    )
+
+
 @dataclasses.dataclass(frozen=True)
 class Tuned:
     """What `tune` returns.

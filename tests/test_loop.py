@@ -961,6 +961,60 @@ def _record_json() -> dict:
     }  # fmt: skip
 
 
+def _joined_first_ahead(loop, exploitation):
+    """`loop._compile_first_ahead`, its compilation waited for at once (two programs at once
+    on a CPU can deadlock XLA's thread pool)."""
+    first = loop._compile_first_ahead
+
+    def joined(*args):
+        started = first(*args)
+        for ahead in list(exploitation._AHEAD.values()):
+            assert ahead.get() is not None, "the program compiled ahead failed to compile"
+        return started
+
+    return joined
+
+
+@pytest.mark.parametrize("task", ["xor", "servo"])
+def test_first_program_compiled_ahead_from_shapes_is_used_and_changes_nothing(monkeypatch, task):
+    """On an accelerator generation 0's engine program starts compiling from shapes alone,
+    before any key or engine state exists (`loop._compile_first_ahead`). Forced on here:
+    generation 0 runs that very program (called without jit's fallback, so arguments placed
+    otherwise than foreseen would raise), and the run is exactly that of the usual path. The
+    servo task's arrays are committed to the device; XOR's are not."""
+    from eant2_jax import exploitation, loop
+
+    exploit = ExploitConfig(max_iters=30 if task == "xor" else 4, pruner="covariance")
+    config = EANT2Config(population=4, exploit=exploit)
+
+    def run():
+        return eant2_jax.run(tasks.make(task), key=jax.random.key(3), config=config,
+                             generations=0)  # fmt: skip
+
+    plain = run()
+    used = []
+
+    def strict(compiled, chunk):
+        used.append(compiled)
+        return compiled  # no fallback to jit: a mismatch raises
+
+    monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
+    monkeypatch.setattr(loop, "_compile_first_ahead", _joined_first_ahead(loop, exploitation))
+    monkeypatch.setattr(exploitation, "_with_fallback", strict)
+    monkeypatch.setattr(exploitation, "_AHEAD", {})
+    monkeypatch.setattr(exploitation, "_SEEN", set())
+    ahead = run()
+    assert len(used) == 1 and len(exploitation._AHEAD) == 1
+    assert ahead.best == plain.best
+    assert _without_wall(_json(ahead.generations)) == _without_wall(_json(plain.generations))
+    assert _without_wall(_json(ahead.pruning)) == _without_wall(_json(plain.pruning))
+    # Where generation 0's structure depends on the run's draws, nothing is guessed.
+    monkeypatch.setattr(exploitation, "_AHEAD", {})
+    diverse = dataclasses.replace(config, init_mutations=2)
+    assert not loop._compile_first_ahead(tasks.make(task), jax.random.key(3), diverse)
+    assert not exploitation._AHEAD
+
+
 def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
     """On an accelerator the loop guesses the next bucket and compiles its engine program in
     a background thread (`loop._compile_next_bucket`). Forced on here, with the threads
@@ -995,6 +1049,7 @@ def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
 
     monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
     monkeypatch.setattr(loop, "_compile_next_bucket", joined)
+    monkeypatch.setattr(loop, "_compile_first_ahead", _joined_first_ahead(loop, exploitation))
     monkeypatch.setattr(exploitation, "_with_fallback", spy)
     monkeypatch.setattr(exploitation, "_AHEAD", {})
     monkeypatch.setattr(exploitation, "_SEEN", set())  # as in a fresh process

@@ -55,10 +55,11 @@ def _one(args, cache: str, pythonpath: str | None) -> dict[str, Any]:
             compiling += "compiling" in line
         proc.wait()
         total = time.perf_counter() - t0
+        best = [ln for ln in proc.stdout.read().splitlines() if ln.startswith("best cost")]
     if proc.returncode:
         raise RuntimeError(f"eant2 run failed ({proc.returncode}): {''.join(lines[-20:])}")
     return {"generations_s": [gens[g] for g in sorted(gens)], "total_s": total,
-            "compiling_events": compiling}  # fmt: skip
+            "compiling_events": compiling, "best": best[-1] if best else None}  # fmt: skip
 
 
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
@@ -89,15 +90,30 @@ def medians(rows: list[dict]) -> list[dict]:
             "generations_s": [statistics.median(g) for g in gens],
             "total_s": statistics.median(r["total_s"] for r in group),
             "compiling_events": group[0]["compiling_events"],
+            "same_run": _same_run(group),
         })  # fmt: skip
     return out
 
 
+def _same_run(rows: list[dict]) -> str:
+    """Whether every run in ``rows`` printed the same best network (cost and weights, to the
+    last printed digit): "yes", "no", or "—" where the runs did not print it."""
+    best = {r.get("best") for r in rows}
+    if None in best:
+        return "—"
+    return "yes" if len(best) == 1 else "no"
+
+
 def _render(payload: dict) -> str:
     rows = payload["rows"]
+    across = "".join(
+        f"\n\n{label}: every run printed the same best network: {_same_run(group)}"
+        for label in dict.fromkeys(r["install"] for r in rows)
+        for group in [[r for r in rows if r["install"] == label]]
+    )
     if len({r.get("round", 0) for r in rows}) < 2:
-        return markdown_table(rows, COLUMNS)
-    return (markdown_table(medians(rows), COLUMNS) + "\n\nEach round:\n\n"
+        return markdown_table(rows, COLUMNS) + across
+    return (markdown_table(medians(rows), COLUMNS) + across + "\n\nEach round:\n\n"
             + markdown_table(rows, COLUMNS))  # fmt: skip
 
 
@@ -130,6 +146,7 @@ COLUMNS = [
     ),  # fmt: skip
     Column("total_s", "s to exit", "{:.1f}"),
     Column("compiling_events", '"compiling" events'),
+    Column(lambda r: r.get("same_run", ""), "same best network"),
 ]
 
 SUITE = harness.Suite(

@@ -1,0 +1,192 @@
+"""The store of traced engine programs (`eant2_jax.programstore`): a run computes the same
+with the store off, cold and warm; a warm store skips tracing; anything that shapes the
+program keys it; bad files and unwritable folders cost nothing but the saving."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+import eant2_jax
+from eant2_jax import EANT2Config, ExploitConfig, exploitation, programstore, tasks
+
+CONFIG = EANT2Config(population=4, exploit=ExploitConfig(max_iters=40, pruner="covariance"))
+WALL = eant2_jax.loop.RUN_DEPENDENT
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    """The store in a fresh folder, with this process's programs forgotten (a new process)."""
+    folder = tmp_path / "programs"
+    monkeypatch.setattr(programstore, "directory", lambda: folder)
+    monkeypatch.setattr(programstore, "_PROGRAMS", {})
+    monkeypatch.setattr(exploitation, "_STORE_FAILED", [])
+    return folder
+
+
+def _forget(monkeypatch):
+    """As a new process: no program of the store in memory."""
+    monkeypatch.setattr(programstore, "_PROGRAMS", {})
+
+
+def _run(task="xor", config=CONFIG, generations=1):
+    result = eant2_jax.run(tasks.make(task), key=jax.random.key(7), config=config,
+                           generations=generations)  # fmt: skip
+    records = [
+        json.dumps({k: v for k, v in r.to_json().items() if k not in WALL}, sort_keys=True)
+        for r in [*result.generations, *result.pruning]
+    ]
+    return str(result.best), records
+
+
+def _no_tracing(monkeypatch):
+    """Make tracing a program for the store fail loudly."""
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the store traced a program it holds")
+
+    monkeypatch.setattr(programstore.export, "export", refuse)
+
+
+@pytest.mark.parametrize("task", ["xor", "servo"])
+def test_off_cold_and_warm_store_give_the_same_run(store, monkeypatch, task):
+    small = dataclasses.replace(CONFIG, exploit=CONFIG.exploit.replace(max_iters=6))
+    config, generations = (CONFIG, 1) if task == "xor" else (small, 0)
+    monkeypatch.setattr(programstore, "directory", lambda: None)
+    off = _run(task, config, generations)
+    monkeypatch.setattr(programstore, "directory", lambda: store)
+    cold = _run(task, config, generations)
+    files = sorted(store.glob("*.pkl"))
+    assert files, "nothing stored"
+    _forget(monkeypatch)
+    _no_tracing(monkeypatch)
+    warm = _run(task, config, generations)
+    assert off == cold == warm
+    assert sorted(store.glob("*.pkl")) == files  # read, not written again
+
+
+def test_the_engine_state_is_equal_to_the_last_bit(store):
+    """One chunk of the engine: the stored program's outputs equal jit's, every leaf."""
+    from eant2_jax import tuning
+    from eant2_jax.exploration import initial_genome
+
+    task = tasks.make("servo")
+    genome = initial_genome(np.random.default_rng(1), task.n_inputs, task.n_outputs)
+    config = ExploitConfig(max_iters=30, pruner="covariance")
+    init_key, run_key = jax.random.split(jax.random.key(2))
+    prep = tuning.prepare([genome], task, key=init_key, config=config, min_rows=4)
+    args = (*exploitation._placed(prep.state, prep.batch.layout, prep.tables, task, None),
+            run_key, config)  # fmt: skip
+    stored = programstore.program(exploitation._run_chunk, args, {"length": 5}, task=task)
+    assert stored is not None
+    plain = exploitation._run_chunk(*args, length=5)
+    for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(stored(*args)), strict=True):
+        if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
+            a, b = jax.random.key_data(a), jax.random.key_data(b)
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def _keys(folder) -> set[str]:
+    return {p.name for p in folder.glob("*.pkl")}
+
+
+def test_what_shapes_the_program_keys_it(store, monkeypatch):
+    _run(generations=0)
+    base = _keys(store)
+    assert len(base) == 1
+    # Another static setting of the engine: another program.
+    plain = dataclasses.replace(CONFIG, exploit=CONFIG.exploit.replace(pruner="none"))
+    _run(config=plain, generations=0)
+    assert len(_keys(store)) == 2
+    # Changed code of this package (or another JAX): another key, never the old program.
+    monkeypatch.setattr(programstore, "_code_digest", lambda: b"other source")
+    _forget(monkeypatch)
+    _run(generations=0)
+    assert len(_keys(store)) == 3
+    # JAX's configuration is part of the key.
+    monkeypatch.setattr(programstore, "_config_digest", lambda: b"other config")
+    _forget(monkeypatch)
+    _run(generations=0)
+    assert len(_keys(store)) == 4
+
+
+def test_the_code_digest_covers_every_module_of_the_package(monkeypatch, tmp_path):
+    """Both folders of a source checkout (eant2_jax/ and kernels/) count: an edit to a kernel
+    gives another digest."""
+    from eant2_jax import kernels
+
+    digest = programstore._code_digest()
+    assert isinstance(digest, bytes) and len(digest) == 32
+    copy = tmp_path / "kernels"
+    copy.mkdir()
+    for f in Path(kernels.__path__[0]).glob("*.py"):
+        (copy / f.name).write_bytes(f.read_bytes())
+    monkeypatch.setattr(kernels, "__path__", [str(copy)])
+    programstore._code_digest.cache_clear()
+    try:
+        assert programstore._code_digest() == digest
+        (copy / "cmaes.py").write_text((copy / "cmaes.py").read_text() + "\n# edited\n")
+        programstore._code_digest.cache_clear()
+        assert programstore._code_digest() != digest
+    finally:
+        programstore._code_digest.cache_clear()
+
+
+def test_a_bad_file_is_traced_again_and_replaced(store, monkeypatch):
+    first = _run(generations=0)
+    (path,) = store.glob("*.pkl")
+    for junk in (b"", b"not a pickle", __import__("pickle").dumps(("a", "b"))):
+        path.write_bytes(junk)
+        _forget(monkeypatch)
+        assert _run(generations=0) == first
+        assert path.read_bytes() != junk
+
+
+def test_an_unwritable_store_still_runs(tmp_path, monkeypatch):
+    blocker = tmp_path / "file"
+    blocker.write_text("a file where the folder would be")
+    monkeypatch.setattr(programstore, "directory", lambda: blocker / "programs")
+    monkeypatch.setattr(programstore, "_PROGRAMS", {})
+    assert _run(generations=0)[0]
+    assert blocker.read_text() == "a file where the folder would be"
+
+
+def test_when_the_store_holds_nothing(store, monkeypatch):
+    # A task defined outside the package: its code is not in the key.
+    task = tasks.make("xor")
+
+    class Outside(type(task)):
+        pass
+
+    Outside.__module__ = "user_tasks"
+    outside = Outside(**{f: getattr(task, f) for f in task.__dataclass_fields__})
+    assert programstore.program(exploitation._run_chunk, (outside,), {}, task=outside) is None
+    # Off with the compilation cache, or alone by EANT2_PROGRAM_STORE=0.
+    monkeypatch.undo()
+    old = jax.config.jax_compilation_cache_dir
+    try:
+        jax.config.update("jax_compilation_cache_dir", None)
+        assert programstore.directory() is None
+        jax.config.update("jax_compilation_cache_dir", "/somewhere")
+        assert programstore.directory() is not None
+        monkeypatch.setenv("EANT2_PROGRAM_STORE", "0")
+        assert programstore.directory() is None
+    finally:
+        jax.config.update("jax_compilation_cache_dir", old)
+
+
+def test_the_store_follows_the_compilation_cache(tmp_path, monkeypatch):
+    monkeypatch.delenv("EANT2_PROGRAM_STORE", raising=False)
+    old = jax.config.jax_compilation_cache_dir
+    try:
+        eant2_jax.enable_compilation_cache(tmp_path / "xla")
+        assert programstore.directory() == tmp_path / "xla" / programstore.DIRNAME
+    finally:
+        jax.config.update("jax_compilation_cache_dir", old)
+    assert "eant2_jax.programstore" in sys.modules

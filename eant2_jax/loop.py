@@ -513,14 +513,18 @@ def _compile_next_bucket(state, brood, task, config, bucket) -> threading.Thread
     return thread
 
 
-def _compile_first_ahead(task: Task, key: jax.Array, config: EANT2Config) -> bool:
+def compile_first_ahead(task: Task, key: jax.Array, config: EANT2Config) -> bool:
     """On an accelerator, start compiling generation 0's engine program at once, from
     shapes alone (`eant2_jax.tuning.compile_ahead`): the generation's keys, its engine start
     and their small programs then compile and run while it does, instead of before it
     (on a GPU with a cold cache those were 1.7 s of a servo run's first generation,
     docs/benchmarks.md, "Cold start"). Only where generation 0's structure does not depend
     on the run's draws: minimal starts of full connectivity without initial mutations
-    (the defaults); their weights are the only draws, and they do not shape the program."""
+    (the defaults); their weights are the only draws, and they do not shape the program.
+
+    `run` calls it first; a caller may call it sooner, before it has the run's key:
+    ``key`` may be its shape (``jax.eval_shape(jax.random.key, seed)``), and `run` then
+    finds the compilation under way. Returns whether a compilation was started."""
     if not exploitation.compile_ahead_enabled():
         return False
     if config.init_mutations or config.init_connectivity < 1:
@@ -977,7 +981,7 @@ def _loop(
     solution = None
     if state is None and mesh is None:
         try:
-            _compile_first_ahead(task, key, config)
+            compile_first_ahead(task, key, config)
         except Exception:  # noqa: BLE001, S110 - generation 0 then compiles it as usual
             pass
     if state is not None and solution_test is not None:  # resumed: test what it holds

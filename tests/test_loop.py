@@ -962,9 +962,9 @@ def _record_json() -> dict:
 
 
 def _joined_first_ahead(loop, exploitation):
-    """`loop._compile_first_ahead`, its compilation waited for at once (two programs at once
+    """`loop.compile_first_ahead`, its compilation waited for at once (two programs at once
     on a CPU can deadlock XLA's thread pool)."""
-    first = loop._compile_first_ahead
+    first = loop.compile_first_ahead
 
     def joined(*args):
         started = first(*args)
@@ -978,7 +978,7 @@ def _joined_first_ahead(loop, exploitation):
 @pytest.mark.parametrize("task", ["xor", "servo"])
 def test_first_program_compiled_ahead_from_shapes_is_used_and_changes_nothing(monkeypatch, task):
     """On an accelerator generation 0's engine program starts compiling from shapes alone,
-    before any key or engine state exists (`loop._compile_first_ahead`). Forced on here:
+    before any key or engine state exists (`loop.compile_first_ahead`). Forced on here:
     generation 0 runs that very program (called without jit's fallback, so arguments placed
     otherwise than foreseen would raise), and the run is exactly that of the usual path. The
     servo task's arrays are committed to the device; XOR's are not."""
@@ -999,7 +999,7 @@ def test_first_program_compiled_ahead_from_shapes_is_used_and_changes_nothing(mo
         return compiled  # no fallback to jit: a mismatch raises
 
     monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
-    monkeypatch.setattr(loop, "_compile_first_ahead", _joined_first_ahead(loop, exploitation))
+    monkeypatch.setattr(loop, "compile_first_ahead", _joined_first_ahead(loop, exploitation))
     monkeypatch.setattr(exploitation, "_with_fallback", strict)
     monkeypatch.setattr(exploitation, "_AHEAD", {})
     monkeypatch.setattr(exploitation, "_SEEN", set())
@@ -1011,8 +1011,38 @@ def test_first_program_compiled_ahead_from_shapes_is_used_and_changes_nothing(mo
     # Where generation 0's structure depends on the run's draws, nothing is guessed.
     monkeypatch.setattr(exploitation, "_AHEAD", {})
     diverse = dataclasses.replace(config, init_mutations=2)
-    assert not loop._compile_first_ahead(tasks.make(task), jax.random.key(3), diverse)
+    assert not loop.compile_first_ahead(tasks.make(task), jax.random.key(3), diverse)
     assert not exploitation._AHEAD
+
+
+def test_cli_starts_the_first_program_before_the_key_exists(monkeypatch, tmp_path):
+    """`eant2 run` starts generation 0's program from the seed's key shape before it makes
+    the key; the run then uses that program (strictly: no fallback to jit)."""
+    from eant2_jax import exploitation, loop
+    from eant2_jax.app import cli
+
+    calls, used = [], []
+    joined = _joined_first_ahead(loop, exploitation)
+
+    def spy(task, key, config):
+        calls.append(isinstance(key, jax.ShapeDtypeStruct))
+        return joined(task, key, config)
+
+    def strict(compiled, chunk):
+        used.append(compiled)
+        return compiled
+
+    monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
+    monkeypatch.setattr(loop, "compile_first_ahead", spy)
+    monkeypatch.setattr(exploitation, "_with_fallback", strict)
+    monkeypatch.setattr(exploitation, "_AHEAD", {})
+    monkeypatch.setattr(exploitation, "_SEEN", set())
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")
+    argv = ["run", "xor", "--population", "3", "--generations", "0", "--max-iters", "20",
+            "--out", str(tmp_path / "run")]  # fmt: skip
+    assert cli.main(argv) == 0
+    assert calls == [True, False]  # the CLI's, from the key's shape; then run's own
+    assert len(used) == 1 and len(exploitation._AHEAD) == 1
 
 
 def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
@@ -1049,7 +1079,7 @@ def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
 
     monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
     monkeypatch.setattr(loop, "_compile_next_bucket", joined)
-    monkeypatch.setattr(loop, "_compile_first_ahead", _joined_first_ahead(loop, exploitation))
+    monkeypatch.setattr(loop, "compile_first_ahead", _joined_first_ahead(loop, exploitation))
     monkeypatch.setattr(exploitation, "_with_fallback", spy)
     monkeypatch.setattr(exploitation, "_AHEAD", {})
     monkeypatch.setattr(exploitation, "_SEEN", set())  # as in a fresh process

@@ -40,7 +40,9 @@ def enable_compilation_cache(
     """Keep compiled XLA programs on disk between processes (JAX's persistent compilation
     cache, with XLA's GPU autotuning results): a second run of the same programs loads
     them instead of compiling (on a GPU, a servo run's first generation went from 22.9 s
-    to 12.4 s: docs/benchmarks.md). The ``eant2`` command line calls it; the library
+    to 12.4 s: docs/benchmarks.md). With it, the engine's traced programs are kept too
+    (`eant2_jax.programstore`, in the folder's ``eant2-programs``), so that a later process
+    neither traces nor compiles them. The ``eant2`` command line calls it; the library
     itself never changes global JAX settings, so Python users call it once, first.
 
     Args:

@@ -21,7 +21,8 @@ A program from the store runs what tracing would have built: on the CPU the engi
 and records are equal to the last bit either way (tests/test_programstore.py). Every stored
 program is also how the process that traced it runs it, so a run computes the same with a
 cold and a warm store. An unreadable or foreign file is traced again and replaced; a store
-that cannot be written costs nothing but the saving.
+that cannot be written costs nothing but the saving. The files are Python pickles: like the
+modules a process imports, the folder must be writable by its owner alone.
 """
 
 from __future__ import annotations

@@ -66,7 +66,8 @@ def _code_digest() -> bytes:
     h = hashlib.sha256()
     # Named as in an installed package (``kernels/cmaes.py``), whichever the layout.
     files = {}
-    for prefix, paths in (("", __path__()), ("kernels/", kernels.__path__)):
+    package = sys.modules[__name__.rpartition(".")[0]]
+    for prefix, paths in (("", package.__path__), ("kernels/", kernels.__path__)):
         for root in map(Path, paths):
             for f in root.rglob("*.py"):
                 name = f.relative_to(root).as_posix()
@@ -84,10 +85,6 @@ def _code_digest() -> bytes:
     return h.digest()
 
 
-def __path__() -> list[str]:
-    return list(sys.modules[__name__.rpartition(".")[0]].__path__)
-
-
 def _config_digest() -> bytes:
     plain = (bool, int, float, str, type(None))
     values = sorted((k, v) for k, v in jax.config.values.items() if isinstance(v, plain))
@@ -96,9 +93,7 @@ def _config_digest() -> bytes:
 
 def _leaf_key(x) -> tuple:
     if isinstance(x, jax.Array | jax.ShapeDtypeStruct):
-        committed = getattr(x, "committed", None)
-        if isinstance(x, jax.ShapeDtypeStruct):
-            committed = x.sharding is not None
+        committed = x.committed if isinstance(x, jax.Array) else x.sharding is not None
         placement = repr(x.sharding) if committed else "uncommitted"
         weak = getattr(x, "weak_type", False)  # typed PRNG key arrays have none
         return ("array", x.shape, str(x.dtype), bool(weak), placement)

@@ -179,10 +179,13 @@ def prepare(
     pad_count: bool = True,
     multiple_of: int = 1,
     start: Sequence[Search | None] | None = None,
+    abstract: bool = False,
 ) -> Prepared:
     """Compile, choose the popsize, build the tables and start the engine (no iteration).
 
-    Args: as for `tune`; ``multiple_of`` rounds the rows up for a device mesh.
+    Args: as for `tune`; ``multiple_of`` rounds the rows up for a device mesh;
+    ``abstract``: the start keys and the engine state as shapes only (`jax.eval_shape`:
+    nothing computed, no program compiled; ``key`` may be a shape too).
     """
     if start is not None and len(start) != len(genomes):
         raise ValueError(f"start: {len(start)} searches for {len(genomes)} genomes")
@@ -197,7 +200,7 @@ def prepare(
     rows = batch.layout.slot.shape[0]
     popsize = popsize_for(config, batch)
     if keys is None:
-        keys = start_keys(key, rows)
+        keys = jax.eval_shape(start_keys, key, rows) if abstract else start_keys(key, rows)
     elif keys.shape[0] != rows:
         raise ValueError(f"keys: {keys.shape[0]} keys for a batch of {rows} rows")
     # Made on the host and transferred: no program to compile (`jnp` would compile two).
@@ -213,10 +216,9 @@ def prepare(
                 w.check(g.n_params, f"start[{i}]")
                 cov[i, : g.n_params, : g.n_params] = w.cov
                 sigma[i] = w.sigma
-    st = ex.init(
-        keys, batch.weights, batch.layout.gene_mask, config, popsize=popsize, active=active,
-        cov=cov, sigma=sigma,
-    )  # fmt: skip
+    init = functools.partial(ex.init, config=config, popsize=popsize)
+    init = functools.partial(jax.eval_shape, init) if abstract else init
+    st = init(keys, batch.weights, batch.layout.gene_mask, active=active, cov=cov, sigma=sigma)
     return Prepared(batch, st, tables_for(genomes, batch.bucket.genes, rows), popsize)
 
 
@@ -242,18 +244,11 @@ def compile_ahead(
         return False
     genomes = list(genomes)
     check_task(task, genomes)
-    batch = compile_genomes(genomes, task.n_inputs, bucket=bucket, min_rows=min_rows)
-    rows = batch.layout.slot.shape[0]
-    popsize = popsize_for(config, batch)
     init_key, run_key = jax.eval_shape(lambda k: tuple(jax.random.split(k)), key)
-    keys = jax.eval_shape(start_keys, init_key, rows)
-    st = jax.eval_shape(
-        functools.partial(ex.init, config=config, popsize=popsize),
-        keys, batch.weights, batch.layout.gene_mask, active=np.arange(rows) < batch.count,
-    )  # fmt: skip
-    tables = tables_for(genomes, batch.bucket.genes, rows)
-    return ex.compile_ahead_abstract(
-        st, batch.layout, task, key=run_key, config=config, tables=tables
+    prep = prepare(genomes, task, key=init_key, config=config, bucket=bucket,
+                   min_rows=min_rows, abstract=True)  # fmt: skip
+    return ex.compile_ahead(
+        prep.state, prep.batch.layout, task, key=run_key, config=config, tables=prep.tables
     )
 
 

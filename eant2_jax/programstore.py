@@ -118,14 +118,15 @@ def _in_package(task) -> bool:
     return type(task).__module__.split(".")[0] == __name__.split(".")[0]
 
 
-def _wrap(exported: export.Exported, out_tree) -> Callable:
-    """A jitted function of the original arguments' pytree that runs ``exported``."""
+def _wrap(fn, exported: export.Exported, out_tree) -> Callable:
+    """A jitted function of the original arguments' pytree that runs ``exported``, named as
+    ``fn`` (JAX's compile log and `eant2_jax.compilestats` name programs by function)."""
 
-    @jax.jit
     def call(*args):
         return jax.tree.unflatten(out_tree, exported.call(*jax.tree.leaves(args)))
 
-    return call
+    call.__name__ = call.__qualname__ = fn.__name__
+    return jax.jit(call)
 
 
 def _read(path: Path):
@@ -184,6 +185,6 @@ def program(fn, args: tuple, static: dict, *, task) -> Callable | None:
         exported = export.export(jax.jit(flat))(*leaves)
         out_tree = box["out_tree"]
         _write(path, exported, out_tree)
-    call = _wrap(exported, out_tree)
+    call = _wrap(fn, exported, out_tree)
     with _LOCK:
         return _PROGRAMS.setdefault(key, call)

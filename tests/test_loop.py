@@ -389,7 +389,7 @@ def test_cli_ctrl_c_exits_130_and_resumes(cli_reference, cli_cache, tmp_path):
     assert f"eant2 resume {out}" in err and "Traceback" not in err
 
 
-def test_a_ctrl_c_swallowed_by_a_callback_still_stops_the_command():
+def test_a_ctrl_c_swallowed_by_a_callback_still_stops_the_command(monkeypatch):
     """Python raises KeyboardInterrupt where SIGINT lands; inside a callback run from C (the
     garbage collector's) it is printed as ignored. The command remembers the signal and its
     progress callbacks raise it again, on the main thread; `main` puts the previous SIGINT
@@ -413,6 +413,7 @@ def test_a_ctrl_c_swallowed_by_a_callback_still_stops_the_command():
         assert seen[-1] == {"event": "generation"}  # a worker thread reports, never raises
     finally:
         cli._SIGINT.clear()
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")  # leave the JAX configuration alone
     assert cli.main(["tasks"]) == 0
     assert signal.getsignal(signal.SIGINT) is before
 

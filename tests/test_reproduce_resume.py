@@ -40,7 +40,10 @@ def _records(run_dir):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("lockstep", [True, False])
-def test_a_killed_reproduction_resumes_to_the_uninterrupted_result(tmp_path, capsys, lockstep):
+def test_a_killed_reproduction_resumes_to_the_uninterrupted_result(
+    tmp_path, capsys, lockstep, monkeypatch
+):
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")  # in-process: leave the JAX configuration alone
     task = tasks.make("xor")
     reproduce(task, tmp_path / "whole", lockstep=lockstep, **SETTINGS)
     # The condition experiment's float64 mode ended with it: the next reproduction's runs
@@ -77,7 +80,8 @@ def test_a_killed_reproduction_resumes_to_the_uninterrupted_result(tmp_path, cap
     assert json.loads((cut / "report" / "summary.json").read_text()) == summary[1]
 
 
-def test_what_is_not_a_reproduction_is_one_clear_error(tmp_path, capsys):
+def test_what_is_not_a_reproduction_is_one_clear_error(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")  # in-process: leave the JAX configuration alone
     (tmp_path / "empty").mkdir()
     with pytest.raises(RunDirError, match="not a reproduction"):
         resume_reproduction(tmp_path / "empty")

@@ -9,7 +9,8 @@ Three parts, each optional:
 * ``pruning``: the cost of one pruning attempt (every structure tries, batched) relative to
   one CMA-ES iteration of the same batch.
 * ``scaling``: one exploitation batch of random genomes for a fixed number of iterations,
-  against the number of structures, the number of moves and the network size.
+  against the number of structures, the number of moves and the network size (without a
+  pruner unless ``--scaling-pruner`` names one; ``--lazy-eigen`` applies).
 
 Run: ``python -m bench generation [--parts generation,pruning,scaling] [--quick]``.
 """
@@ -22,6 +23,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from bench import harness
 from bench.common import Column, CompileClock, environment, random_population, time_call
@@ -140,7 +142,8 @@ def bench_scaling(args) -> list[dict]:
     for structures, moves, n_genes in dict.fromkeys(cases):
         task = tasks.make("servo", mode=args.mode, n_starts=moves)
         config = ex.ExploitConfig(
-            pruner="none",
+            pruner=args.scaling_pruner,
+            lazy_eigen=args.lazy_eigen,
             max_iters=args.scaling_iters,
             chunk=args.scaling_iters,
             patience=10**6,
@@ -153,13 +156,17 @@ def bench_scaling(args) -> list[dict]:
         def go(st=st, batch=batch, task=task, config=config, tables=tables):
             return ex.run(
                 st, batch.layout, task, key=jax.random.key(1), config=config, tables=tables
-            )[0].evals
+            )
 
         t0 = time.perf_counter()
-        jax.block_until_ready(go())
+        final, history = go()
+        jax.block_until_ready(final)
         first = time.perf_counter() - t0
+        # Engine iterations in which anything ran (a pruner's attempts at the budget stop
+        # add some past scaling_iters).
+        ticks = int(np.sum(np.any(history.running, axis=1)))
         t = time_call(go, warmup=1, repeats=max(1, args.repeats // 3)).median_s
-        evals = structures * popsize * args.scaling_iters
+        evals = int(np.sum(np.asarray(final.evals)))
         rows.append(
             {
                 "structures": structures,
@@ -168,7 +175,8 @@ def bench_scaling(args) -> list[dict]:
                 "P": batch.bucket.genes,
                 "popsize": popsize,
                 "first_s": first,
-                "iteration_ms": 1e3 * t / args.scaling_iters,
+                "iterations": ticks,
+                "iteration_ms": 1e3 * t / ticks,
                 "moves_per_s": evals * moves / t,
             }
         )
@@ -192,6 +200,11 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scaling-moves", type=int, nargs="+", default=[256, 1023, 4092])
     p.add_argument("--scaling-genes", type=int, nargs="+", default=[40, 80, 160])
     p.add_argument("--scaling-iters", type=int, default=50)
+    p.add_argument(
+        "--scaling-pruner",
+        default="none",
+        help="the scaling batch's pruner (its triggers fire as in a run; default none)",
+    )
 
 
 def _prepare(args: argparse.Namespace) -> None:
@@ -234,7 +247,7 @@ def render(payload: dict[str, Any]) -> str:
         ("scaling", "Scaling of one exploitation batch", [
             Column("structures", "S"), Column("moves", "moves"), Column("genes", "genes"),
             Column("P", "P"), Column("popsize", "popsize"),
-            Column("first_s", "first call s", "{:.2f}"),
+            Column("first_s", "first call s", "{:.2f}"), Column("iterations", "iterations"),
             Column("iteration_ms", "ms / iteration", "{:.3g}"),
             Column("moves_per_s", "moves/s", "{:.3g}"),
         ]),

@@ -291,6 +291,60 @@ def _grad(layout, w, x, cot):
     return jax.grad(loss)(w)
 
 
+# ------------------------------------------------------------- the product, short and long
+def _stack_product(w, read, w_nf, v):
+    """NumPy, entry by entry, what `kn._dot` computes: the finite values through ``w``; a
+    non-finite ``v[j]`` only into the rows that read it, times ``w_nf`` (float64 sums)."""
+    out = np.zeros(w.shape[0])
+    with np.errstate(all="ignore"):
+        for i in range(w.shape[0]):
+            for j in range(v.shape[0]):
+                if np.isfinite(v[j]):
+                    out[i] += float(w[i, j]) * float(v[j])
+                elif read[i, j]:
+                    out[i] += float(w_nf[i, j]) * float(v[j])
+    return out
+
+
+def _summed_product(w, v, reads):
+    return jnp.sum(kn._dot(w, reads, v))
+
+
+@pytest.mark.parametrize("k", [1, 3, 6, kn._UNROLL_MAX, kn._UNROLL_MAX + 1, 40])
+def test_product_short_unrolled_and_long_dot_match_numpy(k):
+    """Both ways `_dot` is written (an unrolled sum up to `_UNROLL_MAX` terms, XLA's dot
+    past it) against NumPy on fresh random inputs: finite ones, and ones with NaN and +-inf
+    entries read by some rows and not others; with finite inputs the gradient is finite
+    although ``w_nf`` holds NaNs."""
+    rng = np.random.default_rng(1000 + k)
+    rows = 5
+    for trial in range(20):
+        w = rng.normal(size=(rows, k)).astype(np.float32)
+        read = rng.random((rows, k)) < 0.6
+        w = np.where(read, w, 0).astype(np.float32)
+        w_nf = np.where(read, np.where(rng.random((rows, k)) < 0.2, np.nan, w), 0)
+        w_nf = w_nf.astype(np.float32)
+        v = rng.normal(size=k).astype(np.float32)
+        if trial % 2:
+            special = rng.choice([np.nan, np.inf, -np.inf], size=k)
+            v = np.where(rng.random(k) < 0.3, special, v).astype(np.float32)
+        got = np.asarray(kn._dot(jnp.asarray(w), (jnp.asarray(read), jnp.asarray(w_nf)), v))
+        want = _stack_product(w, read, w_nf, v)
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+        np.testing.assert_array_equal(np.isposinf(got), np.isposinf(want))
+        np.testing.assert_array_equal(np.isneginf(got), np.isneginf(want))
+        fin = np.isfinite(want)
+        np.testing.assert_allclose(got[fin], want[fin], rtol=1e-5, atol=1e-5)
+        v_fin = np.where(np.isfinite(v), v, 0).astype(np.float32)
+        plain = np.asarray(kn._dot(jnp.asarray(w), None, jnp.asarray(v_fin)))
+        want_plain = np.asarray(w, np.float64) @ v_fin.astype(np.float64)
+        np.testing.assert_allclose(plain, want_plain, rtol=1e-5, atol=1e-5)
+        if not trial % 2:  # finite v: the NaN entries of w_nf must not reach the gradient
+            reads = (jnp.asarray(read), jnp.asarray(w_nf))
+            grad = jax.grad(_summed_product, argnums=(0, 1))(jnp.asarray(w), jnp.asarray(v), reads)
+            assert all(np.all(np.isfinite(np.asarray(g))) for g in grad)
+
+
 # ---------------------------------------------------------------------- packaging: imports
 def _run_python(code: str, *, python: str = sys.executable, cwd: Path) -> str:
     """Run ``code`` in a fresh interpreter from ``cwd`` (not the repository, whose own

@@ -249,9 +249,9 @@ def step(
 # with what follows: on a 2-core CPU one Eigen call per network, and the XOR cost of 288
 # networks (6 neurons) took 2.2 ms as dots against 0.95 ms unrolled. On an H100 (`python -m
 # bench generation --parts scaling --scaling-pruner covariance`, 20 servo structures,
-# 2026-11-24) an engine iteration at 40 genes (6 neurons, 10 inputs) took 0.91 ms with
-# this bound against 1.03-1.06 ms with dots; unrolling 16 neurons (80 genes) compiled the
-# program in 14 s instead of 30 s but ran it 27% slower (3.05 against 2.40 ms), so 16
+# 2026-11-24) an engine iteration at 40 genes (6 neurons, 10 inputs) took 0.95-0.96 ms
+# with this bound against 1.03-1.06 ms with dots; unrolling 16 neurons (80 genes) compiled
+# the program in 14 s instead of 30 s but ran it 27% slower (3.05 against 2.40 ms), so 16
 # stays a dot.
 _UNROLL_MAX = 12
 

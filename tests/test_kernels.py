@@ -345,6 +345,50 @@ def test_product_short_unrolled_and_long_dot_match_numpy(k):
             assert all(np.all(np.isfinite(np.asarray(g))) for g in grad)
 
 
+@pytest.mark.parametrize("nonfinite", [False, True])
+def test_long_product_batched_matches_numpy(nonfinite):
+    """A long product (a dot and the pass over its non-finite terms), vmapped over examples
+    and networks and jitted, as the engine runs it: NumPy's values, and with finite inputs
+    the gradient of a plain product."""
+    rng = np.random.default_rng(7 + 2 * nonfinite)
+    nets, examples, rows, k = 3, 4, 5, kn._UNROLL_MAX + 3
+    read = rng.random((nets, rows, k)) < 0.6
+    w = np.where(read, rng.normal(size=(nets, rows, k)), 0).astype(np.float32)
+    w_nf = np.where(read, np.where(rng.random((nets, rows, k)) < 0.2, np.nan, w), 0)
+    w_nf = w_nf.astype(np.float32)
+    v = rng.normal(size=(nets, examples, k)).astype(np.float32)
+    if nonfinite:  # one example of one network only
+        v[1, 2, [0, 5]] = [np.inf, np.nan]
+
+    def product(w, read, w_nf, v):
+        return kn._dot(w, (read, w_nf), v)
+
+    batched = jax.jit(jax.vmap(jax.vmap(product, in_axes=(None, None, None, 0))))
+    got = np.asarray(batched(w, read, w_nf, v))
+    for n in range(nets):
+        for e in range(examples):
+            want = _stack_product(w[n], read[n], w_nf[n], v[n, e])
+            np.testing.assert_array_equal(np.isnan(got[n, e]), np.isnan(want))
+            np.testing.assert_array_equal(np.isinf(got[n, e]), np.isinf(want))
+            fin = np.isfinite(want)
+            np.testing.assert_allclose(got[n, e][fin], want[fin], rtol=1e-5, atol=1e-5)
+    if not nonfinite:
+        loss = jax.jit(
+            jax.grad(
+                lambda w, v: jnp.sum(
+                    jax.vmap(jax.vmap(product, in_axes=(None, None, None, 0)))(w, read, w_nf, v)
+                ),
+                argnums=(0, 1),
+            )
+        )
+        grads = loss(w, v)
+        want = jax.grad(lambda w, v: jnp.sum(jnp.einsum("nrk,nek->ner", w, v)), argnums=(0, 1))(
+            w, v
+        )
+        for g, h in zip(grads, want, strict=True):
+            np.testing.assert_allclose(np.asarray(g), np.asarray(h), rtol=1e-5, atol=1e-5)
+
+
 # ---------------------------------------------------------------------- packaging: imports
 def _run_python(code: str, *, python: str = sys.executable, cwd: Path) -> str:
     """Run ``code`` in a fresh interpreter from ``cwd`` (not the repository, whose own

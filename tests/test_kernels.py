@@ -345,11 +345,14 @@ def test_product_short_unrolled_and_long_dot_match_numpy(k):
             assert all(np.all(np.isfinite(np.asarray(g))) for g in grad)
 
 
+@pytest.mark.parametrize("branch_min", [0, 10**12])
 @pytest.mark.parametrize("nonfinite", [False, True])
-def test_long_product_batched_matches_numpy(nonfinite):
+def test_long_product_batched_matches_numpy(monkeypatch, branch_min, nonfinite):
     """A long product (a dot and the pass over its non-finite terms), vmapped over examples
-    and networks and jitted, as the engine runs it: NumPy's values, and with finite inputs
-    the gradient of a plain product."""
+    and networks and jitted, as the engine runs it, with the batch-level branch
+    (``branch_min`` 0) and without it (a bound no batch reaches): NumPy's values, and with
+    finite inputs the gradient of a plain product (differentiation takes the plain pass)."""
+    monkeypatch.setattr(kn, "_BRANCH_MIN", branch_min)
     rng = np.random.default_rng(7 + 2 * nonfinite)
     nets, examples, rows, k = 3, 4, 5, kn._UNROLL_MAX + 3
     read = rng.random((nets, rows, k)) < 0.6

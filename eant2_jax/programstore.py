@@ -130,11 +130,12 @@ def _wrap(fn, exported: export.Exported, out_tree) -> Callable:
 
 
 def _read(path: Path):
+    """``(exported, out_tree)`` from ``path``, or None: missing, partial or foreign."""
     try:
         exported, out_tree = pickle.loads(path.read_bytes())
-    except Exception:  # noqa: BLE001 - missing, partial or foreign: traced again
+    except Exception:  # noqa: BLE001 - traced again
         return None
-    return exported if isinstance(exported, export.Exported) else None, out_tree
+    return (exported, out_tree) if isinstance(exported, export.Exported) else None
 
 
 def _write(path: Path, exported: export.Exported, out_tree) -> None:
@@ -172,7 +173,7 @@ def program(fn, args: tuple, static: dict, *, task) -> Callable | None:
             return _PROGRAMS[key]
     path = folder / f"{key}.pkl"
     stored = _read(path)
-    if stored is not None and stored[0] is not None:
+    if stored is not None:
         exported, out_tree = stored
     else:
         box = {}

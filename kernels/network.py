@@ -326,7 +326,7 @@ def _batch_level(shared: tuple[bool, ...]):
             return _nonfinite_terms_plain(read, w_nf, v)
 
         def none(r, w, x):
-            return jnp.zeros(jnp.broadcast_shapes(r.shape, x.shape[:-1] + (1, 1))[:-1], w.dtype)
+            return jnp.zeros(jnp.broadcast_shapes(r.shape[:-1], x.shape[:-1] + (1,)), w.dtype)
 
         def some(r, w, x):
             # The barriers keep XLA from turning this small branch into a select, which

@@ -13,9 +13,10 @@ evaluate ``popsize`` candidates, tell). The structures have different dimensions
   (how the exploitation engine runs); reported per iteration;
 * ``batched-P<size>-scan<K>-lazy<F>``: as the scan variant with the lazy update of the
   engine's ``ExploitConfig.lazy_eigen = F`` (``--lazy-eigen``): ``tell`` keeps the last
-  decomposition, and the batched ``eigh`` runs in an iteration only if some structure's C
-  has learnt for ``F / (n (c_1 + c_mu))`` iterations since its last one (pycma's rule at
-  F = 0.5), by the engine's own code;
+  decomposition, and a structure's C is decomposed on the iterations that are multiples of
+  its period, the largest power of two within ``ceil(F / (n (c_1 + c_mu)))`` (pycma's
+  interval at F = 0.5), the batched ``eigh`` running only where some structure is due, by
+  the engine's own code;
 * ``evosax-loop``: a Python loop over the S structures, each stepped by a jit-compiled
   evosax ``CMA_ES`` step (ask, evaluate, tell) compiled once per distinct dimension;
 * ``pycma``: a Python loop over S ``cma.CMAEvolutionStrategy`` instances (NumPy, CPU), the
@@ -92,7 +93,7 @@ def batched_engine(
 ) -> Callable[[], jax.Array]:
     """One iteration (or ``chunk`` in a scan) of S structures padded into ``size``; with
     ``lazy`` > 0 the lazy eigendecomposition of the exploitation engine."""
-    from eant2_jax.exploitation import _decompose_rows  # the engine's own lazy step
+    from eant2_jax.exploitation import _lazy_decompose  # the engine's own lazy step
 
     s_count = len(dims)
     data = [ellipsoid_data(n, cond, seed + s) for s, n in enumerate(dims)]
@@ -109,8 +110,6 @@ def batched_engine(
     params, states = setup(mask)
     keys = jax.random.split(jax.random.key(seed), s_count)
 
-    interval = jax.vmap(cmaes.eigen_interval, in_axes=(0, None))(params, lazy)
-
     def one(carry, params, it):
         states, age = carry
         ks = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, it)
@@ -119,10 +118,8 @@ def batched_engine(
         tell = functools.partial(cmaes.tell, decompose=not lazy)
         states = jax.vmap(tell)(states, xs, costs, params)
         if lazy:
-            age = age + 1
-            due = age >= interval
-            states = _decompose_rows(states, params, due)
-            age = jnp.where(due, 0, age)
+            every = jnp.ones(s_count, bool)
+            states, age = _lazy_decompose(states, params, age, every, it, lazy)
         return states, age
 
     @jax.jit

@@ -193,7 +193,10 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--task", default="servo", help="servo (default) or another registered task")
     p.add_argument("--pruner", default="covariance")
     p.add_argument(
-        "--lazy-eigen", type=float, default=0.0, help="ExploitConfig.lazy_eigen (0: eager)"
+        "--lazy-eigen",
+        type=float,
+        default=ex.ExploitConfig.lazy_eigen,
+        help="ExploitConfig.lazy_eigen (default: its default; 0: eager)",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--scaling-structures", type=int, nargs="+", default=[8, 20, 40, 80])

@@ -163,9 +163,13 @@ class ExploitConfig:
         which is the paper's condition for trusting C. An accepted removal lets a structure
         stopped for any reason but the budget run on.
 
-      lazy_eigen: *static*. 0 (default) decomposes C every iteration. A factor f > 0
-        decomposes a structure's C only every ``f / (n (c_1 + c_mu))`` iterations (at least
-        1; `kernels.cmaes.eigen_interval`): Hansen's tutorial uses f = 0.1, pycma 0.5. A
+      lazy_eigen: *static*. A factor f > 0 decomposes a structure's C only every ``f / (n
+        (c_1 + c_mu))`` iterations (`kernels.cmaes.eigen_interval`; Hansen's tutorial uses
+        f = 0.1, pycma 0.5), rounded down to a power of two and aligned with the engine's
+        iterations so that a batch's due structures share one batched ``eigh``
+        (`kernels.cmaes.eigen_period`). Default 0.5, pycma's: every 2nd iteration at n = 5
+        to 47, every 4th from n = 48 with the default population sizes. 0 decomposes C
+        every iteration (run directories written before this field resume with 0). A
         pruning attempt always starts from a fresh decomposition.
       recommend: *static*. On a noisy task (``task.noisy``), which point of each search
         becomes the tuned network: ``"best"``, the best candidate the search saw (on its
@@ -208,7 +212,7 @@ class ExploitConfig:
     prune_refit_scale: float = 0.3
     prune_reference: str = _static("best")
     prune_at_stop: bool = _static(True)
-    lazy_eigen: float = _static(0.0)
+    lazy_eigen: float = _static(0.5)
     recommend: str = _static("both")
     rescore: int = _static(4)
 

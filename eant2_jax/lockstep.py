@@ -42,6 +42,7 @@ from .loop import (
     RunState,
     _breed,
     _commit,
+    _compile_next_bucket,
     _conclude,
     _create,
     _key_data,
@@ -52,6 +53,7 @@ from .loop import (
     _stopped,
     _Tuned,
     _validate,
+    compile_first_ahead,
     grow_bucket,
 )
 from .rundir import RunDir
@@ -141,6 +143,11 @@ def run_lockstep(
             else:
                 rundir = stack.enter_context(_create(out, base_meta, generations, key, config))
                 members.append(_Member(i, key, generations, rundir, base_meta))
+        if mesh is None and all(m.state is None for m in members):
+            try:  # generation 0's program, from shapes, while its keys and start are made
+                compile_first_ahead(task, members[0].key, config, runs=len(members))
+            except Exception:  # noqa: BLE001, S110 - generation 0 then compiles it as usual
+                pass
         _loop(task, members, config, callback, mesh)
     return [
         RunResult(list(m.state.population), m.state.best().genome, m.records, m.pruning, None)
@@ -181,7 +188,12 @@ def _loop(task, members, config, callback, mesh) -> None:
         genomes = [ind.genome for b in broods for ind in b.new]
         if genomes:
             bucket = grow_bucket(genomes, bucket, config.min_bucket)
-            parts = _tune_together(task, group, broods, genomes, config, bucket, callback, mesh)
+            # The guessed next bucket is compiled ahead unless every run of the group ends
+            # with this generation.
+            ahead = any(b.gen < m.total for m, b in zip(group, broods, strict=True))
+            parts = _tune_together(
+                task, group, broods, genomes, config, bucket, callback, mesh, ahead
+            )
         for m, brood, part in zip(group, broods, parts, strict=True):
             m.state, record, prune, _ = _conclude(m.state, m.key, config, brood, part, bucket)
             m.records.append(record)
@@ -192,14 +204,21 @@ def _loop(task, members, config, callback, mesh) -> None:
 
 
 def _tune_together(
-    task, group, broods, genomes, config, bucket, callback, mesh
+    task, group, broods, genomes, config, bucket, callback, mesh, ahead=False
 ) -> list[_Tuned | None]:
     """One `tune` of every brood's new structures (``genomes``, in brood order); each brood's
-    part of the result."""
+    part of the result. ``ahead``: compile the group's guessed next bucket in the
+    background once this generation's program runs (`eant2_jax.loop._compile_next_bucket`,
+    as a run alone does)."""
     runs = [m.index for m in group]
     gen = max(b.gen for b in broods)
+    min_rows = _rows(config) * len(group)
+    started = []
 
     def progress(info):
+        if ahead and not started and mesh is None:
+            pairs = [(m.state, b) for m, b in zip(group, broods, strict=True)]
+            started.append(_compile_next_bucket(pairs, task, config, bucket, min_rows))
         if callback is not None:
             callback({"event": "exploit", "generation": gen, "runs": runs, **info})
 
@@ -210,7 +229,6 @@ def _tune_together(
     starts = None
     if any(b.starts is not None for b in broods):
         starts = [s for b in broods for s in (b.starts or [None] * len(b.new))]
-    min_rows = _rows(config) * len(group)
     rows = batch_rows(len(genomes), min_rows=min_rows, multiple_of=distributed.size(mesh))
     # Row j of a brood starts from the key it gets in its run alone (`tuning.tune`: row j
     # of a batch tuned with key k starts from fold_in(split(k)[0], j)); padding rows from

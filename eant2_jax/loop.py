@@ -457,20 +457,28 @@ def _breed(task: Task, state: RunState | None, key: jax.Array, config: EANT2Conf
 
 
 def _next_bucket_guess(
-    state: RunState | None, brood: _Brood, task: Task, config: EANT2Config, bucket: Bucket
+    runs: Sequence[tuple[RunState | None, _Brood]],
+    task: Task,
+    config: EANT2Config,
+    bucket: Bucket,
 ) -> tuple[Bucket, list[Genome]] | None:
-    """The bucket the run will likely grow into next, guessed during this generation, and
-    genomes that fill it: the most frequent bucket among ``_GUESS_TRIES`` dry generations
-    (offspring of this generation's structures and the current population, made with
-    throwaway generators: the run's own draws are untouched) that outgrow ``bucket``; None
-    if none does. Only a guess (selection and pruning decide the real parents): on the XOR
-    runs of tests/test_loop.py it named 4 of 6 new buckets."""
-    pool = list(state.population if state is not None else []) + list(brood.new)
+    """The bucket the batch will likely grow into next, guessed during this generation,
+    and genomes that fill it: the most frequent bucket among ``_GUESS_TRIES`` dry
+    generations (offspring of this generation's structures and the current population of
+    every run in ``runs``, ``(state, brood)`` each: one for a run alone, a lock-step
+    group's for `eant2_jax.run_lockstep`, made with throwaway generators: the runs' own
+    draws are untouched) that outgrow ``bucket``; None if none does. Only a guess
+    (selection and pruning decide the real parents): on the XOR runs of tests/test_loop.py
+    it named 4 of 6 new buckets."""
+    pools = [list(st.population if st is not None else []) + list(b.new) for st, b in runs]
+    gen = runs[0][1].gen
     grown: dict[Bucket, list[Genome]] = {}
     votes: dict[Bucket, int] = {}
     for t in range(_GUESS_TRIES):
-        rng = np.random.default_rng([brood.gen, t])
-        dry = [ind.genome for ind in _explore(rng, pool, task, 2**30, config)[0]]
+        dry = []
+        for i, pool in enumerate(pools):
+            rng = np.random.default_rng([gen, t, i] if i else [gen, t])
+            dry += [ind.genome for ind in _explore(rng, pool, task, 2**30, config)[0]]
         b = grow_bucket(dry, bucket, config.min_bucket) if dry else bucket
         if b != bucket:
             grown.setdefault(b, dry)
@@ -484,24 +492,25 @@ def _next_bucket_guess(
 _GUESS_TRIES = 8
 
 
-def _compile_next_bucket(state, brood, task, config, bucket) -> threading.Thread | None:
+def _compile_next_bucket(runs, task, config, bucket, min_rows) -> threading.Thread | None:
     """On an accelerator, compile the engine program of the guessed next bucket
-    (`_next_bucket_guess`) in a background thread while this generation runs
-    (`eant2_jax.exploitation.compile_ahead`): a new bucket's program takes seconds to tens
-    of seconds to compile there, which otherwise stall the generation that meets it. The
-    program is the one that generation would compile, so results do not change."""
+    (`_next_bucket_guess` of ``runs``) for batches of ``min_rows`` rows in a background
+    thread while this generation runs (`eant2_jax.exploitation.compile_ahead`): a new
+    bucket's program takes seconds to tens of seconds to compile there, which otherwise
+    stall the generation that meets it. The program is the one that generation would
+    compile, so results do not change."""
     if not exploitation.compile_ahead_enabled():
         return None
 
     def work():
         try:
-            guess = _next_bucket_guess(state, brood, task, config, bucket)
+            guess = _next_bucket_guess(runs, task, config, bucket)
             if guess is None:
                 return
             b, genomes = guess
-            init_key, run_key = jax.random.split(brood.exp_key)
+            init_key, run_key = jax.random.split(runs[0][1].exp_key)
             prep = tuning.prepare(genomes, task, key=init_key, config=config.exploit,
-                                  bucket=b, min_rows=_rows(config))  # fmt: skip
+                                  bucket=b, min_rows=min_rows)  # fmt: skip
             exploitation.compile_ahead(prep.state, prep.batch.layout, task, key=run_key,
                                        config=config.exploit, tables=prep.tables)  # fmt: skip
         except Exception:  # noqa: BLE001 - a guess that fails costs nothing but itself
@@ -513,7 +522,7 @@ def _compile_next_bucket(state, brood, task, config, bucket) -> threading.Thread
     return thread
 
 
-def compile_first_ahead(task: Task, key: jax.Array, config: EANT2Config) -> bool:
+def compile_first_ahead(task: Task, key: jax.Array, config: EANT2Config, runs: int = 1) -> bool:
     """On an accelerator, start compiling generation 0's engine program at once, from
     shapes alone (`eant2_jax.tuning.compile_ahead`): the generation's keys, its engine start
     and their small programs then compile and run while it does, instead of before it
@@ -524,7 +533,8 @@ def compile_first_ahead(task: Task, key: jax.Array, config: EANT2Config) -> bool
 
     `run` calls it first; a caller may call it sooner, before it has the run's key:
     ``key`` may be its shape (``jax.eval_shape(jax.random.key, seed)``), and `run` then
-    finds the compilation under way. Returns whether a compilation was started."""
+    finds the compilation under way. ``runs``: the runs tuned in one batch (a lock-step
+    group's, `eant2_jax.run_lockstep`). Returns whether a compilation was started."""
     if not exploitation.compile_ahead_enabled():
         return False
     if config.init_mutations or config.init_connectivity < 1:
@@ -542,7 +552,7 @@ def compile_first_ahead(task: Task, key: jax.Array, config: EANT2Config) -> bool
     exp_key = jax.eval_shape(_generation_keys, key, 0)[1]
     return tuning.compile_ahead(
         [genome], task, key=exp_key, config=config.exploit, bucket=bucket,
-        min_rows=_rows(config),
+        min_rows=_rows(config) * runs,
     )  # fmt: skip
 
 
@@ -621,7 +631,9 @@ def _generation(
             # After the first chunk: this generation's own program is compiled by then, so
             # the guess's tracing and compiling do not compete with it (started at the
             # generation's start, they delayed its first chunk as much as they saved later).
-            started.append(_compile_next_bucket(state, brood, task, config, bucket))
+            started.append(
+                _compile_next_bucket([(state, brood)], task, config, bucket, _rows(config))
+            )
         if callback is not None:
             callback({"event": "exploit", "generation": gen, **info})
 

@@ -278,6 +278,22 @@ def eigen_interval(params: Params, factor: float | jax.Array) -> jax.Array:
     return jnp.maximum(factor / (params.n * (params.c_1 + params.c_mu)), 1.0)
 
 
+def eigen_period(params: Params, factor: float | jax.Array) -> jax.Array:
+    """The lazy rule's period as a power of two: the largest ``2^k <= ceil(eigen_interval)``
+    (``[]`` int32, at most 2^30).
+
+    A structure whose C is decomposed on the iterations that are multiples of its period
+    is never staler than `eigen_interval` allows (a decomposition once the iterations since
+    the last one reach the interval is one every ``ceil(interval)`` iterations). Powers of
+    two nest: structures of periods 2^j <= 2^k are all due on every multiple of 2^k, so a
+    batch of structures needs its batched ``eigh`` only on the multiples of its smallest
+    period, where the per-structure phases of `eigen_interval` make some structure due
+    nearly every iteration (`eant2_jax.exploitation.lazy_decompose`).
+    """
+    k = jnp.minimum(jnp.ceil(eigen_interval(params, factor)), 2.0**30).astype(jnp.int32)
+    return jnp.left_shift(jnp.int32(1), 31 - jax.lax.clz(k))
+
+
 def sqrt_cov(state: State, inverse: bool = False) -> jax.Array:
     """Symmetric square root ``C^{1/2} = B diag(D) B^T`` (or ``C^{-1/2}``), ``[P, P]``.
 

@@ -14,6 +14,7 @@ problems are passed as data (``Quadratic``), not as new closures.
 from __future__ import annotations
 
 import functools
+import math
 from typing import NamedTuple
 
 import chex
@@ -325,18 +326,20 @@ def _stat_runner(algo: str, n: int):
             return _evals_to_target(step, state, seeds, target, max_gens)
 
     elif algo.startswith("lazy"):
-        # The lazy eigendecomposition (ExploitConfig.lazy_eigen) with pycma's factor 0.5.
+        # The lazy eigendecomposition (ExploitConfig.lazy_eigen) with pycma's factor 0.5, as
+        # the engine runs it for a structure updated every iteration: decomposed on the
+        # iterations that are multiples of its period.
         params = cmaes.default_params(n, popsize)
-        interval = cmaes.eigen_interval(params, float(algo[4:]))
+        period = cmaes.eigen_period(params, float(algo[4:]))
 
         def run(seeds, prob, mean0, sigma0, target, max_gens):
             def step(carry, key):
-                state, age = carry
+                state, tick = carry
                 x, state = cmaes.ask(key, state, params)
                 state = cmaes.tell(state, x, cost(prob, x), params, decompose=False)
-                due = age + 1 >= interval
+                due = tick % period == 0
                 state = jax.lax.cond(due, cmaes.decompose, lambda s, p: s, state, params)
-                return (state, jnp.where(due, 0, age + 1)), state.best_cost
+                return (state, tick + 1), state.best_cost
 
             state = cmaes.init(mean0, sigma0, jnp.ones(n, bool), params)
             return _evals_to_target(step, (state, 0), seeds, target, max_gens)
@@ -408,8 +411,9 @@ LAZY_CASES = [c for c in STAT_CASES if (c[0], c[1]) in {
 @pytest.mark.slow
 @pytest.mark.parametrize("case", LAZY_CASES, ids=[f"{c[0]}-{c[1]}" for c in LAZY_CASES])
 def test_lazy_eigendecomposition_statistically_equivalent(case):
-    """Decomposing C only every 0.5 / (n (c_1 + c_mu)) iterations (pycma's rule) costs no
-    more evaluations to the target than decomposing it every iteration. Same seeds for both:
+    """Decomposing C only every 0.5 / (n (c_1 + c_mu)) iterations (pycma's rule, rounded
+    down to a power of two: `kernels.cmaes.eigen_period`) costs no more evaluations to the
+    target than decomposing it every iteration. Same seeds for both:
     the streams agree until the first skipped decomposition."""
     kind, n = case[:2]
     seeds = jnp.arange(20)
@@ -447,6 +451,22 @@ def test_eigen_interval_rule():
         for factor in (0.1, 0.5, 2.0):
             expected = max(factor / (n * float(p.c_1 + p.c_mu)), 1.0)
             assert float(cmaes.eigen_interval(p, factor)) == pytest.approx(expected, rel=1e-6)
+
+
+def test_eigen_period_is_the_largest_power_of_two_within_the_interval():
+    """eigen_period = the largest 2^k <= ceil(interval), against a plain loop, over n and
+    factors that put the interval on both sides of powers of two; capped at 2^30."""
+    rng = np.random.default_rng(5)
+    for n in (2, 5, 10, 20, 33, 48, 100, 160, 300):
+        p = cmaes.default_params(n, default_popsize(n))
+        for factor in (0.0, 0.1, 0.5, 1.0, *rng.uniform(0.05, 40, 4)):
+            ceil = math.ceil(float(cmaes.eigen_interval(p, factor)))
+            expected = 1
+            while expected * 2 <= ceil:
+                expected *= 2
+            got = int(cmaes.eigen_period(p, factor))
+            assert got == expected, (n, factor, ceil, got)
+    assert int(cmaes.eigen_period(cmaes.default_params(4, 8), 1e15)) == 2**30
 
 
 # --------------------------------------------------------------------------------------------

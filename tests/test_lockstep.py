@@ -136,3 +136,54 @@ def test_each_run_stops_at_its_own_target():
     counts = [len(r.generations) for r in group]
     assert counts == [len(r.generations) for r in alone]
     assert len(set(counts)) > 1  # the runs did stop at different generations
+
+
+def test_programs_compiled_ahead_are_used_and_change_nothing(monkeypatch):
+    """On an accelerator a group compiles generation 0's program from shapes and, during
+    each generation, its guessed next bucket's (`loop._compile_next_bucket` over every
+    run's pool, for the group's rows). Forced on here, each compilation waited for at once
+    (two programs at once on a CPU can deadlock XLA's thread pool): the group runs
+    programs compiled ahead (generation 0's called without jit's fallback) and gives
+    exactly the group of the usual path."""
+    from eant2_jax import exploitation, lockstep, loop
+
+    task, cfg = _task(), _config()
+    keys = [jax.random.key(s) for s in (3, 4, 5)]
+    plain = run_lockstep(task, keys, config=cfg, generations=6)
+
+    def joined(fn):
+        def call(*args, **kwargs):
+            out = fn(*args, **kwargs)
+            if hasattr(out, "join"):
+                out.join()
+            for ahead in list(exploitation._AHEAD.values()):
+                assert ahead.get() is not None, "a program compiled ahead failed to compile"
+            return out
+
+        return call
+
+    guesses, used = [], []
+    guess = loop._compile_next_bucket
+
+    def spy_guess(runs, *args):
+        guesses.append(len(runs))
+        return guess(runs, *args)
+
+    with_fallback = exploitation._with_fallback
+
+    def spy(compiled, chunk):
+        used.append(compiled)
+        return with_fallback(compiled, chunk)
+
+    monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
+    monkeypatch.setattr(lockstep, "compile_first_ahead", joined(loop.compile_first_ahead))
+    monkeypatch.setattr(lockstep, "_compile_next_bucket", joined(spy_guess))
+    monkeypatch.setattr(exploitation, "_with_fallback", spy)
+    monkeypatch.setattr(exploitation, "_AHEAD", {})
+    monkeypatch.setattr(exploitation, "_SEEN", set())  # as in a fresh process
+    ahead = run_lockstep(task, keys, config=cfg, generations=6)
+    assert guesses and set(guesses) == {3}  # every run's pool, once per generation
+    assert len(guesses) == 6  # not in the last generation
+    assert len(used) >= 2, "generation 0 and a guessed bucket ran programs compiled ahead"
+    for a, b in zip(ahead, plain, strict=True):
+        _same(a, b)

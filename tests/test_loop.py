@@ -861,8 +861,9 @@ def test_solution_test_halts_every_structure_and_counts_only_evaluations():
         return len(calls) == 3  # passes on the third network tested
 
     res = tune(genomes, tasks.make("xor"), key=jax.random.key(3), config=config, solution_test=test)
-    # Both structures improve in the first chunk: tests 1 and 2, then 3 after chunk 2.
-    assert res.solution == 0 and res.genomes[0] == calls[2]
+    # Both structures improve in the first chunk: tests 1 and 2, then 3 after chunk 2; the
+    # structure whose network passed is the solution.
+    assert res.solution is not None and res.genomes[res.solution] == calls[2]
     assert res.stop_reasons == ["halted", "halted"]
     assert res.evaluations == [10 * 6, 10 * 6]
 

@@ -129,8 +129,7 @@ def _run(args: argparse.Namespace) -> int:
         exploit["dtype"] = "float64"
     if args.max_iters is not None:
         exploit["max_iters"] = args.max_iters
-    exploit["lazy_eigen"] = args.lazy_eigen
-    for name in ("recommend", "rescore"):  # unset: ExploitConfig's default
+    for name in ("lazy_eigen", "recommend", "rescore"):  # unset: ExploitConfig's default
         if getattr(args, name) is not None:
             exploit[name] = getattr(args, name)
     config = EANT2Config(
@@ -527,10 +526,10 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--lazy-eigen",
         type=_factor,
-        default=0.0,
+        default=None,
         metavar="F",
-        help="decompose C only every F / (n (c1 + cmu)) iterations (pycma: 0.5; "
-        "default 0: every iteration)",
+        help="decompose C only every F / (n (c1 + cmu)) iterations, rounded down to a "
+        "power of two (default 0.5, pycma's factor; 0: every iteration)",
     )
     run.add_argument(
         "--recommend",

@@ -167,8 +167,8 @@ class ExploitConfig:
         (c_1 + c_mu))`` iterations (`kernels.cmaes.eigen_interval`; Hansen's tutorial uses
         f = 0.1, pycma 0.5), rounded down to a power of two and aligned with the engine's
         iterations so that a batch's due structures share one batched ``eigh``
-        (`kernels.cmaes.eigen_period`). Default 0.5, pycma's: every 2nd iteration at n = 5
-        to 47, every 4th from n = 48 with the default population sizes. 0 decomposes C
+        (`kernels.cmaes.eigen_period`). Default 0.5, pycma's: with the default population
+        size, every 2nd iteration up to about n = 40, every 4th up to 125. 0 decomposes C
         every iteration (run directories written before this field resume with 0). A
         pruning attempt always starts from a fresh decomposition.
       recommend: *static*. On a noisy task (``task.noisy``), which point of each search

@@ -456,20 +456,24 @@ def _breed(task: Task, state: RunState | None, key: jax.Array, config: EANT2Conf
     return _Brood(gen, parents, new, next_id, state.evaluations, starts, exp_key, t0, compiled)
 
 
-def _next_bucket_guess(
+def _next_bucket_guesses(
     runs: Sequence[tuple[RunState | None, _Brood]],
     task: Task,
     config: EANT2Config,
     bucket: Bucket,
-) -> tuple[Bucket, list[Genome]] | None:
-    """The bucket the batch will likely grow into next, guessed during this generation,
-    and genomes that fill it: the most frequent bucket among ``_GUESS_TRIES`` dry
-    generations (offspring of this generation's structures and the current population of
-    every run in ``runs``, ``(state, brood)`` each: one for a run alone, a lock-step
-    group's for `eant2_jax.run_lockstep`, made with throwaway generators: the runs' own
-    draws are untouched) that outgrow ``bucket``; None if none does. Only a guess
-    (selection and pruning decide the real parents): on the XOR runs of tests/test_loop.py
-    it named 4 of 6 new buckets."""
+) -> list[tuple[Bucket, list[Genome]]]:
+    """The buckets the batch will likely grow into next, guessed during this generation,
+    and genomes that fill each: among ``_GUESS_TRIES`` dry generations (offspring of this
+    generation's structures and the current population of every run in ``runs``,
+    ``(state, brood)`` each: one for a run alone, a lock-step group's for
+    `eant2_jax.run_lockstep`, made with throwaway generators: the runs' own draws are
+    untouched), the most frequent bucket that outgrows ``bucket``, and the second most
+    frequent if at least two tries grew into it; none if no try outgrew ``bucket``. Only
+    a guess (selection and pruning decide the real parents): on the XOR runs of
+    tests/test_loop.py the first named 4 of 6 new buckets. The second was added for
+    `eant2 reproduce`: with the first alone, its covariance arm (a lock-step group of 200
+    structures) still waited 9-12 s for a new bucket's program in two generations on an
+    H100."""
     pools = [list(st.population if st is not None else []) + list(b.new) for st, b in runs]
     gen = runs[0][1].gen
     grown: dict[Bucket, list[Genome]] = {}
@@ -483,19 +487,17 @@ def _next_bucket_guess(
         if b != bucket:
             grown.setdefault(b, dry)
             votes[b] = votes.get(b, 0) + 1
-    if not votes:
-        return None
-    best = max(votes, key=votes.get)
-    return best, grown[best]
+    ranked = sorted(votes, key=votes.get, reverse=True)[:2]  # ties: the first grown
+    return [(b, grown[b]) for i, b in enumerate(ranked) if i == 0 or votes[b] >= 2]
 
 
 _GUESS_TRIES = 8
 
 
 def _compile_next_bucket(runs, task, config, bucket, min_rows) -> threading.Thread | None:
-    """On an accelerator, compile the engine program of the guessed next bucket
-    (`_next_bucket_guess` of ``runs``) for batches of ``min_rows`` rows in a background
-    thread while this generation runs (`eant2_jax.exploitation.compile_ahead`): a new
+    """On an accelerator, compile the engine programs of the guessed next buckets
+    (`_next_bucket_guesses` of ``runs``) for batches of ``min_rows`` rows in the background
+    while this generation runs (`eant2_jax.exploitation.compile_ahead`): a new
     bucket's program takes seconds to tens of seconds to compile there, which otherwise
     stall the generation that meets it. The program is the one that generation would
     compile, so results do not change."""
@@ -504,15 +506,12 @@ def _compile_next_bucket(runs, task, config, bucket, min_rows) -> threading.Thre
 
     def work():
         try:
-            guess = _next_bucket_guess(runs, task, config, bucket)
-            if guess is None:
-                return
-            b, genomes = guess
             init_key, run_key = jax.random.split(runs[0][1].exp_key)
-            prep = tuning.prepare(genomes, task, key=init_key, config=config.exploit,
-                                  bucket=b, min_rows=min_rows)  # fmt: skip
-            exploitation.compile_ahead(prep.state, prep.batch.layout, task, key=run_key,
-                                       config=config.exploit, tables=prep.tables)  # fmt: skip
+            for b, genomes in _next_bucket_guesses(runs, task, config, bucket):
+                prep = tuning.prepare(genomes, task, key=init_key, config=config.exploit,
+                                      bucket=b, min_rows=min_rows)  # fmt: skip
+                exploitation.compile_ahead(prep.state, prep.batch.layout, task, key=run_key,
+                                           config=config.exploit, tables=prep.tables)  # fmt: skip
         except Exception:  # noqa: BLE001 - a guess that fails costs nothing but itself
             return
 

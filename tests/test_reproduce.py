@@ -97,3 +97,61 @@ def test_a_background_error_reaches_the_caller():
     with pytest.raises(ValueError, match="bad 3"):
         _Background("t", boom, 3).result()
     assert _Background("t", lambda x: x + 1, 3).result() == 4
+
+
+# Two XOR runs of one generation end at nearly equal fitness: scipy's t-test warns.
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore:Precision loss occurred:RuntimeWarning")
+def test_later_arms_first_programs_compiled_ahead_are_used_and_change_nothing(
+    tmp_path, monkeypatch
+):
+    """On an accelerator `reproduce` starts compiling each later arm's generation-0
+    program (one lock-step group per arm) before the first arm runs. Forced on here, each
+    compilation waited for at once (two programs at once on a CPU can deadlock XLA's thread
+    pool): the pruning arm's first generation runs that very program (called without jit's
+    fallback, so arguments shaped otherwise than foreseen would raise), and every run
+    directory's records are those of the plain path."""
+    from eant2_jax import exploitation, tasks
+    from eant2_jax.app import experiments
+    from eant2_jax.loop import EANT2Config, compile_first_ahead
+
+    settings = dict(
+        task_meta={"task": "xor", "task_options": {}}, runs=2, generations=1,
+        pruners=("covariance",), config=EANT2Config(population=3), devices=1,
+        condition=False,
+    )  # fmt: skip
+    task = tasks.make("xor")
+    experiments.reproduce(task, tmp_path / "plain", **settings)
+
+    calls, used = [], []
+
+    def joined(*args, **kwargs):
+        started = compile_first_ahead(*args, **kwargs)
+        calls.append(started)
+        for ahead in list(exploitation._AHEAD.values()):
+            assert ahead.get() is not None, "a program compiled ahead failed to compile"
+        return started
+
+    def strict(compiled, chunk):
+        used.append(compiled)
+        return compiled
+
+    monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
+    monkeypatch.setattr(experiments, "compile_first_ahead", joined)
+    monkeypatch.setattr(exploitation, "_with_fallback", strict)
+    monkeypatch.setattr(exploitation, "_AHEAD", {})
+    monkeypatch.setattr(exploitation, "_SEEN", set())
+    experiments.reproduce(task, tmp_path / "ahead", **settings)
+    assert calls == [True]  # the covariance arm's, before the unpruned arm ran
+    assert used  # the arms ran programs compiled ahead, strictly
+    for run in ("covariance-s0", "covariance-s1", "none-s0", "none-s1"):
+        records = [
+            {k: v for k, v in json.loads(line).items() if not k.endswith("_s") and k != "wall_s"}
+            for d in ("plain", "ahead")
+            for line in (tmp_path / d / run / "generations.jsonl").read_text().splitlines()
+        ]
+        half = len(records) // 2
+        strip = ("compiles", "cache_hits", "cache_misses")
+        a, b = ([{k: v for k, v in r.items() if k not in strip} for r in part]
+                for part in (records[:half], records[half:]))  # fmt: skip
+        assert a == b, run

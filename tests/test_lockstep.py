@@ -149,7 +149,7 @@ def test_programs_compiled_ahead_are_used_and_change_nothing(monkeypatch):
 
     task, cfg = _task(), _config()
     keys = [jax.random.key(s) for s in (3, 4, 5)]
-    plain = run_lockstep(task, keys, config=cfg, generations=6)
+    plain = run_lockstep(task, keys, config=cfg, generations=4)
 
     def joined(fn):
         def call(*args, **kwargs):
@@ -181,9 +181,9 @@ def test_programs_compiled_ahead_are_used_and_change_nothing(monkeypatch):
     monkeypatch.setattr(exploitation, "_with_fallback", spy)
     monkeypatch.setattr(exploitation, "_AHEAD", {})
     monkeypatch.setattr(exploitation, "_SEEN", set())  # as in a fresh process
-    ahead = run_lockstep(task, keys, config=cfg, generations=6)
+    ahead = run_lockstep(task, keys, config=cfg, generations=4)
     assert guesses and set(guesses) == {3}  # every run's pool, once per generation
-    assert len(guesses) == 6  # not in the last generation
+    assert len(guesses) == 4  # not in the last generation
     assert len(used) >= 2, "generation 0 and a guessed bucket ran programs compiled ahead"
     for a, b in zip(ahead, plain, strict=True):
         _same(a, b)

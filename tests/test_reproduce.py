@@ -99,9 +99,7 @@ def test_a_background_error_reaches_the_caller():
     assert _Background("t", lambda x: x + 1, 3).result() == 4
 
 
-# Two XOR runs of one generation end at nearly equal fitness: scipy's t-test warns.
 @pytest.mark.slow
-@pytest.mark.filterwarnings("ignore:Precision loss occurred:RuntimeWarning")
 def test_later_arms_first_programs_compiled_ahead_are_used_and_change_nothing(
     tmp_path, monkeypatch
 ):
@@ -116,7 +114,7 @@ def test_later_arms_first_programs_compiled_ahead_are_used_and_change_nothing(
     from eant2_jax.loop import EANT2Config, compile_first_ahead
 
     settings = dict(
-        task_meta={"task": "xor", "task_options": {}}, runs=2, generations=1,
+        task_meta={"task": "xor", "task_options": {}}, runs=1, generations=1,
         pruners=("covariance",), config=EANT2Config(population=3), devices=1,
         condition=False,
     )  # fmt: skip
@@ -144,7 +142,7 @@ def test_later_arms_first_programs_compiled_ahead_are_used_and_change_nothing(
     experiments.reproduce(task, tmp_path / "ahead", **settings)
     assert calls == [True]  # the covariance arm's, before the unpruned arm ran
     assert used  # the arms ran programs compiled ahead, strictly
-    for run in ("covariance-s0", "covariance-s1", "none-s0", "none-s1"):
+    for run in ("covariance-s0", "none-s0"):
         records = [
             {k: v for k, v in json.loads(line).items() if not k.endswith("_s") and k != "wall_s"}
             for d in ("plain", "ahead")

@@ -1059,7 +1059,7 @@ def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
 
     def run():
         return eant2_jax.run(tasks.make("xor"), key=jax.random.key(1), config=config,
-                             generations=9)  # fmt: skip
+                             generations=6)  # fmt: skip
 
     plain = run()
     guess = loop._compile_next_bucket

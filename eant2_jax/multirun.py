@@ -33,6 +33,19 @@ __all__ = ["run_many"]
 WORKER = "eant2-run-worker"
 
 
+def chosen_devices(devices: int | str | Sequence[jax.Device]) -> list[jax.Device]:
+    """The devices `run_many` spreads over for ``devices``: ``"all"`` local ones, the first
+    ``devices`` of them, or the given ones."""
+    local = jax.local_devices()
+    if devices == "all":
+        return local
+    if isinstance(devices, int):
+        if not 1 <= devices <= len(local):
+            raise ValueError(f"devices={devices}: this process has {len(local)} device(s)")
+        return local[:devices]
+    return list(devices)
+
+
 def run_many(
     task: Task,
     keys: Sequence[jax.Array],
@@ -85,15 +98,7 @@ def run_many(
         raise ValueError("run_many: keys, configs and outs must have the same length")
     if any(c.devices is not None for c in configs):
         raise ValueError("run_many places each run on one device: leave config.devices None")
-    local = jax.local_devices()
-    if devices == "all":
-        chosen = local
-    elif isinstance(devices, int):
-        if not 1 <= devices <= len(local):
-            raise ValueError(f"devices={devices}: this process has {len(local)} device(s)")
-        chosen = local[:devices]
-    else:
-        chosen = list(devices)
+    chosen = chosen_devices(devices)
     jobs = [[i] for i in range(len(keys))]
     if lockstep:
         by_config: dict = {}

@@ -114,3 +114,43 @@ def nondeterministic_scatters(closed: jax.extend.core.ClosedJaxpr) -> list[str]:
 
     walk(closed.jaxpr)
     return found
+
+
+def force_compile_ahead(monkeypatch, *, fallback: bool = False) -> list:
+    """Compile ahead on a CPU as on an accelerator (`eant2_jax.exploitation.compile_ahead`),
+    from an empty registry as in a fresh process. Returns the list of the programs compiled
+    ahead that the engine then called: strictly (a mismatch of the arguments raises) unless
+    ``fallback``, where jit's fallback stays as the library has it."""
+    from eant2_jax import exploitation
+
+    used = []
+    with_fallback = exploitation._with_fallback
+
+    def spy(compiled, chunk):
+        used.append(compiled)
+        return with_fallback(compiled, chunk) if fallback else compiled
+
+    monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
+    monkeypatch.setattr(exploitation, "_with_fallback", spy)
+    monkeypatch.setattr(exploitation, "_AHEAD", {})
+    monkeypatch.setattr(exploitation, "_SEEN", set())
+    return used
+
+
+def joined(fn, calls: list | None = None):
+    """``fn`` (a function that starts compiling ahead), its compilations waited for at once
+    (two programs at once on a CPU can deadlock XLA's thread pool), each asserted to have
+    compiled; a thread it returns is joined first. ``calls`` collects what it returned."""
+    from eant2_jax import exploitation
+
+    def call(*args, **kwargs):
+        out = fn(*args, **kwargs)
+        if calls is not None:
+            calls.append(out)
+        if hasattr(out, "join"):
+            out.join()
+        for ahead in list(exploitation._AHEAD.values()):
+            assert ahead.get() is not None, "a program compiled ahead failed to compile"
+        return out
+
+    return call

@@ -7,6 +7,7 @@ import json
 import jax
 import numpy as np
 import pytest
+from compiles import force_compile_ahead, joined
 
 import eant2_jax as E
 from eant2_jax.lockstep import run_lockstep
@@ -145,42 +146,22 @@ def test_programs_compiled_ahead_are_used_and_change_nothing(monkeypatch):
     (two programs at once on a CPU can deadlock XLA's thread pool): the group runs
     programs compiled ahead (generation 0's called without jit's fallback) and gives
     exactly the group of the usual path."""
-    from eant2_jax import exploitation, lockstep, loop
+    from eant2_jax import lockstep, loop
 
     task, cfg = _task(), _config()
     keys = [jax.random.key(s) for s in (3, 4, 5)]
     plain = run_lockstep(task, keys, config=cfg, generations=4)
 
-    def joined(fn):
-        def call(*args, **kwargs):
-            out = fn(*args, **kwargs)
-            if hasattr(out, "join"):
-                out.join()
-            for ahead in list(exploitation._AHEAD.values()):
-                assert ahead.get() is not None, "a program compiled ahead failed to compile"
-            return out
-
-        return call
-
-    guesses, used = [], []
+    guesses = []
     guess = loop._compile_next_bucket
 
     def spy_guess(runs, *args):
         guesses.append(len(runs))
         return guess(runs, *args)
 
-    with_fallback = exploitation._with_fallback
-
-    def spy(compiled, chunk):
-        used.append(compiled)
-        return with_fallback(compiled, chunk)
-
-    monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
+    used = force_compile_ahead(monkeypatch, fallback=True)
     monkeypatch.setattr(lockstep, "compile_first_ahead", joined(loop.compile_first_ahead))
     monkeypatch.setattr(lockstep, "_compile_next_bucket", joined(spy_guess))
-    monkeypatch.setattr(exploitation, "_with_fallback", spy)
-    monkeypatch.setattr(exploitation, "_AHEAD", {})
-    monkeypatch.setattr(exploitation, "_SEEN", set())  # as in a fresh process
     ahead = run_lockstep(task, keys, config=cfg, generations=4)
     assert guesses and set(guesses) == {3}  # every run's pool, once per generation
     assert len(guesses) == 4  # not in the last generation

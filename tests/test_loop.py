@@ -26,6 +26,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from compiles import force_compile_ahead, joined
 
 import eant2_jax
 from eant2_jax import EANT2Config, ExploitConfig, tasks
@@ -963,20 +964,6 @@ def _record_json() -> dict:
     }  # fmt: skip
 
 
-def _joined_first_ahead(loop, exploitation):
-    """`loop.compile_first_ahead`, its compilation waited for at once (two programs at once
-    on a CPU can deadlock XLA's thread pool)."""
-    first = loop.compile_first_ahead
-
-    def joined(*args):
-        started = first(*args)
-        for ahead in list(exploitation._AHEAD.values()):
-            assert ahead.get() is not None, "the program compiled ahead failed to compile"
-        return started
-
-    return joined
-
-
 @pytest.mark.parametrize("task", ["xor", "servo"])
 def test_first_program_compiled_ahead_from_shapes_is_used_and_changes_nothing(monkeypatch, task):
     """On an accelerator generation 0's engine program starts compiling from shapes alone,
@@ -994,17 +981,8 @@ def test_first_program_compiled_ahead_from_shapes_is_used_and_changes_nothing(mo
                              generations=0)  # fmt: skip
 
     plain = run()
-    used = []
-
-    def strict(compiled, chunk):
-        used.append(compiled)
-        return compiled  # no fallback to jit: a mismatch raises
-
-    monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
-    monkeypatch.setattr(loop, "compile_first_ahead", _joined_first_ahead(loop, exploitation))
-    monkeypatch.setattr(exploitation, "_with_fallback", strict)
-    monkeypatch.setattr(exploitation, "_AHEAD", {})
-    monkeypatch.setattr(exploitation, "_SEEN", set())
+    used = force_compile_ahead(monkeypatch)  # no fallback to jit: a mismatch raises
+    monkeypatch.setattr(loop, "compile_first_ahead", joined(loop.compile_first_ahead))
     ahead = run()
     assert len(used) == 1 and len(exploitation._AHEAD) == 1
     assert ahead.best == plain.best
@@ -1023,22 +1001,15 @@ def test_cli_starts_the_first_program_before_the_key_exists(monkeypatch, tmp_pat
     from eant2_jax import exploitation, loop
     from eant2_jax.app import cli
 
-    calls, used = [], []
-    joined = _joined_first_ahead(loop, exploitation)
+    calls = []
+    first = joined(loop.compile_first_ahead)
 
     def spy(task, key, config):
         calls.append(isinstance(key, jax.ShapeDtypeStruct))
-        return joined(task, key, config)
+        return first(task, key, config)
 
-    def strict(compiled, chunk):
-        used.append(compiled)
-        return compiled
-
-    monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
+    used = force_compile_ahead(monkeypatch)
     monkeypatch.setattr(loop, "compile_first_ahead", spy)
-    monkeypatch.setattr(exploitation, "_with_fallback", strict)
-    monkeypatch.setattr(exploitation, "_AHEAD", {})
-    monkeypatch.setattr(exploitation, "_SEEN", set())
     monkeypatch.setenv("EANT2_CACHE_DIR", "")
     argv = ["run", "xor", "--population", "3", "--generations", "0", "--max-iters", "20",
             "--out", str(tmp_path / "run")]  # fmt: skip
@@ -1064,7 +1035,7 @@ def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
     plain = run()
     guess = loop._compile_next_bucket
 
-    def joined(*args):
+    def joined_guess(*args):
         thread = guess(*args)
         if thread is not None:
             thread.join()
@@ -1072,19 +1043,9 @@ def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
                 ahead.get()
         return thread
 
-    used = []
-    with_fallback = exploitation._with_fallback
-
-    def spy(compiled, chunk):
-        used.append(compiled)
-        return with_fallback(compiled, chunk)
-
-    monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
-    monkeypatch.setattr(loop, "_compile_next_bucket", joined)
-    monkeypatch.setattr(loop, "compile_first_ahead", _joined_first_ahead(loop, exploitation))
-    monkeypatch.setattr(exploitation, "_with_fallback", spy)
-    monkeypatch.setattr(exploitation, "_AHEAD", {})
-    monkeypatch.setattr(exploitation, "_SEEN", set())  # as in a fresh process
+    used = force_compile_ahead(monkeypatch, fallback=True)
+    monkeypatch.setattr(loop, "_compile_next_bucket", joined_guess)
+    monkeypatch.setattr(loop, "compile_first_ahead", joined(loop.compile_first_ahead))
     ahead = run()
     assert used, "no generation ran a program compiled ahead"
     assert ahead.best == plain.best

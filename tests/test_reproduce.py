@@ -109,7 +109,9 @@ def test_later_arms_first_programs_compiled_ahead_are_used_and_change_nothing(
     pool): the pruning arm's first generation runs that very program (called without jit's
     fallback, so arguments shaped otherwise than foreseen would raise), and every run
     directory's records are those of the plain path."""
-    from eant2_jax import exploitation, tasks
+    from compiles import force_compile_ahead, joined
+
+    from eant2_jax import tasks
     from eant2_jax.app import experiments
     from eant2_jax.loop import EANT2Config, compile_first_ahead
 
@@ -121,35 +123,20 @@ def test_later_arms_first_programs_compiled_ahead_are_used_and_change_nothing(
     task = tasks.make("xor")
     experiments.reproduce(task, tmp_path / "plain", **settings)
 
-    calls, used = [], []
-
-    def joined(*args, **kwargs):
-        started = compile_first_ahead(*args, **kwargs)
-        calls.append(started)
-        for ahead in list(exploitation._AHEAD.values()):
-            assert ahead.get() is not None, "a program compiled ahead failed to compile"
-        return started
-
-    def strict(compiled, chunk):
-        used.append(compiled)
-        return compiled
-
-    monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
-    monkeypatch.setattr(experiments, "compile_first_ahead", joined)
-    monkeypatch.setattr(exploitation, "_with_fallback", strict)
-    monkeypatch.setattr(exploitation, "_AHEAD", {})
-    monkeypatch.setattr(exploitation, "_SEEN", set())
+    calls = []
+    used = force_compile_ahead(monkeypatch)  # strictly: no fallback to jit
+    monkeypatch.setattr(experiments, "compile_first_ahead", joined(compile_first_ahead, calls))
     experiments.reproduce(task, tmp_path / "ahead", **settings)
     assert calls == [True]  # the covariance arm's, before the unpruned arm ran
     assert used  # the arms ran programs compiled ahead, strictly
-    for run in ("covariance-s0", "none-s0"):
-        records = [
-            {k: v for k, v in json.loads(line).items() if not k.endswith("_s") and k != "wall_s"}
-            for d in ("plain", "ahead")
-            for line in (tmp_path / d / run / "generations.jsonl").read_text().splitlines()
+
+    def records(out, run):
+        drop = ("compiles", "cache_hits", "cache_misses")  # and every "..._s" timing
+        lines = (tmp_path / out / run / "generations.jsonl").read_text().splitlines()
+        return [
+            {k: v for k, v in json.loads(line).items() if not k.endswith("_s") and k not in drop}
+            for line in lines
         ]
-        half = len(records) // 2
-        strip = ("compiles", "cache_hits", "cache_misses")
-        a, b = ([{k: v for k, v in r.items() if k not in strip} for r in part]
-                for part in (records[:half], records[half:]))  # fmt: skip
-        assert a == b, run
+
+    for run in ("covariance-s0", "none-s0"):
+        assert records("plain", run) == records("ahead", run), run

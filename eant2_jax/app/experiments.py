@@ -27,7 +27,7 @@ from ..exploitation import run as run_engine
 from ..genome import Genome
 from ..kernels.pruning import PRUNERS
 from ..loop import EANT2Config, compile_first_ahead
-from ..multirun import run_many
+from ..multirun import chosen_devices, run_many
 from ..pruning import kept_genes, reduce, where_rows
 from ..rundir import RunDirError, write_atomic
 from ..tasks.base import ReportingTask, Task
@@ -376,7 +376,7 @@ def reproduce(
     # and can then overlap the other arms. The order changes no result (each run has its
     # own key) and not the report's (``jobs``' order).
     order = ["none"] + [a for a in arms if a != "none"]
-    if lockstep and not _resume and _device_count(devices) == 1:
+    if lockstep and not _resume and len(chosen_devices(devices)) == 1:
         # Each later arm is one lock-step group: its generation-0 program (10-12 s of
         # compiling on an H100) compiles in the background while the first arm runs.
         for arm in order[1:]:
@@ -434,13 +434,6 @@ def reproduce(
         cond = run_condition(_best_unpruned(jobs, results))
     extra["notes"] = _claims(dirs, cond)
     return report([str(d) for d in dirs], out / "report", extra=extra, condition=cond)
-
-
-def _device_count(devices: int | str | Sequence) -> int:
-    """How many devices `eant2_jax.run_many` spreads over for ``devices``."""
-    if devices == "all":
-        return len(jax.local_devices())
-    return devices if isinstance(devices, int) else len(devices)
 
 
 def _best_unpruned(jobs: Sequence[tuple[str, int]], results: Sequence) -> Genome:

@@ -136,22 +136,15 @@ def network(layout: Layout, params: jax.Array) -> Network:
     h = layout.is_root.shape[-1]
     n_in, n_out = layout.n_inputs, layout.n_outputs
     values = jnp.where(layout.gene_mask, params, jnp.zeros_like(params))
-    flat = _gather_genes(layout, values, buffer_size(h, n_in, n_out))
+    # For non-finite sources: the stack semantics add w_i * v gene by gene, so an entry set
+    # by a gene of weight 0, or by genes of both signs, gives NaN for v = +-inf where the
+    # summed weight would not; NaN marks those entries in the weights used for such values.
+    flat, used, poison = _gather_genes(layout, values, params, buffer_size(h, n_in, n_out))
     sizes = (h * n_in, h, h * h, h * h, n_out * h)
     offsets = [0]
     for s in sizes:
         offsets.append(offsets[-1] + s)
     part = [flat[offsets[i] : offsets[i + 1]] for i in range(len(sizes))]
-
-    # For non-finite sources: the stack semantics add w_i * v gene by gene, so an entry set
-    # by a gene of weight 0, or by genes of both signs, gives NaN for v = +-inf where the
-    # summed weight would not; NaN marks those entries in the weights used for such values.
-    def count(cond):
-        ones = (layout.gene_mask & cond).astype(jnp.int32)
-        return jnp.zeros(flat.shape, jnp.int32).at[layout.slot].add(ones) > 0
-
-    used = count(True)
-    poison = count(params == 0) | (count(params > 0) & count(params < 0))
     w_nf = jnp.where(used, jnp.where(poison, jnp.nan, flat), 0.0).astype(flat.dtype)
     shapes = ((h, n_in), (h,), (h, h), (h, h), (n_out, h))
 
@@ -172,30 +165,47 @@ def network(layout: Layout, params: jax.Array) -> Network:
     )
 
 
-def _gather_genes(layout: Layout, values: jax.Array, size: int) -> jax.Array:
-    """The flat buffer: each entry the sum of the weights of the genes that point at it.
+def _gather_genes(
+    layout: Layout, values: jax.Array, params: jax.Array, size: int
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The flat buffer and two flags per entry: ``(flat, used, poison)``, each ``[size]``.
+
+    ``flat``: each entry the sum of the weights of the genes that point at it. ``used``:
+    some gene points at it. ``poison``: one of those genes has weight 0, or they have both
+    signs (`network`'s non-finite rule).
 
     Not a scatter-add: a float scatter-add with repeated indices is non-deterministic on GPUs
     (atomic adds in any order), and XLA's deterministic mode (``--xla_gpu_deterministic_ops``)
     turns it into a sort. Here the genes that share an entry are summed first, onto the first
-    of them (a masked ``[P, P]`` sum that depends on the layout only, so vmapped over a
-    structure's candidates it is built once), and a scatter with unique indices (deterministic
-    by construction, left alone by that mode) writes one value per entry. Padding genes (all
-    pointing at the trash entry) write nothing, so the trash entry stays 0.
+    of them (a masked ``[P, P]`` sum over a matrix that depends on the layout only, so vmapped
+    over a structure's candidates it is built once), and a scatter with unique indices
+    (deterministic by construction, left alone by that mode) writes one value per entry. The
+    flags are reduced over the same groups and written by the same scatter, as columns next
+    to the sums: one scatter per network instead of four (the flags were scatter-adds of
+    their own, each a GPU kernel with its buffer's initialisation and copy on every engine
+    iteration). Padding genes (all pointing at the trash entry) write nothing, so the trash
+    entry stays 0.
     """
     p = values.shape[-1]
     genes = jnp.arange(p)
     same = (layout.slot[:, None] == layout.slot[None, :]) & layout.gene_mask[None, :]
     first = layout.gene_mask & ~jnp.any(same & (genes[None, :] < genes[:, None]), axis=1)
     summed = jnp.sum(jnp.where(same, values[None, :], jnp.zeros_like(values)[None, :]), axis=1)
+
+    def any_in_group(cond):
+        return jnp.any(same & cond[None, :], axis=1)
+
+    poison = any_in_group(params == 0) | (any_in_group(params > 0) & any_in_group(params < 0))
+    columns = jnp.stack([summed, first.astype(values.dtype), poison.astype(values.dtype)], -1)
     # Every gene gets its own index: the first of each entry its entry, the others a distinct
     # index past the end, which mode="drop" discards, so the promise of unique indices holds.
     target = jnp.where(first, layout.slot, size + genes)
-    return (
-        jnp.zeros(size, values.dtype)
+    out = (
+        jnp.zeros((size, 3), values.dtype)
         .at[target]
-        .set(summed, mode="drop", unique_indices=True, indices_are_sorted=False)
+        .set(columns, mode="drop", unique_indices=True, indices_are_sorted=False)
     )
+    return out[:, 0], out[:, 1] > 0, out[:, 2] > 0
 
 
 def step(

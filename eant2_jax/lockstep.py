@@ -144,10 +144,8 @@ def run_lockstep(
                 rundir = stack.enter_context(_create(out, base_meta, generations, key, config))
                 members.append(_Member(i, key, generations, rundir, base_meta))
         if mesh is None and all(m.state is None for m in members):
-            try:  # generation 0's program, from shapes, while its keys and start are made
-                compile_first_ahead(task, members[0].key, config, runs=len(members))
-            except Exception:  # noqa: BLE001, S110 - generation 0 then compiles it as usual
-                pass
+            # Generation 0's program, from shapes, while its keys and start are made.
+            compile_first_ahead(task, members[0].key, config, runs=len(members))
         _loop(task, members, config, callback, mesh)
     return [
         RunResult(list(m.state.population), m.state.best().genome, m.records, m.pruning, None)

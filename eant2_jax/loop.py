@@ -533,26 +533,30 @@ def compile_first_ahead(task: Task, key: jax.Array, config: EANT2Config, runs: i
     `run` calls it first; a caller may call it sooner, before it has the run's key:
     ``key`` may be its shape (``jax.eval_shape(jax.random.key, seed)``), and `run` then
     finds the compilation under way. ``runs``: the runs tuned in one batch (a lock-step
-    group's, `eant2_jax.run_lockstep`). Returns whether a compilation was started."""
+    group's, `eant2_jax.run_lockstep`). Returns whether a compilation was started; one that
+    fails to start returns False (generation 0 then compiles its program as usual)."""
     if not exploitation.compile_ahead_enabled():
         return False
     if config.init_mutations or config.init_connectivity < 1:
         return False
-    rng = np.random.default_rng(0)  # weights only, see above
-    genome = initial_genome(
-        rng,
-        task.n_inputs,
-        task.n_outputs,
-        connectivity=1.0,
-        weight_scale=config.init_weight_scale,
-        recurrent=config.init_recurrent,
-    )
-    bucket = grow_bucket([genome], None, config.min_bucket)
-    exp_key = jax.eval_shape(_generation_keys, key, 0)[1]
-    return tuning.compile_ahead(
-        [genome], task, key=exp_key, config=config.exploit, bucket=bucket,
-        min_rows=_rows(config) * runs,
-    )  # fmt: skip
+    try:
+        rng = np.random.default_rng(0)  # weights only, see above
+        genome = initial_genome(
+            rng,
+            task.n_inputs,
+            task.n_outputs,
+            connectivity=1.0,
+            weight_scale=config.init_weight_scale,
+            recurrent=config.init_recurrent,
+        )
+        bucket = grow_bucket([genome], None, config.min_bucket)
+        exp_key = jax.eval_shape(_generation_keys, key, 0)[1]
+        return tuning.compile_ahead(
+            [genome], task, key=exp_key, config=config.exploit, bucket=bucket,
+            min_rows=_rows(config) * runs,
+        )  # fmt: skip
+    except Exception:  # noqa: BLE001 - an ahead compile that fails costs nothing but itself
+        return False
 
 
 def _rows(config: EANT2Config) -> int:
@@ -991,10 +995,7 @@ def _loop(
     bucket = None if state is None or state.bucket is None else Bucket(*state.bucket)
     solution = None
     if state is None and mesh is None:
-        try:
-            compile_first_ahead(task, key, config)
-        except Exception:  # noqa: BLE001, S110 - generation 0 then compiles it as usual
-            pass
+        compile_first_ahead(task, key, config)
     if state is not None and solution_test is not None:  # resumed: test what it holds
         solution = next((ind for ind in state.population if solution_test(ind.genome)), None)
     while solution is None and (state is None or state.generation < generations):

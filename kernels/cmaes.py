@@ -288,7 +288,7 @@ def eigen_period(params: Params, factor: float | jax.Array) -> jax.Array:
     two nest: structures of periods 2^j <= 2^k are all due on every multiple of 2^k, so a
     batch of structures needs its batched ``eigh`` only on the multiples of its smallest
     period, where the per-structure phases of `eigen_interval` make some structure due
-    nearly every iteration (`eant2_jax.exploitation.lazy_decompose`).
+    nearly every iteration (`eant2_jax.exploitation._lazy_decompose`).
     """
     k = jnp.minimum(jnp.ceil(eigen_interval(params, factor)), 2.0**30).astype(jnp.int32)
     return jnp.left_shift(jnp.int32(1), 31 - jax.lax.clz(k))

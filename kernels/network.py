@@ -135,11 +135,10 @@ def network(layout: Layout, params: jax.Array) -> Network:
     """
     h = layout.is_root.shape[-1]
     n_in, n_out = layout.n_inputs, layout.n_outputs
-    values = jnp.where(layout.gene_mask, params, jnp.zeros_like(params))
     # For non-finite sources: the stack semantics add w_i * v gene by gene, so an entry set
     # by a gene of weight 0, or by genes of both signs, gives NaN for v = +-inf where the
     # summed weight would not; NaN marks those entries in the weights used for such values.
-    flat, used, poison = _gather_genes(layout, values, params, buffer_size(h, n_in, n_out))
+    flat, used, poison = _gather_genes(layout, params, buffer_size(h, n_in, n_out))
     sizes = (h * n_in, h, h * h, h * h, n_out * h)
     offsets = [0]
     for s in sizes:
@@ -166,7 +165,7 @@ def network(layout: Layout, params: jax.Array) -> Network:
 
 
 def _gather_genes(
-    layout: Layout, values: jax.Array, params: jax.Array, size: int
+    layout: Layout, params: jax.Array, size: int
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The flat buffer and two flags per entry: ``(flat, used, poison)``, each ``[size]``.
 
@@ -186,6 +185,7 @@ def _gather_genes(
     iteration). Padding genes (all pointing at the trash entry) write nothing, so the trash
     entry stays 0.
     """
+    values = jnp.where(layout.gene_mask, params, jnp.zeros_like(params))
     p = values.shape[-1]
     genes = jnp.arange(p)
     same = (layout.slot[:, None] == layout.slot[None, :]) & layout.gene_mask[None, :]

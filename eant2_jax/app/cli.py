@@ -170,10 +170,7 @@ def _start_first_program(task, seed: int, config) -> None:
 
     from eant2_jax import loop
 
-    try:
-        loop.compile_first_ahead(task, jax.eval_shape(jax.random.key, seed), config)
-    except Exception:  # noqa: BLE001, S110 - the run compiles it as usual
-        pass
+    loop.compile_first_ahead(task, jax.eval_shape(jax.random.key, seed), config)
 
 
 def _resume(args: argparse.Namespace) -> int:

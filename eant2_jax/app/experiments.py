@@ -382,10 +382,7 @@ def reproduce(
         for arm in order[1:]:
             first = next(i for i, (a, _) in enumerate(jobs) if a == arm)
             key = jax.eval_shape(jax.random.key, jobs[first][1])
-            try:
-                compile_first_ahead(task, key, configs[first], runs=runs)
-            except Exception:  # noqa: BLE001, S110 - the arm then compiles it as usual
-                pass
+            compile_first_ahead(task, key, configs[first], runs=runs)
     for arm in order:  # one meta per arm
         idx = [i for i, (a, _) in enumerate(jobs) if a == arm]
         arm_results = run_many(

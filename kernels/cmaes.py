@@ -38,6 +38,8 @@ import numpy as np
 from flax import struct
 from jax.typing import DTypeLike
 
+from . import threefry
+
 __all__ = [
     "Params",
     "State",
@@ -354,12 +356,13 @@ def _normals(key: jax.Array, P: int, popsize: int, dtype: DTypeLike) -> jax.Arra
     Drawn as ONE flat vector of ``P * popsize`` scalar draws: with vmap over structures (and
     seeds), per-coordinate ``normal(k_i, (popsize,))`` becomes a rank-3 threefry whose XLA:CPU
     compilation costs ~1 s more; the flat form stays rank 2 and draws the same numbers
-    whatever the batching.
+    whatever the batching. The draws are `jax.random`'s, written out on a CPU
+    (`kernels.threefry`).
     """
-    coord_keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(P))
-    c = jnp.arange(P * popsize)
-    keys = jax.vmap(lambda c: jax.random.fold_in(coord_keys[c // popsize], c % popsize))(c)
-    z = jax.vmap(lambda k: jax.random.normal(k, (), dtype))(keys)
+    coord_keys = jax.vmap(lambda i: threefry.fold_in(key, i))(jnp.arange(P, dtype=jnp.uint32))
+    c = jnp.arange(P * popsize, dtype=jnp.uint32)
+    keys = jax.vmap(lambda c: threefry.fold_in(coord_keys[c // popsize], c % popsize))(c)
+    z = jax.vmap(lambda k: threefry.normal(k, dtype))(keys)
     return z.reshape(P, popsize).T
 
 

@@ -392,6 +392,126 @@ def test_long_product_batched_matches_numpy(monkeypatch, branch_min, nonfinite):
             np.testing.assert_allclose(np.asarray(g), np.asarray(h), rtol=1e-5, atol=1e-5)
 
 
+# ------------------------------------------------- a CPU step: plain products, then the rule
+def _batch_of_networks(seed: int, scale: float = 1.0):
+    """Eight random networks of one bucket (6 neurons, 3 sweeps), random states, and inputs
+    ``[4 examples, N_IN]`` shared by every network, as a task batches them."""
+    from bench.common import random_population
+
+    genomes = random_population(seed, 8, 14, n_inputs=N_IN, n_outputs=2)
+    compiled = compile_genomes(genomes, N_IN, bucket=Bucket(neurons=8, genes=24, sweeps=4))
+    rng = np.random.default_rng(seed)
+    params = jnp.asarray(compiled.weights * scale, jnp.float32)
+    x = jnp.asarray(rng.normal(size=(4, N_IN)), jnp.float32)
+    h = jnp.asarray(rng.normal(size=(8, 4, 8)), jnp.float32)
+    return compiled.layout, params, x, h
+
+
+def _batched_step(layout, params, x, h, *, rule: bool, hidden="tanh", output="identity"):
+    """``[nets, examples]`` outputs and states: vmapped over networks, then over examples
+    sharing each network (the network's arrays unbatched there, the inputs unbatched over
+    networks); ``rule`` runs `kn._step` with the non-finite rule, inline."""
+
+    def one(lay, p, x, h):
+        net = kn.network(lay, p)
+        if rule:
+            return kn._step(net, x, h, hidden, output)[:2]
+        return kn.step(net, x, h, hidden=hidden, output=output)
+
+    per_net = jax.vmap(one, in_axes=(None, None, 0, 0))
+    return jax.jit(jax.vmap(per_net, in_axes=(0, 0, None, 0)))(layout, params, x, h)
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="the branch is taken on CPUs only")
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_cpu_step_equals_the_rule_with_finite_and_non_finite_values(seed):
+    """On a CPU `kn.step` runs plain products over the whole batch and the non-finite rule
+    only when some value entering a product was not finite. Against `kn._step` with the
+    rule inline, on fresh random networks, states and inputs: finite values agree to float32
+    rounding (plain products may contract into fused multiply-adds); a NaN or inf input of
+    one example, and an overflow to inf inside a network with finite inputs, take the rule:
+    the same bits. The plain products alone would differ there (checked), so a branch that
+    never took the rule fails this test."""
+    layout, params, x, h = _batch_of_networks(seed)
+    fast = _batched_step(layout, params, x, h, rule=False)
+    ruled = _batched_step(layout, params, x, h, rule=True)
+    for a, b in zip(fast, ruled, strict=True):
+        assert np.all(np.isfinite(np.asarray(a)))
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+
+    bad = x.at[seed % 4, seed % N_IN].set([np.nan, np.inf, -np.inf][seed])
+    for a, b in zip(
+        _batched_step(layout, params, bad, h, rule=False),
+        _batched_step(layout, params, bad, h, rule=True),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    # Finite inputs, weights of 1e20 and identity neurons: sums overflow to inf mid-network.
+    big, params_big, x_big, _ = _batch_of_networks(seed, scale=1e20)
+    x_big = x_big * 1e20
+    args = (big, params_big, x_big, h, "identity", "identity")
+    got = _batched_step(*args[:4], rule=False, hidden="identity", output="identity")
+    want = _batched_step(*args[:4], rule=True, hidden="identity", output="identity")
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    def plain(lay, p, x, h):
+        net = kn.network(lay, p).replace(reads=None)
+        return kn._step(net, x, h, "identity", "identity")[:2]
+
+    per_net = jax.vmap(plain, in_axes=(None, None, 0, 0))
+    ys = jax.jit(jax.vmap(per_net, in_axes=(0, 0, None, 0)))(*args[:4])[0]
+    assert not np.array_equal(np.isnan(np.asarray(ys)), np.isnan(np.asarray(want[0])))
+
+
+def test_step_gradient_and_hessian_are_the_rules():
+    """Differentiation of `kn.step` takes the rule's own path: the gradient and the Hessian
+    of a batched loss in the parameters equal those through `kn._step` with the rule."""
+    layout, params, x, h = _batch_of_networks(3)
+    layout, params, h = jax.tree.map(lambda a: a[:2], (layout, params, h))
+
+    def loss(p, rule):
+        ys, hs = _batched_step(layout, p, x, h, rule=rule)
+        return jnp.sum(jnp.sin(ys)) + jnp.sum(hs**2)
+
+    for diff in (jax.grad, jax.hessian):
+        got = diff(lambda p: loss(p, False))(params)
+        want = diff(lambda p: loss(p, True))(params)
+        assert np.all(np.isfinite(np.asarray(got)))
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-4, atol=1e-5)
+
+
+# --------------------------------------------------------------------- threefry written out
+def test_threefry_draws_equal_jax_random():
+    """`kernels.threefry`'s ``fold_in`` and scalar ``normal`` give `jax.random`'s bits on
+    fresh keys and data (the full uint32 range), jitted and vmapped, with partitionable
+    threefry (JAX's default) and without; on a CPU the program has no loop left (JAX's
+    own lowering there is a loop over the rounds)."""
+    from eant2_jax.kernels import threefry
+
+    rng = np.random.default_rng()
+    keys = jax.random.split(jax.random.key(int(rng.integers(2**31))), 2048)
+    data = jnp.asarray(rng.integers(0, 2**32, size=2048, dtype=np.uint64).astype(np.uint32))
+    for partitionable in (True, False):
+        with jax.threefry_partitionable(partitionable):
+            got = jax.jit(jax.vmap(threefry.fold_in))(keys, data)
+            want = jax.jit(jax.vmap(jax.random.fold_in))(keys, data)
+            np.testing.assert_array_equal(jax.random.key_data(got), jax.random.key_data(want))
+            z = jax.jit(jax.vmap(threefry.normal))(keys)
+            want_z = jax.jit(jax.vmap(lambda k: jax.random.normal(k, ())))(keys)
+            np.testing.assert_array_equal(np.asarray(z), np.asarray(want_z))
+    if jax.default_backend() == "cpu":
+        text = jax.jit(jax.vmap(lambda k, d: threefry.normal(threefry.fold_in(k, d))))
+        assert "while" not in text.lower(keys, data).as_text()
+    # Another implementation's keys are jax.random's business.
+    rbg = jax.random.split(jax.random.key(1, impl="rbg"), 4)
+    np.testing.assert_array_equal(
+        jax.random.key_data(jax.vmap(threefry.fold_in)(rbg, data[:4])),
+        jax.random.key_data(jax.vmap(jax.random.fold_in)(rbg, data[:4])),
+    )
+
+
 # ---------------------------------------------------------------------- packaging: imports
 def _run_python(code: str, *, python: str = sys.executable, cwd: Path) -> str:
     """Run ``code`` in a fresh interpreter from ``cwd`` (not the repository, whose own

@@ -414,9 +414,28 @@ def test_a_ctrl_c_swallowed_by_a_callback_still_stops_the_command(monkeypatch):
         assert seen[-1] == {"event": "generation"}  # a worker thread reports, never raises
     finally:
         cli._SIGINT.clear()
+    # What Python would print as "Exception ignored ... Traceback": a Ctrl-C's is dropped
+    # once the command has remembered it; any other goes to the hook before.
+    import types
+
+    hook = cli._quiet_interrupts(seen.append)
+    interrupt = types.SimpleNamespace(exc_value=KeyboardInterrupt())
+    other = types.SimpleNamespace(exc_value=ValueError("x"))
+    hook(interrupt)
+    assert seen[-1] is interrupt  # no Ctrl-C remembered: not the command's
+    cli._SIGINT.set()
+    try:
+        hook(interrupt)
+        assert seen[-1] is interrupt and len([s for s in seen if s is interrupt]) == 1
+        hook(other)
+        assert seen[-1] is other
+    finally:
+        cli._SIGINT.clear()
     monkeypatch.setenv("EANT2_CACHE_DIR", "")  # leave the JAX configuration alone
+    unraisable = sys.unraisablehook
     assert cli.main(["tasks"]) == 0
     assert signal.getsignal(signal.SIGINT) is before
+    assert sys.unraisablehook is unraisable
 
 
 def _run_main(argv: list[str], capsys, monkeypatch) -> tuple[int, list[str], str]:

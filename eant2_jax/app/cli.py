@@ -777,7 +777,8 @@ def _process_defaults(environ=None) -> dict[str, str]:
 # Ctrl-C, remembered. Python raises KeyboardInterrupt wherever the signal lands; when that is
 # inside a callback the interpreter runs from C (the garbage collector's: XLA registers one),
 # the exception is printed as "ignored" and the run went on (tests/test_loop.py's Ctrl-C test
-# saw it once). The command's progress callbacks raise it again (`_interruptible`).
+# saw it once). The command's progress callbacks raise it again (`_interruptible`), and
+# the print, a traceback a user need not see, is left out (`_quiet_interrupts`).
 _SIGINT = threading.Event()
 
 
@@ -800,16 +801,32 @@ def _interruptible(callback):
     return checked
 
 
+def _quiet_interrupts(previous):
+    """A `sys.unraisablehook` that drops a Ctrl-C's KeyboardInterrupt raised inside a
+    callback run from C (Python would print it, with a traceback, as "Exception ignored"):
+    the command raises it again at its next progress event (`_interruptible`). Anything
+    else goes to ``previous``."""
+
+    def hook(unraisable):
+        if isinstance(unraisable.exc_value, KeyboardInterrupt) and _SIGINT.is_set():
+            return
+        previous(unraisable)
+
+    return hook
+
+
 def main(argv: list[str] | None = None) -> int:
     _SIGINT.clear()
-    previous = None
+    previous, hook = None, sys.unraisablehook
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGINT, _on_sigint)
+        sys.unraisablehook = _quiet_interrupts(hook)
     try:
         return _main(argv)
     finally:
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
+            sys.unraisablehook = hook
 
 
 def _main(argv: list[str] | None) -> int:

@@ -359,8 +359,8 @@ def _normals(key: jax.Array, P: int, popsize: int, dtype: DTypeLike) -> jax.Arra
     whatever the batching. The draws are `jax.random`'s, written out on a CPU
     (`kernels.threefry`).
     """
-    coord_keys = jax.vmap(lambda i: threefry.fold_in(key, i))(jnp.arange(P, dtype=jnp.uint32))
-    c = jnp.arange(P * popsize, dtype=jnp.uint32)
+    coord_keys = jax.vmap(lambda i: threefry.fold_in(key, i))(jnp.arange(P))
+    c = jnp.arange(P * popsize)
     keys = jax.vmap(lambda c: threefry.fold_in(coord_keys[c // popsize], c % popsize))(c)
     z = jax.vmap(lambda k: threefry.normal(k, dtype))(keys)
     return z.reshape(P, popsize).T

@@ -230,28 +230,38 @@ def step(
     """
     activation(hidden), activation(output)  # an unknown name fails here, not in a branch
     if net.reads is None or jax.default_backend() != "cpu":
-        return _step(net, x, h_prev, hidden, output)[:2]
+        return _step(net, x, h_prev, hidden, output)
     leaves, treedef = jax.tree.flatten((net, x, h_prev))
     return _finite_first(treedef, hidden, output)(*leaves)
 
 
 def _step(
-    net: Network, x: jax.Array, h_prev: jax.Array, hidden: str, output: str
-) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """`step`'s ``(y, h)`` and whether every value that entered a product was finite."""
+    net: Network,
+    x: jax.Array,
+    h_prev: jax.Array,
+    hidden: str,
+    output: str,
+    *,
+    check: bool = False,
+):
+    """`step`'s ``(y, h)``; with ``check``, also whether every value that entered a product
+    was finite (``(y, h, finite)``). Without it the program is exactly the one before the
+    check existed (GPU programs, and their float32 results, stay as they were measured)."""
     act_h, act_o = activation(hidden), activation(output)
     read_in, read_rec, read_ff, read_out = net.reads or (None,) * 4
     base = _dot(net.w_in, read_in, x) + net.bias + _dot(net.w_rec, read_rec, h_prev)
-    finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(h_prev))
 
     def settle(a):
         o = jnp.where(net.is_root, act_o(a), act_h(a))
         # Padding neurons stay at exactly 0 (sigmoid(0) would be 0.5).
         return jnp.where(net.neuron_mask, o, jnp.zeros_like(o))
 
-    def sweep(_, carry):
+    def sweep(_, h):
+        return settle(base + _dot(net.w_ff, read_ff, h))
+
+    def checked(i, carry):
         h, finite = carry
-        return settle(base + _dot(net.w_ff, read_ff, h)), finite & jnp.all(jnp.isfinite(h))
+        return sweep(i, h), finite & jnp.all(jnp.isfinite(h))
 
     # The first sweep reads h = 0, so it is settle(base): after it the neurons of depth 1 are
     # exact, and after `sweeps` >= depth sweeps every neuron is, from any start (``_dot``
@@ -259,12 +269,17 @@ def _step(
     # zero h: batched over networks and examples that zero is a large constant, and XLA's
     # constant folding spent 21.6 s of a 25.1 s compile (200 servo structures, CPU) on the
     # finiteness test of ``_dot`` over it.
+    finite = None
+    if check:
+        finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(h_prev))
     if net.sweeps == 0:
         h = jnp.zeros_like(base)
+    elif check:
+        h, finite = jax.lax.fori_loop(1, net.sweeps, checked, (settle(base), finite), unroll=True)
     else:
-        h, finite = jax.lax.fori_loop(1, net.sweeps, sweep, (settle(base), finite), unroll=True)
+        h = jax.lax.fori_loop(1, net.sweeps, sweep, settle(base), unroll=True)
     y = _dot(net.w_out, read_out, h)
-    return y, h, finite & jnp.all(jnp.isfinite(h))
+    return (y, h) if finite is None else (y, h, finite & jnp.all(jnp.isfinite(h)))
 
 
 # On XLA:CPU the non-finite rule is most of a small network's work: per term of every
@@ -282,7 +297,9 @@ def _finite_first(treedef, hidden: str, output: str):
 
     def one(plain: bool, *leaves):
         net, x, h_prev = jax.tree.unflatten(treedef, leaves)
-        return _step(net.replace(reads=None) if plain else net, x, h_prev, hidden, output)
+        if plain:
+            return _step(net.replace(reads=None), x, h_prev, hidden, output, check=True)
+        return _step(net, x, h_prev, hidden, output)
 
     @jax.custom_jvp
     def first(*leaves):
@@ -291,7 +308,7 @@ def _finite_first(treedef, hidden: str, output: str):
     @first.defjvp
     def first_jvp(primals, tangents):
         # Differentiation takes the rule's own path (no branch, nothing custom inside).
-        return jax.jvp(lambda *a: one(False, *a)[:2], primals, tangents)
+        return jax.jvp(functools.partial(one, False), primals, tangents)
 
     return first
 
@@ -315,7 +332,7 @@ def _batched(one: Callable, levels: tuple[tuple[bool, ...], ...]):
         y, h, finite = over_batch(True)(*leaves)
 
         def ruled(leaves):
-            return over_batch(False)(*leaves)[:2]
+            return over_batch(False)(*leaves)
 
         # The passthrough branch first: XLA:CPU elides its copies only there
         # (openxla/xla#46314; `eant2_jax.exploitation._cond_rare`). index 0 = False.

@@ -415,7 +415,7 @@ def _batched_step(layout, params, x, h, *, rule: bool, hidden="tanh", output="id
     def one(lay, p, x, h):
         net = kn.network(lay, p)
         if rule:
-            return kn._step(net, x, h, hidden, output)[:2]
+            return kn._step(net, x, h, hidden, output)
         return kn.step(net, x, h, hidden=hidden, output=output)
 
     per_net = jax.vmap(one, in_axes=(None, None, 0, 0))
@@ -458,7 +458,7 @@ def test_cpu_step_equals_the_rule_with_finite_and_non_finite_values(seed):
 
     def plain(lay, p, x, h):
         net = kn.network(lay, p).replace(reads=None)
-        return kn._step(net, x, h, "identity", "identity")[:2]
+        return kn._step(net, x, h, "identity", "identity")
 
     per_net = jax.vmap(plain, in_axes=(None, None, 0, 0))
     ys = jax.jit(jax.vmap(per_net, in_axes=(0, 0, None, 0)))(*args[:4])[0]

@@ -465,6 +465,25 @@ def test_cpu_step_equals_the_rule_with_finite_and_non_finite_values(seed):
     assert not np.array_equal(np.isnan(np.asarray(ys)), np.isnan(np.asarray(want[0])))
 
 
+def test_gpu_step_keeps_the_rule_inline(monkeypatch):
+    """Off the CPU `kn.step` is `kn._step` with the rule inline, no branch: lowered for CUDA
+    (tracing as a GPU backend would) the batched step is the same program text, and it
+    has no conditional. The GPU figures in docs/benchmarks.md were measured with it."""
+    layout, params, x, h = _batch_of_networks(4)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+
+    def lowered(rule):
+        def run(lay, p, x, h):
+            return _batched_step(lay, p, x, h, rule=rule)
+
+        traced = jax.jit(run).trace(layout, params, x, h)
+        return traced.lower(lowering_platforms=("cuda",)).as_text(debug_info=False)
+
+    text = lowered(False)
+    assert text == lowered(True)
+    assert "stablehlo.case" not in text and "stablehlo.if" not in text
+
+
 def test_step_gradient_and_hessian_are_the_rules():
     """Differentiation of `kn.step` takes the rule's own path: the gradient and the Hessian
     of a batched loss in the parameters equal those through `kn._step` with the rule."""

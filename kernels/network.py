@@ -228,7 +228,6 @@ def step(
     Returns:
       ``(y [n_out], h [H])``: the outputs and every neuron's output at this step.
     """
-    activation(hidden), activation(output)  # an unknown name fails here, not in a branch
     if net.reads is None or jax.default_backend() != "cpu":
         return _step(net, x, h_prev, hidden, output)
     leaves, treedef = jax.tree.flatten((net, x, h_prev))
@@ -269,9 +268,7 @@ def _step(
     # zero h: batched over networks and examples that zero is a large constant, and XLA's
     # constant folding spent 21.6 s of a 25.1 s compile (200 servo structures, CPU) on the
     # finiteness test of ``_dot`` over it.
-    finite = None
-    if check:
-        finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(h_prev))
+    finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(h_prev)) if check else None
     if net.sweeps == 0:
         h = jnp.zeros_like(base)
     elif check:

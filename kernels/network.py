@@ -228,10 +228,17 @@ def step(
     Returns:
       ``(y [n_out], h [H])``: the outputs and every neuron's output at this step.
     """
-    if net.reads is None or jax.default_backend() != "cpu":
+    if net.reads is None:
         return _step(net, x, h_prev, hidden, output)
     leaves, treedef = jax.tree.flatten((net, x, h_prev))
-    return _finite_first(treedef, hidden, output)(*leaves)
+    return _finite_first(treedef, hidden, output, _rule_terms(net))(*leaves)
+
+
+def _rule_terms(net: Network) -> int:
+    """How many product terms one step of ``net`` runs on one example (the non-finite rule's
+    work is a few element-wise operations per term)."""
+    h, n_in = net.w_in.shape[-2:]
+    return h * n_in + net.sweeps * h * h + net.w_out.shape[-2] * h
 
 
 def _step(
@@ -242,13 +249,17 @@ def _step(
     output: str,
     *,
     check: bool = False,
+    compact: bool = False,
 ):
     """`step`'s ``(y, h)``; with ``check``, also whether every value that entered a product
     was finite (``(y, h, finite)``). Without it the program is exactly the one before the
-    check existed (GPU programs, and their float32 results, stay as they were measured)."""
+    check existed (GPU programs, and their float32 results, stay as they were measured).
+    ``compact`` writes every product as a dot (`_dot`): the same values up to rounding, a
+    fraction of the program to compile, slower to run on small networks."""
     act_h, act_o = activation(hidden), activation(output)
     read_in, read_rec, read_ff, read_out = net.reads or (None,) * 4
-    base = _dot(net.w_in, read_in, x) + net.bias + _dot(net.w_rec, read_rec, h_prev)
+    dot = functools.partial(_dot, compact=compact)
+    base = dot(net.w_in, read_in, x) + net.bias + dot(net.w_rec, read_rec, h_prev)
 
     def settle(a):
         o = jnp.where(net.is_root, act_o(a), act_h(a))
@@ -256,7 +267,7 @@ def _step(
         return jnp.where(net.neuron_mask, o, jnp.zeros_like(o))
 
     def sweep(_, h):
-        return settle(base + _dot(net.w_ff, read_ff, h))
+        return settle(base + dot(net.w_ff, read_ff, h))
 
     def checked(i, carry):
         h, finite = carry
@@ -275,73 +286,114 @@ def _step(
         h, finite = jax.lax.fori_loop(1, net.sweeps, checked, (settle(base), finite), unroll=True)
     else:
         h = jax.lax.fori_loop(1, net.sweeps, sweep, settle(base), unroll=True)
-    y = _dot(net.w_out, read_out, h)
+    y = dot(net.w_out, read_out, h)
     return (y, h) if finite is None else (y, h, finite & jnp.all(jnp.isfinite(h)))
 
 
-# On XLA:CPU the non-finite rule is most of a small network's work: per term of every
-# product a finiteness test, two selects and a second product (``_dot_unrolled``), which
-# XLA:CPU runs element by element. The XOR engine iteration (24 structures, 4 neurons, 4
-# sweeps; 2-core VM, in-process A/B of the compiled chunk) took 0.80 ms with the rule
-# inline, 0.56 ms with plain products alone and 0.59-0.64 ms with this branch. So on
-# a CPU a step runs plain products over the whole batch first, and runs the rule (over the
-# whole batch again) only when some value that entered a product was not finite: with
-# finite values both give the same sums, term by term in the same order. On a GPU the
-# branch's predicate would be read by the host at every step; there the rule stays inline.
+# The non-finite rule is most of a step's work wherever the step is not launch-bound: per
+# term of every product a finiteness test, two selects and a second product
+# (``_dot_unrolled``). On XLA:CPU, which runs it element by element, the XOR engine
+# iteration (24 structures, 4 neurons, 4 sweeps; 2-core VM, in-process A/B of the compiled
+# chunk) took 0.80 ms with the rule inline, 0.56 ms with plain products alone and 0.59-0.64
+# ms with this branch. So a step runs plain products over the whole batch first, and runs
+# the rule (over the whole batch again) only when some value that entered a product was not
+# finite: with finite values both give the same sums, term by term in the same order.
+#
+# On a GPU the branch's predicate is read by the host at every step, which a small batch
+# does not pay back: there the branch is taken from `_GPU_BRANCH_MIN` product terms per
+# step over the whole batch, and below it the rule stays inline (the same program as before
+# the branch existed). See `_GPU_BRANCH_MIN` for the measurements.
 @functools.cache
-def _finite_first(treedef, hidden: str, output: str):
+def _finite_first(treedef, hidden: str, output: str, terms: int):
     """``(y, h)`` of `step` from the leaves of ``(net, x, h_prev)``: plain products over the
-    whole batch, the non-finite rule only where some batch value needs it (`_batched`)."""
+    whole batch, the non-finite rule only where some batch value needs it (`_batched`).
+    ``terms``: `_rule_terms` of one example."""
 
-    def one(plain: bool, *leaves):
+    def one(form: str, *leaves):
         net, x, h_prev = jax.tree.unflatten(treedef, leaves)
-        if plain:
+        if form == "plain":
             return _step(net.replace(reads=None), x, h_prev, hidden, output, check=True)
-        return _step(net, x, h_prev, hidden, output)
+        # "rare" is the branch that runs when some value was not finite: written with dots
+        # (`_dot`'s compact form), it is compiled in a fraction of the unrolled rule's time
+        # (every engine program compiles it; it almost never runs).
+        return _step(net, x, h_prev, hidden, output, compact=form == "rare")
 
     @jax.custom_jvp
     def first(*leaves):
-        return _batched(one, ())(*leaves)
+        return _batched(one, (), terms)(*leaves)
 
     @first.defjvp
     def first_jvp(primals, tangents):
         # Differentiation takes the rule's own path (no branch, nothing custom inside).
-        return jax.jvp(functools.partial(one, False), primals, tangents)
+        return jax.jvp(functools.partial(one, "rule"), primals, tangents)
 
     return first
 
 
 @functools.cache
-def _batched(one: Callable, levels: tuple[tuple[bool, ...], ...]):
+def _batched(one: Callable, levels: tuple[tuple[bool, ...], ...], terms: int):
     """``one`` over a batch whose vmapped axes are ``levels`` (outermost first; per level,
     which arguments carry that axis), branching once for the whole batch. Each enclosing
     vmap adds its level in front (`jax.custom_batching.custom_vmap`), so the call outside
     all of them sees every axis; arguments that a level does not batch (a network's
     weights, shared by its examples) stay unbroadcast."""
 
-    def over_batch(plain):
-        f = functools.partial(one, plain)
+    def over_batch(form):
+        f = functools.partial(one, form)
         for level in reversed(levels):
             f = jax.vmap(f, in_axes=tuple(0 if b else None for b in level))
         return f
 
     @jax.custom_batching.custom_vmap
     def run(*leaves):
-        y, h, finite = over_batch(True)(*leaves)
+        on_cpu = jax.default_backend() == "cpu"
+        if not on_cpu:
+            h_out = jax.eval_shape(over_batch("rule"), *leaves)[1]
+            examples = h_out.size // max(h_out.shape[-1], 1)
+            if h_out.shape[-1] <= _UNROLL_MAX or examples * terms < _GPU_BRANCH_MIN:
+                return over_batch("rule")(*leaves)
+        y, h, finite = over_batch("plain")(*leaves)
 
-        def ruled(leaves):
-            return over_batch(False)(*leaves)
+        def rare(leaves):
+            return over_batch("rare")(*leaves)
 
-        # The passthrough branch first: XLA:CPU elides its copies only there
-        # (openxla/xla#46314; `eant2_jax.exploitation._cond_rare`). index 0 = False.
-        return jax.lax.cond(~jnp.all(finite), ruled, lambda _: (y, h), leaves)
+        def keep(_):
+            return y, h
+
+        # The passthrough branch first: XLA elides its copies only there (openxla/xla#46314;
+        # `eant2_jax.exploitation._cond_rare`). XLA:CPU keeps lax.cond's indexed form (the
+        # false branch first), XLA:GPU makes its predicated form (the true branch first).
+        if on_cpu:
+            return jax.lax.cond(~jnp.all(finite), rare, keep, leaves)
+        return jax.lax.cond(jnp.all(finite), keep, rare, leaves)
 
     @run.def_vmap
     def run_vmap(axis_size, in_batched, *leaves):
         del axis_size
-        return _batched(one, (tuple(in_batched), *levels))(*leaves), (True, True)
+        return _batched(one, (tuple(in_batched), *levels), terms)(*leaves), (True, True)
 
     return run
+
+
+# Off the CPU the step branches (`_batched`) only for networks of more than `_UNROLL_MAX`
+# neurons (their products over neurons are dots) and from this many product terms per step
+# over the batch (`_rule_terms` times the examples). An H100, 20 random servo structures,
+# 1023 starts, the covariance pruner, ms per engine iteration, the rule inline against this
+# branch (2026-11-24, scratch A/B; the chunk's float32 results were the same bits):
+#
+#   genes  bucket (P, H, sweeps)  terms per step  inline  branch
+#   40     (48, 6, 4)             6.8e7           0.72    0.76
+#   50     (64, 8, 6)             1.5e8           0.67    2.10
+#   56     (64, 12, 6)            3.2e8           1.27    1.06
+#   80     (96, 16, 8)            6.9e8           1.49    1.11
+#
+# With unrolled products (up to 12 neurons) whether XLA fuses the plain sweeps into one
+# another, recomputing them, is its heuristics' call: 8 neurons ran three times slower, 12
+# neurons faster, while the rule's finiteness tests keep each sweep apart; so unrolled
+# products keep the rule inline. A 16-neuron network gains
+# from the branch once the rule costs more than the host's read of its predicate (one per
+# step): ~0.37 ms of rule against ~0.02 ms of read at 6.9e8 terms; 2^26 keeps a margin.
+_GPU_BRANCH_MIN = 1 << 26
 
 
 # Products whose contraction is at most this long (inputs or neurons read) are written as an
@@ -357,20 +409,28 @@ def _batched(one: Callable, levels: tuple[tuple[bool, ...], ...]):
 _UNROLL_MAX = 12
 
 
-def _dot(w: jax.Array, reads: tuple[jax.Array, jax.Array] | None, v: jax.Array) -> jax.Array:
+def _dot(
+    w: jax.Array,
+    reads: tuple[jax.Array, jax.Array] | None,
+    v: jax.Array,
+    *,
+    compact: bool = False,
+) -> jax.Array:
     """``w @ v`` as the stack semantics compute it: a non-finite ``v[j]`` reaches exactly the
     rows that read it (a dense product would make ``0 * nan`` of every other row NaN). With
     a finite ``v`` it is the sum of ``w[:, j] * v[j]`` (in the order of ``j`` for short
-    contractions, `_UNROLL_MAX`; as XLA's dot orders it otherwise)."""
+    contractions, `_UNROLL_MAX`; as XLA's dot orders it otherwise). ``compact``: always a
+    dot, and the non-finite terms as one pass without a branch of their own."""
     k = v.shape[-1]
-    if 0 < k <= _UNROLL_MAX:
+    if 0 < k <= _UNROLL_MAX and not compact:
         return _dot_unrolled(w, reads, v)
     if reads is None:
         return jnp.dot(w, v, precision=_PRECISION)
     read, w_nf = reads
     finite = jnp.isfinite(v)
     y = jnp.dot(w, jnp.where(finite, v, jnp.zeros_like(v)), precision=_PRECISION)
-    return jnp.where(jnp.all(finite), y, y + _nonfinite_terms(read, w_nf, v))
+    terms = _nonfinite_terms_plain if compact else _nonfinite_terms
+    return jnp.where(jnp.all(finite), y, y + terms(read, w_nf, v))
 
 
 def _nonfinite_terms_plain(read: jax.Array, w_nf: jax.Array, v: jax.Array) -> jax.Array:

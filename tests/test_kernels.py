@@ -393,18 +393,30 @@ def test_long_product_batched_matches_numpy(monkeypatch, branch_min, nonfinite):
 
 
 # ------------------------------------------------- a CPU step: plain products, then the rule
-def _batch_of_networks(seed: int, scale: float = 1.0):
-    """Eight random networks of one bucket (6 neurons, 3 sweeps), random states, and inputs
-    ``[4 examples, N_IN]`` shared by every network, as a task batches them."""
+def _batch_of_networks(seed: int, scale: float = 1.0, neurons: int = 8):
+    """Eight random networks of one bucket (``neurons`` slots, 4 sweeps), random states, and
+    inputs ``[4 examples, N_IN]`` shared by every network, as a task batches them."""
     from bench.common import random_population
 
     genomes = random_population(seed, 8, 14, n_inputs=N_IN, n_outputs=2)
-    compiled = compile_genomes(genomes, N_IN, bucket=Bucket(neurons=8, genes=24, sweeps=4))
+    bucket = Bucket(neurons=neurons, genes=24, sweeps=4)
+    compiled = compile_genomes(genomes, N_IN, bucket=bucket)
     rng = np.random.default_rng(seed)
     params = jnp.asarray(compiled.weights * scale, jnp.float32)
     x = jnp.asarray(rng.normal(size=(4, N_IN)), jnp.float32)
-    h = jnp.asarray(rng.normal(size=(8, 4, 8)), jnp.float32)
+    h = jnp.asarray(rng.normal(size=(8, 4, neurons)), jnp.float32)
     return compiled.layout, params, x, h
+
+
+def _assert_same_values(got, want):
+    """The same NaN and +-inf entries, the finite ones equal to float32 rounding (the rule's
+    branch may sum in another order, `kn._dot`'s compact form)."""
+    for a, b in zip(got, want, strict=True):
+        a, b = np.asarray(a), np.asarray(b)
+        for kind in (np.isnan, np.isposinf, np.isneginf):
+            np.testing.assert_array_equal(kind(a), kind(b))
+        fin = np.isfinite(b)
+        np.testing.assert_allclose(a[fin], b[fin], rtol=1e-5, atol=1e-6)
 
 
 def _batched_step(layout, params, x, h, *, rule: bool, hidden="tanh", output="identity"):
@@ -434,8 +446,8 @@ def test_cpu_step_equals_the_rule_with_finite_and_non_finite_values(seed):
     rule inline, on fresh random networks, states and inputs: finite values agree to float32
     rounding (plain products may contract into fused multiply-adds); a NaN or inf input of
     one example, and an overflow to inf inside a network with finite inputs, take the rule:
-    the same bits. The plain products alone would differ there (checked), so a branch that
-    never took the rule fails this test."""
+    the same NaN and inf entries. The plain products alone would differ there (checked), so
+    a branch that never took the rule fails this test."""
     layout, params, x, h = _batch_of_networks(seed)
     fast = _batched_step(layout, params, x, h, rule=False)
     ruled = _batched_step(layout, params, x, h, rule=True)
@@ -444,12 +456,10 @@ def test_cpu_step_equals_the_rule_with_finite_and_non_finite_values(seed):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
 
     bad = x.at[seed % 4, seed % N_IN].set([np.nan, np.inf, -np.inf][seed])
-    for a, b in zip(
+    _assert_same_values(
         _batched_step(layout, params, bad, h, rule=False),
         _batched_step(layout, params, bad, h, rule=True),
-        strict=True,
-    ):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    )
 
     # Finite inputs, weights of 1e20 and identity neurons: sums overflow to inf mid-network.
     big, params_big, x_big, _ = _batch_of_networks(seed, scale=1e20)
@@ -457,8 +467,7 @@ def test_cpu_step_equals_the_rule_with_finite_and_non_finite_values(seed):
     args = (big, params_big, x_big, h, "identity", "identity")
     got = _batched_step(*args[:4], rule=False, hidden="identity", output="identity")
     want = _batched_step(*args[:4], rule=True, hidden="identity", output="identity")
-    for a, b in zip(got, want, strict=True):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    _assert_same_values(got, want)
 
     def plain(lay, p, x, h):
         net = kn.network(lay, p).replace(reads=None)
@@ -469,21 +478,31 @@ def test_cpu_step_equals_the_rule_with_finite_and_non_finite_values(seed):
     assert not np.array_equal(np.isnan(np.asarray(ys)), np.isnan(np.asarray(want[0])))
 
 
-def test_gpu_step_keeps_the_rule_inline(monkeypatch):
-    """Off the CPU `kn.step` is `kn._step` with the rule inline, no branch: lowered for CUDA
-    (tracing as a GPU backend would) the batched step is the same program text, and it
-    has no conditional. The GPU figures in docs/benchmarks.md were measured with it."""
-    layout, params, x, h = _batch_of_networks(4)
+@pytest.mark.parametrize("neurons", [8, 16])
+def test_gpu_step_branches_only_large_batches_of_dot_networks(monkeypatch, neurons):
+    """Off the CPU (traced as a GPU backend would) the step keeps the rule inline, with no
+    conditional, for networks of at most `kn._UNROLL_MAX` neurons and for batches below
+    `kn._GPU_BRANCH_MIN` product terms. Above both it branches once, passthrough first, and
+    its values (run here on the CPU, in the GPU's branch order) are the rule's: finite ones
+    to rounding, NaN and inf entries exactly, with a non-finite input and without."""
+    layout, params, x, h = _batch_of_networks(5, neurons=neurons)
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
 
-    def lowered(rule):
-        # Functions of their own: jit's trace cache would hand back the CPU's traces.
-        traced = _batched_step_fn.__wrapped__(rule, "tanh", "identity").trace(layout, params, x, h)
-        return traced.lower(lowering_platforms=("cuda",)).as_text(debug_info=False)
+    def fresh(rule):
+        # A function of its own: jit's trace cache would hand back the CPU's traces.
+        return _batched_step_fn.__wrapped__(rule, "tanh", "identity")
 
-    text = lowered(False)
-    assert text == lowered(True)
-    assert "stablehlo.case" not in text and "stablehlo.if" not in text
+    def conditionals(*args):
+        text = fresh(False).trace(*args).lower(lowering_platforms=("cuda",)).as_text()
+        return text.count("stablehlo.case") + text.count("stablehlo.if")
+
+    assert conditionals(layout, params, x, h) == 0  # 8 x 4 examples: a small batch
+    monkeypatch.setattr(kn, "_GPU_BRANCH_MIN", 0)
+    assert conditionals(layout, params, x, h) == (neurons > kn._UNROLL_MAX)
+    bad = x.at[1, 2].set(np.nan)
+    for inputs in (x, bad):
+        args = (layout, params, inputs, h)
+        _assert_same_values(fresh(False)(*args), fresh(True)(*args))
 
 
 def test_step_gradient_is_the_rules():

@@ -96,23 +96,37 @@ def _keys(folder) -> set[str]:
     return {p.name for p in folder.glob("*.pkl")}
 
 
+def _store_chunk(config: ExploitConfig) -> None:
+    """Store (trace, not compile) the engine's chunk for one XOR structure under ``config``."""
+    from eant2_jax import tuning
+    from eant2_jax.exploration import initial_genome
+
+    task = tasks.make("xor")
+    genome = initial_genome(np.random.default_rng(1), task.n_inputs, task.n_outputs)
+    prep = tuning.prepare([genome], task, key=jax.random.key(2), config=config, min_rows=4)
+    args = (*exploitation._placed(prep.state, prep.batch.layout, prep.tables, task, None),
+            jax.random.key(3), config)  # fmt: skip
+    assert programstore.program(exploitation._run_chunk, args, {"length": 5}, task=task)
+
+
 def test_what_shapes_the_program_keys_it(store, monkeypatch):
-    _run(generations=0)
-    base = _keys(store)
-    assert len(base) == 1
+    _store_chunk(CONFIG.exploit)
+    assert len(_keys(store)) == 1
+    _forget(monkeypatch)
+    _store_chunk(CONFIG.exploit)  # the same program: read, not stored again
+    assert len(_keys(store)) == 1
     # Another static setting of the engine: another program.
-    plain = dataclasses.replace(CONFIG, exploit=CONFIG.exploit.replace(pruner="none"))
-    _run(config=plain, generations=0)
+    _store_chunk(CONFIG.exploit.replace(pruner="none"))
     assert len(_keys(store)) == 2
     # Changed code of this package (or another JAX): another key, never the old program.
     monkeypatch.setattr(programstore, "_code_digest", lambda: b"other source")
     _forget(monkeypatch)
-    _run(generations=0)
+    _store_chunk(CONFIG.exploit)
     assert len(_keys(store)) == 3
     # JAX's configuration is part of the key.
     monkeypatch.setattr(programstore, "_config_digest", lambda: b"other config")
     _forget(monkeypatch)
-    _run(generations=0)
+    _store_chunk(CONFIG.exploit)
     assert len(_keys(store)) == 4
 
 
@@ -141,11 +155,15 @@ def test_the_code_digest_covers_every_module_of_the_package(monkeypatch, tmp_pat
 def test_a_bad_file_is_traced_again_and_replaced(store, monkeypatch):
     first = _run(generations=0)
     (path,) = store.glob("*.pkl")
-    for junk in (b"", b"not a pickle", __import__("pickle").dumps(("a", "b"))):
+    good = path.read_bytes()
+    junks = (b"", b"not a pickle", __import__("pickle").dumps(("a", "b")), good[: len(good) // 2])
+    for junk in junks:  # empty, not a pickle, a foreign pickle, a partial write
         path.write_bytes(junk)
-        _forget(monkeypatch)
-        assert _run(generations=0) == first
-        assert path.read_bytes() != junk
+        assert programstore._read(path) is None
+    # A whole run over the last of them (each run compiles its program afresh: one is enough).
+    _forget(monkeypatch)
+    assert _run(generations=0) == first
+    assert path.read_bytes() != junks[-1] and programstore._read(path) is not None
 
 
 def test_an_unwritable_store_still_runs(tmp_path, monkeypatch):

@@ -300,9 +300,10 @@ def _step(
 # finite: with finite values both give the same sums, term by term in the same order.
 #
 # On a GPU the branch's predicate is read by the host at every step, which a small batch
-# does not pay back: there the branch is taken from `_GPU_BRANCH_MIN` product terms per
-# step over the whole batch, and below it the rule stays inline (the same program as before
-# the branch existed). See `_GPU_BRANCH_MIN` for the measurements.
+# does not pay back: there the branch is taken only for networks of more than `_UNROLL_MAX`
+# neurons and from `_GPU_BRANCH_MIN` product terms per step over the whole batch; otherwise
+# the rule stays inline (the same program as before the branch existed). See
+# `_GPU_BRANCH_MIN` for the measurements.
 @functools.cache
 def _finite_first(treedef, hidden: str, output: str, terms: int):
     """``(y, h)`` of `step` from the leaves of ``(net, x, h_prev)``: plain products over the
@@ -316,8 +317,9 @@ def _finite_first(treedef, hidden: str, output: str, terms: int):
         # "rare" is the branch that runs when some value was not finite. On a CPU it is
         # written with dots (`_dot`'s compact form), compiled in a fraction of the unrolled
         # rule's time (every engine program compiles it; it almost never runs). On a GPU
-        # every new dot shape is autotuned: a 16-neuron servo chunk compiled in 22 s with
-        # the compact form against 7.4 s for the rule inline alone.
+        # every new dot shape is autotuned: the first call of a 16-neuron servo chunk took
+        # 20.3 s with the compact form against 10.1 s unrolled (H100, `python -m bench
+        # generation --parts scaling`).
         compact = form == "rare" and jax.default_backend() == "cpu"
         return _step(net, x, h_prev, hidden, output, compact=compact)
 
@@ -393,9 +395,9 @@ def _batched(one: Callable, levels: tuple[tuple[bool, ...], ...], terms: int):
 # With unrolled products (up to 12 neurons) whether XLA fuses the plain sweeps into one
 # another, recomputing them, is its heuristics' call: 8 neurons ran three times slower, 12
 # neurons faster, while the rule's finiteness tests keep each sweep apart; so unrolled
-# products keep the rule inline. A 16-neuron network gains
-# from the branch once the rule costs more than the host's read of its predicate (one per
-# step): ~0.37 ms of rule against ~0.02 ms of read at 6.9e8 terms; 2^26 keeps a margin.
+# products keep the rule inline. A 16-neuron network gains from the branch once the rule
+# costs more than the host's read of its predicate (one per step): ~0.37 ms of rule against
+# ~0.02 ms of read at 6.9e8 terms; 2^26 keeps a margin.
 _GPU_BRANCH_MIN = 1 << 26
 
 

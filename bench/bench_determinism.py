@@ -4,9 +4,10 @@ Two parts (``--parts``), each case in a fresh process with no persistent compila
 
 * ``iteration``: one batch of ``--structures`` random servo structures of about ``--genes``
   genes (the size of ``eant2 reproduce``'s lock-step batches: 10 runs x 20 structures) run
-  by the exploitation engine, without a pruner and with the covariance pruner; the median
-  milliseconds of one engine iteration (over ``--repeats`` compiled chunks of ``--chunk``
-  iterations) with XLA's default GPU programs and with ``--xla_gpu_deterministic_ops=true``
+  by the exploitation engine, without a pruner and with the covariance pruner (``--pruners``;
+  ``--quick`` times the first only); the median milliseconds of one engine iteration (over
+  ``--repeats`` compiled chunks of ``--chunk`` iterations) with XLA's default GPU programs
+  and with ``--xla_gpu_deterministic_ops=true``
   (the ``eant2`` command line's default), for this install and every ``--pythonpath`` one.
 * ``repeat``: ``eant2 run TASK --population P --generations G`` twice, each time in a fresh
   process with an empty cache (so XLA compiles and autotunes afresh), with the command

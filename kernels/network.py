@@ -34,6 +34,7 @@ module imports nothing from the rest of eant2_jax.
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable
 
 import jax
@@ -231,13 +232,16 @@ def step(
     if net.reads is None:
         return _step(net, x, h_prev, hidden, output)
     leaves, treedef = jax.tree.flatten((net, x, h_prev))
-    return _finite_first(treedef, hidden, output, _rule_terms(net))(*leaves)
+    return _finite_first(treedef, hidden, output, _gpu_terms(net))(*leaves)
 
 
-def _rule_terms(net: Network) -> int:
+def _gpu_terms(net: Network) -> int:
     """How many product terms one step of ``net`` runs on one example (the non-finite rule's
-    work is a few element-wise operations per term)."""
+    work is a few element-wise operations per term), or 0 where a GPU keeps the rule inline
+    whatever the batch: networks of at most `_UNROLL_MAX` neurons (`_GPU_BRANCH_MIN`)."""
     h, n_in = net.w_in.shape[-2:]
+    if h <= _UNROLL_MAX:
+        return 0
     return h * n_in + net.sweeps * h * h + net.w_out.shape[-2] * h
 
 
@@ -308,7 +312,7 @@ def _step(
 def _finite_first(treedef, hidden: str, output: str, terms: int):
     """``(y, h)`` of `step` from the leaves of ``(net, x, h_prev)``: plain products over the
     whole batch, the non-finite rule only where some batch value needs it (`_batched`).
-    ``terms``: `_rule_terms` of one example."""
+    ``terms``: `_gpu_terms` of one example."""
 
     def one(form: str, *leaves):
         net, x, h_prev = jax.tree.unflatten(treedef, leaves)
@@ -336,27 +340,25 @@ def _finite_first(treedef, hidden: str, output: str, terms: int):
 
 
 @functools.cache
-def _batched(one: Callable, levels: tuple[tuple[bool, ...], ...], terms: int):
+def _batched(one: Callable, levels: tuple[tuple[int, tuple[bool, ...]], ...], terms: int):
     """``one`` over a batch whose vmapped axes are ``levels`` (outermost first; per level,
-    which arguments carry that axis), branching once for the whole batch. Each enclosing
-    vmap adds its level in front (`jax.custom_batching.custom_vmap`), so the call outside
-    all of them sees every axis; arguments that a level does not batch (a network's
+    its size and which arguments carry that axis), branching once for the whole batch. Each
+    enclosing vmap adds its level in front (`jax.custom_batching.custom_vmap`), so the call
+    outside all of them sees every axis; arguments that a level does not batch (a network's
     weights, shared by its examples) stay unbroadcast."""
 
     def over_batch(form):
         f = functools.partial(one, form)
-        for level in reversed(levels):
-            f = jax.vmap(f, in_axes=tuple(0 if b else None for b in level))
+        for _, batched in reversed(levels):
+            f = jax.vmap(f, in_axes=tuple(0 if b else None for b in batched))
         return f
 
     @jax.custom_batching.custom_vmap
     def run(*leaves):
         on_cpu = jax.default_backend() == "cpu"
-        if not on_cpu:
-            h_out = jax.eval_shape(over_batch("rule"), *leaves)[1]
-            examples = h_out.size // max(h_out.shape[-1], 1)
-            if h_out.shape[-1] <= _UNROLL_MAX or examples * terms < _GPU_BRANCH_MIN:
-                return over_batch("rule")(*leaves)
+        examples = math.prod(size for size, _ in levels)
+        if not on_cpu and (terms == 0 or examples * terms < _GPU_BRANCH_MIN):
+            return over_batch("rule")(*leaves)
         y, h, finite = over_batch("plain")(*leaves)
 
         def rare(leaves):
@@ -374,15 +376,15 @@ def _batched(one: Callable, levels: tuple[tuple[bool, ...], ...], terms: int):
 
     @run.def_vmap
     def run_vmap(axis_size, in_batched, *leaves):
-        del axis_size
-        return _batched(one, (tuple(in_batched), *levels), terms)(*leaves), (True, True)
+        level = (axis_size, tuple(in_batched))
+        return _batched(one, (level, *levels), terms)(*leaves), (True, True)
 
     return run
 
 
 # Off the CPU the step branches (`_batched`) only for networks of more than `_UNROLL_MAX`
 # neurons (their products over neurons are dots) and from this many product terms per step
-# over the batch (`_rule_terms` times the examples). An H100, 20 random servo structures,
+# over the batch (`_gpu_terms` times the examples). An H100, 20 random servo structures,
 # 1023 starts, the covariance pruner, ms per engine iteration, the rule inline against this
 # branch (2026-11-24, scratch A/B; the chunk's float32 results were the same bits):
 #

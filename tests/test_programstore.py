@@ -71,18 +71,23 @@ def test_off_cold_and_warm_store_give_the_same_run(store, monkeypatch, task):
     assert sorted(store.glob("*.pkl")) == files  # read, not written again
 
 
-def test_the_engine_state_is_equal_to_the_last_bit(store):
-    """One chunk of the engine: the stored program's outputs equal jit's, every leaf."""
+def _chunk_args(task_name: str, config: ExploitConfig):
+    """``(task, args)``: the engine chunk's arguments for one minimal structure (4 rows)."""
     from eant2_jax import tuning
     from eant2_jax.exploration import initial_genome
 
-    task = tasks.make("servo")
+    task = tasks.make(task_name)
     genome = initial_genome(np.random.default_rng(1), task.n_inputs, task.n_outputs)
-    config = ExploitConfig(max_iters=30, pruner="covariance")
     init_key, run_key = jax.random.split(jax.random.key(2))
     prep = tuning.prepare([genome], task, key=init_key, config=config, min_rows=4)
     args = (*exploitation._placed(prep.state, prep.batch.layout, prep.tables, task, None),
             run_key, config)  # fmt: skip
+    return task, args
+
+
+def test_the_engine_state_is_equal_to_the_last_bit(store):
+    """One chunk of the engine: the stored program's outputs equal jit's, every leaf."""
+    task, args = _chunk_args("servo", ExploitConfig(max_iters=30, pruner="covariance"))
     stored = programstore.program(exploitation._run_chunk, args, {"length": 5}, task=task)
     assert stored is not None
     plain = exploitation._run_chunk(*args, length=5)
@@ -98,14 +103,7 @@ def _keys(folder) -> set[str]:
 
 def _store_chunk(config: ExploitConfig) -> None:
     """Store (trace, not compile) the engine's chunk for one XOR structure under ``config``."""
-    from eant2_jax import tuning
-    from eant2_jax.exploration import initial_genome
-
-    task = tasks.make("xor")
-    genome = initial_genome(np.random.default_rng(1), task.n_inputs, task.n_outputs)
-    prep = tuning.prepare([genome], task, key=jax.random.key(2), config=config, min_rows=4)
-    args = (*exploitation._placed(prep.state, prep.batch.layout, prep.tables, task, None),
-            jax.random.key(3), config)  # fmt: skip
+    task, args = _chunk_args("xor", config)
     assert programstore.program(exploitation._run_chunk, args, {"length": 5}, task=task)
 
 

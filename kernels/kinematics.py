@@ -8,10 +8,16 @@ pose of one site on a chain of hinges, the same arithmetic written straight alon
 is a handful of elementwise operations that XLA fuses whole.
 
 The formulas are MJX's, in MJX's order (``smooth.kinematics`` with ``math.rotate``,
-``math.quat_mul``, ``math.axis_angle_to_quat`` and ``support.local_to_global``), so the
-pose of a chain based at the world equals ``mjx.kinematics``'s to the last bit on a CPU
-(tests/test_kinematics.py checks it on random joint angles and random chains, and against
-MuJoCo C in float64). Quaternions are ``(w, x, y, z)``.
+``math.quat_mul``, ``math.axis_angle_to_quat`` and ``support.local_to_global``), on scalar
+components: a vector is a tuple of its 3 components, a quaternion ``(w, x, y, z)`` of 4, a
+matrix a tuple of rows. Batched with ``jax.vmap``, every component is one array of the batch
+and the whole walk is elementwise, with no stacking, slicing or small products in between,
+so XLA fuses it into a few kernels: the servo task's move (kinematics, projection and cost
+of 300 x 1023 arm poses) ran in 40 us against 187 us as arrays on an H100, and a servo
+engine iteration in half the time on a CPU (docs/benchmarks.md). MJX's two dot products
+per rotation are written as sums, so a pose equals ``mjx.kinematics``'s to float32 rounding
+(tests/test_kinematics.py: within 4e-7 on random joint angles and random chains, and against
+MuJoCo C in float64), not always to the last bit on a CPU, where XLA's dot rounds its own way.
 
 Written for ONE configuration ``q``; batch with ``jax.vmap``. This module imports nothing
 from the rest of eant2_jax (nor MuJoCo, but for `Chain.from_model`, which reads a
@@ -27,64 +33,72 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-__all__ = ["Chain", "ChainPose", "forward", "rotate", "quat_mul", "quat_to_mat"]
+__all__ = [
+    "Chain",
+    "ChainPose",
+    "components",
+    "forward",
+    "quat_mul",
+    "quat_to_mat",
+    "rotate",
+    "site_pose",
+]
 
 _HINGE = 3  # mujoco.mjtJoint.mjJNT_HINGE
+
+Vec = tuple  # of 3 components (scalars, or arrays of one batch)
+Quat = tuple  # of 4 components, (w, x, y, z)
+
+
+def components(a: Any) -> tuple:
+    """The components of a vector ``[k]`` (JAX or NumPy), a tuple of ``k`` scalars."""
+    return tuple(a[..., i] for i in range(a.shape[-1]))
+
+
+def _rotate(vec: Vec, quat: Quat) -> Vec:
+    """``vec`` rotated by the unit quaternion ``quat`` (MJX's formula, on components)."""
+    s, u = quat[0], quat[1:]
+    uv = u[0] * vec[0] + u[1] * vec[1] + u[2] * vec[2]
+    uu = u[0] * u[0] + u[1] * u[1] + u[2] * u[2]
+    cross = (u[1] * vec[2] - u[2] * vec[1], u[2] * vec[0] - u[0] * vec[2],
+             u[0] * vec[1] - u[1] * vec[0])  # fmt: skip
+    ss, s2 = s * s - uu, 2 * s
+    return tuple(2 * (uv * u[i]) + ss * vec[i] + s2 * cross[i] for i in range(3))
+
+
+def _quat_mul(u: Quat, v: Quat) -> Quat:
+    """The quaternion product ``u * v`` (MJX's formula, on components)."""
+    return (
+        u[0] * v[0] - u[1] * v[1] - u[2] * v[2] - u[3] * v[3],
+        u[0] * v[1] + u[1] * v[0] + u[2] * v[3] - u[3] * v[2],
+        u[0] * v[2] - u[1] * v[3] + u[2] * v[0] + u[3] * v[1],
+        u[0] * v[3] + u[1] * v[2] - u[2] * v[1] + u[3] * v[0],
+    )
+
+
+def _quat_to_mat(q: Quat) -> tuple[Vec, Vec, Vec]:
+    """The rows of the rotation matrix of the unit quaternion ``q`` (MJX's formula)."""
+    o = [[q[i] * q[j] for j in range(4)] for i in range(4)]  # MJX's outer product
+    return (
+        (o[0][0] + o[1][1] - o[2][2] - o[3][3], 2 * (o[1][2] - o[0][3]), 2 * (o[1][3] + o[0][2])),
+        (2 * (o[1][2] + o[0][3]), o[0][0] - o[1][1] + o[2][2] - o[3][3], 2 * (o[2][3] - o[0][1])),
+        (2 * (o[1][3] - o[0][2]), 2 * (o[2][3] + o[0][1]), o[0][0] - o[1][1] - o[2][2] + o[3][3]),
+    )
 
 
 def rotate(vec: jax.Array, quat: jax.Array) -> jax.Array:
     """``vec`` ``[3]`` rotated by the unit quaternion ``quat`` ``[4]`` (MJX's formula)."""
-    s, u = quat[0], quat[1:]
-    # jnp.dot, as MJX: written as an elementwise sum, a quarter of random poses differ from
-    # MJX in the last bit on a CPU (the dot's own rounding), which would change every run.
-    r = 2 * (_dot(u, vec) * u) + (s * s - _dot(u, u)) * vec
-    return r + 2 * s * jnp.cross(u, vec)
-
-
-def _dot(a: jax.Array, b: jax.Array) -> jax.Array:
-    return jnp.dot(a, b, precision="highest")
+    return jnp.stack(_rotate(components(vec), components(quat)))
 
 
 def quat_mul(u: jax.Array, v: jax.Array) -> jax.Array:
     """The quaternion product ``u * v`` (MJX's formula)."""
-    return jnp.stack(
-        [
-            u[0] * v[0] - u[1] * v[1] - u[2] * v[2] - u[3] * v[3],
-            u[0] * v[1] + u[1] * v[0] + u[2] * v[3] - u[3] * v[2],
-            u[0] * v[2] - u[1] * v[3] + u[2] * v[0] + u[3] * v[1],
-            u[0] * v[3] + u[1] * v[2] - u[2] * v[1] + u[3] * v[0],
-        ]
-    )
+    return jnp.stack(_quat_mul(components(u), components(v)))
 
 
 def quat_to_mat(q: jax.Array) -> jax.Array:
     """``[3, 3]`` rotation matrix of the unit quaternion ``q`` (MJX's formula)."""
-    q = jnp.outer(q, q)
-    return jnp.stack(
-        [
-            jnp.stack(
-                [
-                    q[0, 0] + q[1, 1] - q[2, 2] - q[3, 3],
-                    2 * (q[1, 2] - q[0, 3]),
-                    2 * (q[1, 3] + q[0, 2]),
-                ]
-            ),
-            jnp.stack(
-                [
-                    2 * (q[1, 2] + q[0, 3]),
-                    q[0, 0] - q[1, 1] + q[2, 2] - q[3, 3],
-                    2 * (q[2, 3] - q[0, 1]),
-                ]
-            ),
-            jnp.stack(
-                [
-                    2 * (q[1, 3] - q[0, 2]),
-                    2 * (q[2, 3] + q[0, 1]),
-                    q[0, 0] - q[1, 1] - q[2, 2] + q[3, 3],
-                ]
-            ),
-        ]
-    )
+    return jnp.stack([jnp.stack(row) for row in _quat_to_mat(components(q))])
 
 
 def axis_angle_to_quat(axis: jax.Array, angle: jax.Array) -> jax.Array:
@@ -204,22 +218,49 @@ class ChainPose(NamedTuple):
     site_xmat: jax.Array  # [3, 3] the site's orientation (mjx.Data.site_xmat[site])
 
 
+def _add(a: Vec, b: Vec, sign: int = 1) -> Vec:
+    return tuple(x + y if sign > 0 else x - y for x, y in zip(a, b, strict=True))
+
+
+def _walk(chain: Chain, q: jax.Array) -> tuple[list[Vec], list[Vec], Vec, tuple]:
+    """MJX's ``smooth.kinematics`` for each link in turn, then ``support.local_to_global``
+    for the site, on components: ``(anchors, axes, site_pos, site_mat rows)``."""
+    pos, quat = components(chain.base_pos), components(chain.base_quat)
+    anchors, axes = [], []
+    for i in range(chain.n_joints):
+        jnt_pos, axis = components(chain.jnt_pos[i]), components(chain.jnt_axis[i])
+        pos = _add(pos, _rotate(components(chain.body_pos[i]), quat))
+        quat = _quat_mul(quat, components(chain.body_quat[i]))
+        anchor = _add(_rotate(jnt_pos, quat), pos)
+        axes.append(_rotate(axis, quat))
+        anchors.append(anchor)
+        # axis_angle_to_quat's values, on components.
+        angle = q[i] - chain.qpos0[i]
+        s, c = jnp.sin(angle * 0.5), jnp.cos(angle * 0.5)
+        quat = _quat_mul(quat, (c, axis[0] * s, axis[1] * s, axis[2] * s))
+        pos = _add(anchor, _rotate(jnt_pos, quat), sign=-1)  # off-centre rotation
+    site_pos = _add(pos, _rotate(components(chain.site_pos), quat))
+    return anchors, axes, site_pos, _quat_to_mat(_quat_mul(quat, components(chain.site_quat)))
+
+
 def forward(chain: Chain, q: jax.Array) -> ChainPose:
     """The chain's joint anchors and axes and its site's pose at joint angles ``q`` ``[L]``.
 
     MJX's ``smooth.kinematics`` for each link in turn, then ``support.local_to_global`` for
     the site. Every product is elementwise (no matrix unit, so no TF32 on GPUs).
     """
-    pos, quat = chain.base_pos, chain.base_quat
-    anchors, axes = [], []
-    for i in range(chain.n_joints):
-        pos = pos + rotate(chain.body_pos[i], quat)
-        quat = quat_mul(quat, chain.body_quat[i])
-        anchor = rotate(chain.jnt_pos[i], quat) + pos
-        axes.append(rotate(chain.jnt_axis[i], quat))
-        anchors.append(anchor)
-        quat = quat_mul(quat, axis_angle_to_quat(chain.jnt_axis[i], q[i] - chain.qpos0[i]))
-        pos = anchor - rotate(chain.jnt_pos[i], quat)  # off-centre rotation
-    site_pos = pos + rotate(chain.site_pos, quat)
-    site_mat = quat_to_mat(quat_mul(quat, chain.site_quat))
-    return ChainPose(jnp.stack(anchors), jnp.stack(axes), site_pos, site_mat)
+    anchors, axes, pos, mat = _walk(chain, q)
+    return ChainPose(
+        jnp.stack([jnp.stack(a) for a in anchors]),
+        jnp.stack([jnp.stack(a) for a in axes]),
+        jnp.stack(pos),
+        jnp.stack([jnp.stack(row) for row in mat]),
+    )
+
+
+def site_pose(chain: Chain, q: jax.Array) -> tuple[Vec, tuple[Vec, Vec, Vec]]:
+    """`forward`'s site pose on components: ``(site_pos, rows of site_mat)``, tuples of
+    scalars (arrays of one batch under ``jax.vmap``), for a caller that goes on computing on
+    components, so that XLA fuses the walk with what follows (the module docstring)."""
+    _, _, pos, mat = _walk(chain, q)
+    return pos, mat

@@ -111,10 +111,10 @@ from .servo_scene import (  # noqa: F401
     _features_host,
     _mjx_model,
     _mjx_numerics,
-    _outside,
     _start_poses,
     _stripped,
     project,
+    project_components,
     start_poses,
     stripped_model,
 )
@@ -187,8 +187,13 @@ class Servo:
     # ------------------------------------------------------------------ one arm, one pose
     def features(self, q: jax.Array) -> jax.Array:
         """``[5, 2]`` normalised marker image coordinates at joint angles ``q`` ``[3]``."""
-        pose = kin.forward(self.chain, q)
-        return project(pose.site_xpos, pose.site_xmat, self.markers)
+        return jnp.stack([jnp.stack(uv) for uv in self._image(q)])
+
+    def _image(self, q: jax.Array) -> list[tuple]:
+        """`features` on components, ``[(u_k, v_k)]``: batched, the kinematics, the projection
+        and the move's cost stay elementwise and fuse (`eant2_jax.kernels.kinematics`)."""
+        pos, rows = kin.site_pose(self.chain, q)
+        return project_components(pos, rows, self.markers)
 
     def measure(self, q: jax.Array) -> jax.Array:
         """``[10]`` network inputs at ``q``: image coordinates minus the goal image."""
@@ -196,11 +201,20 @@ class Servo:
 
     def move_cost(self, s: jax.Array, at_limit: jax.Array) -> jax.Array:
         """Cost of one move from the image ``s`` ``[5, 2]`` after it and ``bool[3]`` limits."""
-        dist = jnp.sqrt(jnp.sum(jnp.square(s - self.goal), axis=-1))
+        return self._move_cost([kin.components(uv) for uv in s], kin.components(at_limit))
+
+    def _move_cost(self, image: list[tuple], at_limit: tuple) -> jax.Array:
+        """`move_cost` on components: the image as `_image` gives it, the limits' 3 flags."""
+        dist, outside = [], []
+        for k, (u, v) in enumerate(image):
+            du, dv = u - self.goal[k, 0], v - self.goal[k, 1]
+            dist.append(jnp.sqrt(du * du + dv * dv))
+            outside.append((abs(u) >= HALF_EXTENT[0]) | (abs(v) >= HALF_EXTENT[1]))
+        dtype = dist[0].dtype
         return (
-            jnp.mean(dist)
-            + OUTSIDE_PENALTY * jnp.sum(_outside(s), dtype=s.dtype)
-            + LIMIT_PENALTY * jnp.sum(at_limit, dtype=s.dtype)
+            sum(dist[1:], dist[0]) / len(dist)
+            + OUTSIDE_PENALTY * sum(o.astype(dtype) for o in outside)
+            + LIMIT_PENALTY * sum(a.astype(dtype) for a in at_limit)
         )
 
     def simulate(self, q: jax.Array, qd: jax.Array, target: jax.Array):
@@ -234,8 +248,9 @@ class Servo:
             q_new, qd_new = target, qd
         else:
             q_new, qd_new = self.simulate(q, qd, target)
-        s = self.features(q_new)
-        return q_new, qd_new, (s - self.goal).reshape(-1), self.move_cost(s, at_limit)
+        image = self._image(q_new)
+        x = jnp.stack([uv[i] - self.goal[k, i] for k, uv in enumerate(image) for i in (0, 1)])
+        return q_new, qd_new, x, self._move_cost(image, kin.components(at_limit))
 
     def episode(self, policy: Callable, state0: Any, q0: jax.Array, x0: jax.Array) -> jax.Array:
         """Mean move cost of one controller from one start pose (one arm, no batch).

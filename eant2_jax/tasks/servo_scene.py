@@ -71,13 +71,26 @@ def project(cam_pos, cam_mat, points):
       ``v = 240 + 500 Y / Z`` in the optical frame (X right, Y down, Z forward).
     """
     xp = np if isinstance(points, np.ndarray) else jnp
-    rel = points - cam_pos[None, :]
-    # Camera-frame coordinates: rel @ cam_mat, written as a sum of products so that no
-    # matrix unit (TF32 on GPUs) is involved.
-    pc = (rel[:, :, None] * cam_mat[None, :, :]).sum(axis=1)
-    x, y, z = pc[:, 0], -pc[:, 1], -pc[:, 2]
+    rows = tuple(kin.components(r) for r in cam_mat)
+    image = project_components(kin.components(cam_pos), rows, points)
+    return xp.stack([xp.stack(uv) for uv in image])
+
+
+def project_components(cam_pos, cam_rows, points) -> list[tuple]:
+    """`project` on components: ``[(u_k, v_k)]`` of the ``K`` points, from the optical centre's
+    3 components and the camera frame's rows (`eant2_jax.kernels.kinematics.site_pose`), so
+    that batched under ``jax.vmap`` the projection fuses with the kinematics before it."""
     scale = FOCAL_PX / NORM_PX
-    return xp.stack([scale * x / z, scale * y / z], axis=-1)
+    image = []
+    for k in range(points.shape[0]):
+        rel = [points[k, i] - cam_pos[i] for i in range(3)]
+        # Camera-frame coordinates rel @ cam_mat, as sums of products: no matrix unit (TF32
+        # on GPUs) is involved.
+        pc = [rel[0] * cam_rows[0][j] + rel[1] * cam_rows[1][j] + rel[2] * cam_rows[2][j]
+              for j in range(3)]  # fmt: skip
+        x, y, z = pc[0], -pc[1], -pc[2]
+        image.append((scale * x / z, scale * y / z))
+    return image
 
 
 def _outside(s):

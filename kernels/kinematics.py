@@ -16,8 +16,9 @@ so XLA fuses it into a few kernels: the servo task's move (kinematics, projectio
 of 300 x 1023 arm poses) ran in 40 us against 187 us as arrays on an H100, and a servo
 engine iteration in half the time on a CPU (docs/benchmarks.md). MJX's two dot products
 per rotation are written as sums, so a pose equals ``mjx.kinematics``'s to float32 rounding
-(tests/test_kinematics.py: within 4e-7 on random joint angles and random chains, and against
-MuJoCo C in float64), not always to the last bit on a CPU, where XLA's dot rounds its own way.
+(tests/test_kinematics.py: within 6e-7 + 2e-6 relative on random joint angles and random
+chains, and against MuJoCo C in float64), not always to the last bit on a CPU, where XLA's
+dot rounds its own way.
 
 Written for ONE configuration ``q``; batch with ``jax.vmap``. This module imports nothing
 from the rest of eant2_jax (nor MuJoCo, but for `Chain.from_model`, which reads a
@@ -101,14 +102,19 @@ def quat_to_mat(q: jax.Array) -> jax.Array:
     return jnp.stack([jnp.stack(row) for row in _quat_to_mat(components(q))])
 
 
+def _axis_angle_to_quat(axis: Vec, angle: jax.Array) -> Quat:
+    """The quaternion of a rotation by ``angle`` about the unit ``axis`` (MJX's values)."""
+    s, c = jnp.sin(angle * 0.5), jnp.cos(angle * 0.5)
+    return (c, axis[0] * s, axis[1] * s, axis[2] * s)
+
+
 def axis_angle_to_quat(axis: jax.Array, angle: jax.Array) -> jax.Array:
     """The quaternion of a rotation by ``angle`` about the unit ``axis`` ``[3]``.
 
-    MJX's values, built by concatenation: MJX's ``jnp.insert`` is a scatter, which XLA's
+    MJX's values, built by stacking: MJX's ``jnp.insert`` is a scatter, which XLA's
     deterministic GPU mode turns into a sort (docs/benchmarks.md, "Reproducibility on GPU").
     """
-    s, c = jnp.sin(angle * 0.5), jnp.cos(angle * 0.5)
-    return jnp.concatenate([jnp.expand_dims(c, 0), axis * s])
+    return jnp.stack(_axis_angle_to_quat(components(axis), angle))
 
 
 @struct.dataclass
@@ -218,8 +224,12 @@ class ChainPose(NamedTuple):
     site_xmat: jax.Array  # [3, 3] the site's orientation (mjx.Data.site_xmat[site])
 
 
-def _add(a: Vec, b: Vec, sign: int = 1) -> Vec:
-    return tuple(x + y if sign > 0 else x - y for x, y in zip(a, b, strict=True))
+def _add(a: Vec, b: Vec) -> Vec:
+    return tuple(x + y for x, y in zip(a, b, strict=True))
+
+
+def _sub(a: Vec, b: Vec) -> Vec:
+    return tuple(x - y for x, y in zip(a, b, strict=True))
 
 
 def _walk(chain: Chain, q: jax.Array) -> tuple[list[Vec], list[Vec], Vec, tuple]:
@@ -234,11 +244,8 @@ def _walk(chain: Chain, q: jax.Array) -> tuple[list[Vec], list[Vec], Vec, tuple]
         anchor = _add(_rotate(jnt_pos, quat), pos)
         axes.append(_rotate(axis, quat))
         anchors.append(anchor)
-        # axis_angle_to_quat's values, on components.
-        angle = q[i] - chain.qpos0[i]
-        s, c = jnp.sin(angle * 0.5), jnp.cos(angle * 0.5)
-        quat = _quat_mul(quat, (c, axis[0] * s, axis[1] * s, axis[2] * s))
-        pos = _add(anchor, _rotate(jnt_pos, quat), sign=-1)  # off-centre rotation
+        quat = _quat_mul(quat, _axis_angle_to_quat(axis, q[i] - chain.qpos0[i]))
+        pos = _sub(anchor, _rotate(jnt_pos, quat))  # off-centre rotation
     site_pos = _add(pos, _rotate(components(chain.site_pos), quat))
     return anchors, axes, site_pos, _quat_to_mat(_quat_mul(quat, components(chain.site_quat)))
 

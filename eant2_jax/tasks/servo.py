@@ -113,8 +113,10 @@ from .servo_scene import (  # noqa: F401
     _mjx_numerics,
     _start_poses,
     _stripped,
+    outside_image,
     project,
     project_components,
+    stack_image,
     start_poses,
     stripped_model,
 )
@@ -187,7 +189,7 @@ class Servo:
     # ------------------------------------------------------------------ one arm, one pose
     def features(self, q: jax.Array) -> jax.Array:
         """``[5, 2]`` normalised marker image coordinates at joint angles ``q`` ``[3]``."""
-        return jnp.stack([jnp.stack(uv) for uv in self._image(q)])
+        return stack_image(self._image(q))
 
     def _image(self, q: jax.Array) -> list[tuple]:
         """`features` on components, ``[(u_k, v_k)]``: batched, the kinematics, the projection
@@ -209,7 +211,7 @@ class Servo:
         for k, (u, v) in enumerate(image):
             du, dv = u - self.goal[k, 0], v - self.goal[k, 1]
             dist.append(jnp.sqrt(du * du + dv * dv))
-            outside.append((abs(u) >= HALF_EXTENT[0]) | (abs(v) >= HALF_EXTENT[1]))
+            outside.append(outside_image(u, v))
         dtype = dist[0].dtype
         return (
             sum(dist[1:], dist[0]) / len(dist)
@@ -249,7 +251,7 @@ class Servo:
         else:
             q_new, qd_new = self.simulate(q, qd, target)
         image = self._image(q_new)
-        x = jnp.stack([uv[i] - self.goal[k, i] for k, uv in enumerate(image) for i in (0, 1)])
+        x = (stack_image(image) - self.goal).reshape(-1)
         return q_new, qd_new, x, self._move_cost(image, kin.components(at_limit))
 
     def episode(self, policy: Callable, state0: Any, q0: jax.Array, x0: jax.Array) -> jax.Array:

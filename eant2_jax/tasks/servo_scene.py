@@ -70,9 +70,13 @@ def project(cam_pos, cam_mat, points):
       ``[K, 2]``: ``((u - 320) / 320, (v - 240) / 320)`` with ``u = 320 + 500 X / Z`` and
       ``v = 240 + 500 Y / Z`` in the optical frame (X right, Y down, Z forward).
     """
-    xp = np if isinstance(points, np.ndarray) else jnp
     rows = tuple(kin.components(r) for r in cam_mat)
     image = project_components(kin.components(cam_pos), rows, points)
+    return stack_image(image, np if isinstance(points, np.ndarray) else jnp)
+
+
+def stack_image(image: list[tuple], xp=jnp):
+    """``[K, 2]`` from `project_components`'s ``[(u_k, v_k)]`` (``xp``: NumPy or JAX)."""
     return xp.stack([xp.stack(uv) for uv in image])
 
 
@@ -95,7 +99,12 @@ def project_components(cam_pos, cam_rows, points) -> list[tuple]:
 
 def _outside(s):
     """``bool[K]`` markers outside the image, from ``[K, 2]`` normalised coordinates."""
-    return (abs(s[:, 0]) >= HALF_EXTENT[0]) | (abs(s[:, 1]) >= HALF_EXTENT[1])
+    return outside_image(s[:, 0], s[:, 1])
+
+
+def outside_image(u, v):
+    """Whether a marker at normalised coordinates ``(u, v)`` lies outside the image."""
+    return (abs(u) >= HALF_EXTENT[0]) | (abs(v) >= HALF_EXTENT[1])
 
 
 # ``mjx._src.math.axis_angle_to_quat`` without a scatter: the same values, bit for bit.

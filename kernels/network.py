@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from . import activations
+from . import activations, netfused
 
 __all__ = [
     "Layout",
@@ -327,9 +327,12 @@ def _finite_first(treedef, hidden: str, output: str, terms: int):
         compact = form == "rare" and jax.default_backend() == "cpu"
         return _step(net, x, h_prev, hidden, output, compact=compact)
 
+    def fused(levels, rule, *leaves):
+        return _fused_batch(treedef, levels, leaves, rule, hidden, output)
+
     @jax.custom_jvp
     def first(*leaves):
-        return _batched(one, (), terms)(*leaves)
+        return _batched(one, (), terms, fused)(*leaves)
 
     @first.defjvp
     def first_jvp(primals, tangents):
@@ -340,12 +343,19 @@ def _finite_first(treedef, hidden: str, output: str, terms: int):
 
 
 @functools.cache
-def _batched(one: Callable, levels: tuple[tuple[int, tuple[bool, ...]], ...], terms: int):
+def _batched(
+    one: Callable,
+    levels: tuple[tuple[int, tuple[bool, ...]], ...],
+    terms: int,
+    fused: Callable | None = None,
+):
     """``one`` over a batch whose vmapped axes are ``levels`` (outermost first; per level,
     its size and which arguments carry that axis), branching once for the whole batch. Each
     enclosing vmap adds its level in front (`jax.custom_batching.custom_vmap`), so the call
     outside all of them sees every axis; arguments that a level does not batch (a network's
-    weights, shared by its examples) stay unbroadcast."""
+    weights, shared by its examples) stay unbroadcast. ``fused(levels, rule, *leaves)``:
+    where a GPU keeps the rule inline, the whole batch as one kernel (`_fused_batch`), or
+    None where it does not apply."""
 
     def over_batch(form):
         f = functools.partial(one, form)
@@ -358,7 +368,8 @@ def _batched(one: Callable, levels: tuple[tuple[int, tuple[bool, ...]], ...], te
         on_cpu = jax.default_backend() == "cpu"
         examples = math.prod(size for size, _ in levels)
         if not on_cpu and (terms == 0 or examples * terms < _GPU_BRANCH_MIN):
-            return over_batch("rule")(*leaves)
+            out = None if fused is None else fused(levels, over_batch("rule"), *leaves)
+            return over_batch("rule")(*leaves) if out is None else out
         y, h, finite = over_batch("plain")(*leaves)
 
         def rare(leaves):
@@ -377,9 +388,77 @@ def _batched(one: Callable, levels: tuple[tuple[int, tuple[bool, ...]], ...], te
     @run.def_vmap
     def run_vmap(axis_size, in_batched, *leaves):
         level = (axis_size, tuple(in_batched))
-        return _batched(one, (level, *levels), terms)(*leaves), (True, True)
+        return _batched(one, (level, *levels), terms, fused)(*leaves), (True, True)
 
     return run
+
+
+def _fused_batch(treedef, levels, leaves, rule: Callable, hidden: str, output: str):
+    """`step`'s ``(y, h)`` over the whole vmapped batch as one CUDA kernel
+    (`netfused.step_batch`), from the leaves of ``(net, x, h_prev)`` whose vmapped axes are
+    ``levels`` (`_batched`); ``rule(*leaves)`` (the rule inline, as XLA fusions) where the
+    program is lowered for another platform; None where that kernel does not apply.
+
+    It applies where the levels that batch the network come first (the structures, their
+    candidates) and the others batch only its examples (a task's starts, episodes), to
+    float32 networks of at most `_UNROLL_MAX` neurons with `netfused.ACTIVATIONS`."""
+    if not _FUSED or not {hidden, output} <= netfused.ACTIVATIONS:
+        return None
+    net, x, h_prev = jax.tree.unflatten(treedef, leaves)
+    if net.bias.shape[-1] > _UNROLL_MAX or x.ndim < 1 or h_prev.ndim < 1:
+        return None
+    if any(a.dtype != jnp.float32 for a in (net.w_in, x, h_prev)):
+        return None
+    k = len(leaves) - 2  # the network's leaves, then x and h_prev
+    on_net = [any(batched[:k]) for _, batched in levels]
+    outer = next((i for i, b in enumerate(on_net) if not b), len(levels))
+    if any(on_net[outer:]):
+        return None
+    sizes = [size for size, _ in levels]
+    n_nets, n_examples = math.prod(sizes[:outer]), math.prod(sizes[outer:])
+    if n_nets * n_examples == 0:
+        return None
+
+    def spread(a, i, span):
+        # Leaf i with one axis for each level in `span` (size 1 where it is not batched).
+        for at, level in enumerate(span):
+            if not levels[level][1][i]:
+                a = jnp.expand_dims(a, at)
+        return a
+
+    def per_net(a, i):
+        # [n_nets, *one network's shape]
+        own = a.shape[sum(batched[i] for _, batched in levels) :]
+        return jnp.broadcast_to(spread(a, i, range(outer)), (*sizes[:outer], *own)).reshape(
+            n_nets, *own
+        )
+
+    def per_example(a, i):
+        # [n_nets or 1, n_examples, features]
+        shared = not any(levels[level][1][i] for level in range(outer))
+        span = range(outer, len(levels)) if shared else range(len(levels))
+        a = spread(a, i, span)
+        shape = [sizes[level] for level in span]
+        a = jnp.broadcast_to(a, (*shape, a.shape[-1]))
+        return a.reshape(1 if shared else n_nets, n_examples, a.shape[-1])
+
+    def kernel(*leaves):
+        nets = [per_net(a, i) for i, a in enumerate(leaves[:k])]
+        net = jax.tree.unflatten(treedef, [*nets, *leaves[k:]])[0]
+        y, h = netfused.step_batch(
+            net.w_in, net.bias, net.w_ff, net.w_rec, net.w_out, net.reads, net.is_root,
+            net.neuron_mask, per_example(leaves[k], k), per_example(leaves[k + 1], k + 1),
+            sweeps=net.sweeps, hidden=hidden, output=output,
+        )  # fmt: skip
+        return y.reshape(*sizes, y.shape[-1]), h.reshape(*sizes, h.shape[-1])
+
+    # Chosen when the program is lowered: a CPU program of a GPU machine (or a program
+    # exported for several platforms) keeps the rule.
+    return jax.lax.platform_dependent(*leaves, cuda=kernel, default=rule)
+
+
+# On a GPU the rule's inline path runs as one kernel (`netfused`) where it applies.
+_FUSED = True
 
 
 # Off the CPU the step branches (`_batched`) only for networks of more than `_UNROLL_MAX`

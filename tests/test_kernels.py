@@ -478,31 +478,169 @@ def test_cpu_step_equals_the_rule_with_finite_and_non_finite_values(seed):
     assert not np.array_equal(np.isnan(np.asarray(ys)), np.isnan(np.asarray(want[0])))
 
 
+def _cuda_text(args, hidden="tanh", output="identity") -> str:
+    """The CUDA lowering of `_batched_step` (traced as a GPU backend would, on any machine;
+    the caller sets ``jax.default_backend``)."""
+    # A function of its own: jit's trace cache would hand back the CPU's traces.
+    fn = _batched_step_fn.__wrapped__(False, hidden, output)
+    return fn.trace(*args).lower(lowering_platforms=("cuda",)).as_text()
+
+
+def _conditionals(text: str) -> int:
+    return text.count("stablehlo.case") + text.count("stablehlo.if")
+
+
+_TRITON = "xla.gpu.triton"
+
+
 @pytest.mark.parametrize("neurons", [8, 16])
 def test_gpu_step_branches_only_large_batches_of_dot_networks(monkeypatch, neurons):
-    """Off the CPU (traced as a GPU backend would) the step keeps the rule inline, with no
-    conditional, for networks of at most `kn._UNROLL_MAX` neurons and for batches below
-    `kn._GPU_BRANCH_MIN` product terms. Above both it branches once, passthrough first, and
-    its values (run here on the CPU, in the GPU's branch order) are the rule's: finite ones
-    to rounding, NaN and inf entries exactly, with a non-finite input and without."""
+    """Off the CPU (traced as a GPU backend would) a network of at most `kn._UNROLL_MAX`
+    neurons runs as one fused kernel (`netfused`), whatever the batch; without that kernel
+    (``kn._FUSED`` off) the rule stays inline with no conditional. Larger networks keep the
+    rule inline below `kn._GPU_BRANCH_MIN` product terms; above it they branch once,
+    passthrough first, and the values (run here on the CPU, in the GPU's branch order) are
+    the rule's: finite ones to rounding, NaN and inf entries exactly, with a non-finite
+    input and without."""
     layout, params, x, h = _batch_of_networks(5, neurons=neurons)
+    args = (layout, params, x, h)
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
 
     def fresh(rule):
-        # A function of its own: jit's trace cache would hand back the CPU's traces.
         return _batched_step_fn.__wrapped__(rule, "tanh", "identity")
 
-    def conditionals(*args):
-        text = fresh(False).trace(*args).lower(lowering_platforms=("cuda",)).as_text()
-        return text.count("stablehlo.case") + text.count("stablehlo.if")
-
-    assert conditionals(layout, params, x, h) == 0  # 8 x 4 examples: a small batch
+    small = neurons <= kn._UNROLL_MAX
+    assert _cuda_text(args).count(_TRITON) == small
+    monkeypatch.setattr(kn, "_FUSED", False)
+    assert _conditionals(_cuda_text(args)) == 0  # 8 x 4 examples: a small batch
     monkeypatch.setattr(kn, "_GPU_BRANCH_MIN", 0)
-    assert conditionals(layout, params, x, h) == (neurons > kn._UNROLL_MAX)
+    assert _conditionals(_cuda_text(args)) == (not small)
     bad = x.at[1, 2].set(np.nan)
     for inputs in (x, bad):
         args = (layout, params, inputs, h)
         _assert_same_values(fresh(False)(*args), fresh(True)(*args))
+
+
+# ----------------------------------------------- a GPU step: the batch as one fused kernel
+def _fused_args(seed: int, neurons: int, *, scale: float = 1.0, shared: bool = True):
+    """`netfused.step_batch`'s network arguments of `_batch_of_networks`'s eight networks,
+    with their inputs ``[1 or 8, 4, N_IN]`` and states ``[8, 4, neurons]``."""
+    from eant2_jax.kernels import netfused  # noqa: F401 (the module under test)
+
+    layout, params, x, h = _batch_of_networks(seed, scale=scale, neurons=neurons)
+    if scale != 1.0:
+        x = x * scale
+    nets = jax.vmap(kn.network)(layout, params)
+    xs = x[None] if shared else jnp.broadcast_to(x, (8, *x.shape)) + jnp.arange(8.0)[:, None, None]
+    return (layout, params, x if shared else xs, h), nets, xs
+
+
+@functools.partial(jax.jit, static_argnames=("hidden", "output", "block"))
+def _fused(nets, xs, h, hidden="tanh", output="identity", block=None):
+    """`netfused.step_batch` in Pallas' interpreter (jitted: interpreting is slow to trace)."""
+    from eant2_jax.kernels import netfused
+
+    return netfused.step_batch(
+        nets.w_in, nets.bias, nets.w_ff, nets.w_rec, nets.w_out, nets.reads, nets.is_root,
+        nets.neuron_mask, xs, h, sweeps=nets.sweeps, hidden=hidden, output=output,
+        block=block, interpret=True,
+    )  # fmt: skip
+
+
+@functools.partial(jax.jit, static_argnames=("hidden", "output", "shared"))
+def _ruled(layout, params, x, h, hidden="tanh", output="identity", shared=True):
+    """`kn._step` with the rule inline, vmapped over networks and their examples."""
+
+    def one(lay, p, xs, hs):
+        net = kn.network(lay, p)
+        return jax.vmap(lambda a, b: kn._step(net, a, b, hidden, output))(xs, hs)
+
+    return jax.vmap(one, in_axes=(0, 0, None if shared else 0, 0))(layout, params, x, h)
+
+
+@pytest.mark.parametrize(("neurons", "shared"), [(6, False), (7, True), (kn._UNROLL_MAX, True)])
+def test_fused_step_equals_the_rule(neurons, shared):
+    """`netfused.step_batch` (run in Pallas' interpreter) against `kn._step` with the
+    non-finite rule inline, on fresh random networks, states and inputs: finite values to
+    float32 rounding (its sums may be ordered otherwise); a NaN or +-inf input of one
+    example takes the kernel's rule: the same NaN and inf entries. Inputs shared by every
+    network and inputs of each network's own; blocks smaller than the examples."""
+    seed = neurons + 10 * shared
+    (layout, params, x, h), nets, xs = _fused_args(seed, neurons, shared=shared)
+    want = _ruled(layout, params, x, h, shared=shared)
+    for block in (None, 2):
+        got = _fused(nets, xs, h, block=block)
+        for a, b in zip(got, want, strict=True):
+            assert np.all(np.isfinite(np.asarray(a)))
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+    for value in (np.nan, np.inf, -np.inf):
+        bad_x = x.at[..., seed % 4, seed % N_IN].set(value)
+        bad_xs = xs.at[..., seed % 4, seed % N_IN].set(value)
+        _assert_same_values(
+            _fused(nets, bad_xs, h), _ruled(layout, params, bad_x, h, shared=shared)
+        )
+    bad_h = h.at[1, 2, neurons - 1].set(np.nan)
+    _assert_same_values(_fused(nets, xs, bad_h), _ruled(layout, params, x, bad_h, shared=shared))
+
+
+def test_fused_step_takes_the_rule_when_a_value_inside_overflows():
+    """Finite inputs, weights of 1e20 and identity neurons: sums overflow to inf inside
+    the networks, where the kernel's plain products alone would give NaN (checked); the
+    kernel finds it from the final states and takes the rule: the same NaN and inf
+    entries as `kn._step` with the rule."""
+    (layout, params, x, h), nets, xs = _fused_args(3, 8, scale=1e20)
+    want = _ruled(layout, params, x, h, "identity", "identity")
+    assert not np.all(np.isfinite(np.asarray(want[1])))
+    _assert_same_values(_fused(nets, xs, h, "identity", "identity"), want)
+    plain = jax.vmap(
+        lambda n, hs: jax.vmap(lambda a, b: kn._step(n.replace(reads=None), a, b, "identity",
+                                                     "identity"))(x, hs)
+    )(nets, h)  # fmt: skip
+    assert not np.array_equal(np.isnan(np.asarray(plain[0])), np.isnan(np.asarray(want[0])))
+
+
+def test_fused_step_lowers_for_cuda_with_each_activation(monkeypatch):
+    """Every activation of `netfused.ACTIVATIONS` lowers to one Triton kernel (the CUDA
+    lowering, on any machine): the names listed there are the ones Triton lowers."""
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    (layout, params, x, h), _, _ = _fused_args(7, 6)
+    for activation in sorted(kn.netfused.ACTIVATIONS):
+        text = _cuda_text((layout, params, x, h), activation, "identity")
+        assert text.count(_TRITON) == 1, activation
+
+
+def test_fused_step_applies_only_where_it_can(monkeypatch):
+    """The kernel is left out (the rule stays inline) for a registered activation Triton is
+    not known to lower, and for a batch whose networks vary at an inner level (examples
+    outside, networks inside); a network's own arrays may be shared at an outer level."""
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    (layout, params, x, h), _, _ = _fused_args(2, 6)
+    eant2_jax.register_activation(
+        "test_fused_softsign", lambda a: a / (1 + jnp.abs(a)), lambda a: a / (1 + np.abs(a))
+    )
+    try:
+        text = _cuda_text((layout, params, x, h), "test_fused_softsign")
+    finally:
+        kn.activations.ACTIVATIONS.pop("test_fused_softsign")
+    assert text.count(_TRITON) == 0
+
+    def examples_outside(lay, p, xs, hs):
+        def per_example(a, b):
+            return jax.vmap(
+                lambda lay_, p_, b_: kn.step(kn.network(lay_, p_), a, b_), in_axes=(0, 0, 0)
+            )(lay, p, b)
+
+        return jax.vmap(per_example, in_axes=(0, 1))(xs, hs)
+
+    args = (layout, params, x, h)
+    text = jax.jit(examples_outside).trace(*args).lower(lowering_platforms=("cuda",)).as_text()
+    assert text.count(_TRITON) == 0
+    # One layout shared by the eight weight vectors (a structure's candidates).
+    one = jax.tree.map(lambda a: a[0], layout)
+    shared_layout = jax.jit(jax.vmap(lambda p, hs: jax.vmap(
+        lambda a, b: kn.step(kn.network(one, p), a, b))(x, hs)))  # fmt: skip
+    text = shared_layout.trace(params, h).lower(lowering_platforms=("cuda",)).as_text()
+    assert text.count(_TRITON) == 1
 
 
 def test_step_gradient_is_the_rules():

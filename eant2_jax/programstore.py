@@ -47,6 +47,11 @@ DIRNAME = "eant2-programs"
 # Libraries whose code a task of this package may trace (their versions join the key).
 _TASK_LIBRARIES = ("mujoco", "mujoco-mjx", "gymnax", "brax", "playground", "flax", "chex")
 _PROGRAMS: dict[str, Callable] = {}  # this process's, by key
+# Custom calls whose form jax.export does not promise to keep across versions, which the
+# store holds all the same: its key has the versions of JAX and jaxlib, so a program is read
+# back only by the versions that wrote it. The network step's Triton kernel
+# (`eant2_jax.kernels.netfused`) is one; refused, every GPU engine program was traced anew.
+UNSTABLE_CUSTOM_CALLS = (export.DisabledSafetyCheck.custom_call("__gpu$xla.gpu.triton"),)
 _LOCK = threading.Lock()
 
 
@@ -183,7 +188,7 @@ def program(fn, args: tuple, static: dict, *, task) -> Callable | None:
             out_leaves, box["out_tree"] = jax.tree.flatten(out)
             return out_leaves
 
-        exported = export.export(jax.jit(flat))(*leaves)
+        exported = export.export(jax.jit(flat), disabled_checks=UNSTABLE_CUSTOM_CALLS)(*leaves)
         out_tree = box["out_tree"]
         _write(path, exported, out_tree)
     call = _wrap(fn, exported, out_tree)

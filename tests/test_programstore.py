@@ -206,3 +206,31 @@ def test_the_store_follows_the_compilation_cache(tmp_path, monkeypatch):
     finally:
         jax.config.update("jax_compilation_cache_dir", old)
     assert "eant2_jax.programstore" in sys.modules
+
+
+def test_the_store_holds_a_gpu_engine_program_with_its_triton_kernel(monkeypatch):
+    """A GPU engine program holds the network step's Triton kernel, a custom call that
+    jax.export refuses by default (its form is not promised across versions). The store
+    exports with `programstore.UNSTABLE_CUSTOM_CALLS` (its key has the JAX and jaxlib
+    versions): the engine iteration, lowered for CUDA on any machine, exports with them and
+    not without them. Without them a GPU process traced every engine program anew."""
+    from eant2_jax import tuning
+
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    task, config = tasks.make("xor"), ExploitConfig(pruner="covariance")
+    genomes = [eant2_jax.Genome.parse("N0/3*0.5 I0*1.0 I1*-1.0 B*0.1")] * 2
+    keys = jax.random.split(jax.random.key(0), 2)
+    prep = tuning.prepare(genomes, task, key=jax.random.key(1), config=config, keys=keys)
+
+    def step(state):
+        return exploitation._step(
+            state, prep.batch.layout, prep.tables, task, jax.random.key(2), config
+        )[0].cma.mean
+
+    def exported(**checks):
+        return programstore.export.export(jax.jit(step), platforms=["cuda"], **checks)(prep.state)
+
+    text = exported(disabled_checks=programstore.UNSTABLE_CUSTOM_CALLS).mlir_module()
+    assert text.count("xla.gpu.triton") == 1
+    with pytest.raises(ValueError, match="xla.gpu.triton"):
+        exported()

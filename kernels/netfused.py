@@ -7,7 +7,9 @@ fusions per sweep that write every neuron's column, its finiteness and its finit
 non-finite parts to memory between them: for a servo batch (384 networks of 8 neurons times
 1023 moves) most of an engine iteration's device time. Here one program computes a block of
 examples of one network from its inputs to its outputs with every intermediate in
-registers: the same terms, in the same order, with the same rule.
+registers: plain products first, and the rule only where some value of the block was not
+finite (see the kernel). The values are the rule's; a product's terms are summed in
+Triton's order, so float32 results may differ from XLA's in the last bits.
 
 `step_batch` takes the batch as ``[B]`` networks and ``[B or 1, E]`` examples each (the
 caller, `network._fused_batch`, flattens the vmapped levels into these two axes). Only what
@@ -51,8 +53,12 @@ ACTIVATIONS = frozenset(
     }
 )
 
-# Examples per program. 1023 servo moves make 4 programs of a network; see bench/ for the
-# measurements behind both numbers (`python -m bench forward --parts fused`).
+# Examples per program and warps per program. 1023 servo moves make 8 programs of a
+# network. An H100, generation 6's servo batch (24 structures of bucket (64, 8, 4), their
+# candidates and 1023 moves; 2026-11-25, scratch A/B of the engine's chunk), ms per engine
+# iteration with these (block, warps): (128, 4) 0.51-0.54, (64, 4) 0.56, (256, 8) 0.55.
+# Before the plain products came first, (256, 4) spilled registers: 0.77 against 0.58 for
+# (128, 4). The whole generation's figures are in docs/benchmarks.md.
 _BLOCK = 128
 _WARPS = 4
 
@@ -96,7 +102,7 @@ def step_batch(
 
     Returns:
       ``(y [B, E, n_out], h [B, E, H])``: what `network.step` gives for each network and
-      example, with every product's terms summed in the same order.
+      example (to float32 rounding; NaN and inf entries exactly).
     """
     b, h = bias.shape
     n_in, n_out = w_in.shape[-1], w_out.shape[-2]

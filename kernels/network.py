@@ -401,11 +401,13 @@ def _fused_batch(treedef, levels, leaves, rule: Callable, hidden: str, output: s
 
     It applies where the levels that batch the network come first (the structures, their
     candidates) and the others batch only its examples (a task's starts, episodes), to
-    float32 networks of at most `_UNROLL_MAX` neurons with `netfused.ACTIVATIONS`."""
+    float32 networks of `_FUSED_NEURONS` neuron slots with `netfused.ACTIVATIONS`."""
     if not _FUSED or not {hidden, output} <= netfused.ACTIVATIONS:
         return None
     net, x, h_prev = jax.tree.unflatten(treedef, leaves)
-    if net.bias.shape[-1] > _UNROLL_MAX or x.ndim < 1 or h_prev.ndim < 1:
+    if not _FUSED_NEURONS[0] <= net.bias.shape[-1] <= _FUSED_NEURONS[1]:
+        return None
+    if x.ndim < 1 or h_prev.ndim < 1:
         return None
     if any(a.dtype != jnp.float32 for a in (net.w_in, x, h_prev)):
         return None
@@ -457,10 +459,6 @@ def _fused_batch(treedef, levels, leaves, rule: Callable, hidden: str, output: s
     return jax.lax.platform_dependent(*leaves, cuda=kernel, default=rule)
 
 
-# On a GPU the rule's inline path runs as one kernel (`netfused`) where it applies.
-_FUSED = True
-
-
 # Off the CPU the step branches (`_batched`) only for networks of more than `_UNROLL_MAX`
 # neurons (their products over neurons are dots) and from this many product terms per step
 # over the batch (`_gpu_terms` times the examples). An H100, 20 random servo structures,
@@ -493,6 +491,18 @@ _GPU_BRANCH_MIN = 1 << 26
 # the program in 14 s instead of 30 s but ran it 27% slower (3.05 against 2.40 ms), so 16
 # stays a dot.
 _UNROLL_MAX = 12
+
+
+# On a GPU the rule's inline path runs as one kernel (`netfused`) where it applies: for
+# buckets of 8 to `_UNROLL_MAX` neuron slots. An H100 (2026-11-25): generation 6's servo
+# batch (24 structures of bucket (64, 8, 4), scratch A/B of the engine's chunk) took
+# 0.51-0.54 ms per engine iteration with the kernel against 0.74 ms inline; 20 random servo
+# structures of 40 genes (bucket (48, 6, 4), `python -m bench generation --parts scaling`)
+# 0.518 against 0.515 ms: no gain at 6 slots, where the kernel's compile (part of every
+# new engine program) made `eant2 run servo`'s cold start 0.9 s slower, its first buckets
+# having 4 and 6 slots.
+_FUSED = True
+_FUSED_NEURONS = (8, _UNROLL_MAX)
 
 
 def _dot(

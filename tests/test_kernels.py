@@ -603,18 +603,20 @@ def test_fused_step_lowers_for_cuda_with_each_activation(monkeypatch):
     """Every activation of `netfused.ACTIVATIONS` lowers to one Triton kernel (the CUDA
     lowering, on any machine): the names listed there are the ones Triton lowers."""
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    (layout, params, x, h), _, _ = _fused_args(7, 6)
+    (layout, params, x, h), _, _ = _fused_args(7, 8)
     for activation in sorted(kn.netfused.ACTIVATIONS):
         text = _cuda_text((layout, params, x, h), activation, "identity")
         assert text.count(_TRITON) == 1, activation
 
 
 def test_fused_step_applies_only_where_it_can(monkeypatch):
-    """The kernel is left out (the rule stays inline) for a registered activation Triton is
-    not known to lower, and for a batch whose networks vary at an inner level (examples
-    outside, networks inside); a network's own arrays may be shared at an outer level."""
+    """The kernel is left out (the rule stays inline) for buckets of fewer than 8 neuron
+    slots (`kn._FUSED_NEURONS`), for a registered activation Triton is not known to lower,
+    and for a batch whose networks vary at an inner level (examples outside, networks
+    inside); a network's own arrays may be shared at an outer level."""
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    (layout, params, x, h), _, _ = _fused_args(2, 6)
+    assert _cuda_text(_fused_args(2, 6)[0]).count(_TRITON) == 0
+    (layout, params, x, h), _, _ = _fused_args(2, 8)
     eant2_jax.register_activation(
         "test_fused_softsign", lambda a: a / (1 + jnp.abs(a)), lambda a: a / (1 + np.abs(a))
     )

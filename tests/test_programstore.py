@@ -215,8 +215,10 @@ def test_the_store_holds_a_gpu_engine_program_with_its_triton_kernel(monkeypatch
     versions): the engine iteration, lowered for CUDA on any machine, exports with them and
     not without them. Without them a GPU process traced every engine program anew."""
     from eant2_jax import tuning
+    from eant2_jax.kernels import network as kn
 
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(kn, "_FUSED_NEURONS", (1, kn._UNROLL_MAX))  # XOR's networks are small
     task, config = tasks.make("xor"), ExploitConfig(pruner="covariance")
     genomes = [eant2_jax.Genome.parse("N0/3*0.5 I0*1.0 I1*-1.0 B*0.1")] * 2
     keys = jax.random.split(jax.random.key(0), 2)

@@ -89,15 +89,22 @@ def step_batch(
     """One step of ``B`` networks on ``E`` examples each, with the non-finite rule.
 
     Args:
-      w_in, bias, w_ff, w_rec, w_out, is_root, neuron_mask: the `network.Network` fields of
-        each network, with a leading ``[B]``.
+      w_in: ``[B, H, n_in]``, the `network.Network` field of each network; likewise
+      bias: ``[B, H]``;
+      w_ff: ``[B, H, H]``;
+      w_rec: ``[B, H, H]``;
+      w_out: ``[B, n_out, H]``;
       reads: ``Network.reads`` (the ``(mask, weights)`` pairs of ``w_in``, ``w_rec``,
         ``w_ff`` and ``w_out``), each with a leading ``[B]``.
+      is_root: ``bool[B, H]``;
+      neuron_mask: ``bool[B, H]``.
       x: ``[B or 1, E, n_in]`` inputs (1: the same examples for every network).
       h_prev: ``[B or 1, E, H]`` neuron outputs at the previous step.
-      sweeps, hidden, output: as in `network.step` (activations from `ACTIVATIONS`).
-      block, warps: examples per program and Triton warps per program (default `_BLOCK`,
-        `_WARPS`).
+      sweeps: the networks' sweeps per step, as in `network.Network`.
+      hidden: activation name of hidden neurons (one of `ACTIVATIONS`).
+      output: activation name of root (output) neurons (one of `ACTIVATIONS`).
+      block: examples per program (default `_BLOCK`).
+      warps: Triton warps per program (default `_WARPS`).
       interpret: run the kernel in Pallas' interpreter (any backend; for tests).
 
     Returns:

@@ -498,9 +498,10 @@ _UNROLL_MAX = 12
 # batch (24 structures of bucket (64, 8, 4), scratch A/B of the engine's chunk) took
 # 0.51-0.54 ms per engine iteration with the kernel against 0.74 ms inline; 20 random servo
 # structures of 40 genes (bucket (48, 6, 4), `python -m bench generation --parts scaling`)
-# 0.518 against 0.515 ms: no gain at 6 slots, where the kernel's compile (part of every
-# new engine program) made `eant2 run servo`'s cold start 0.9 s slower, its first buckets
-# having 4 and 6 slots.
+# 0.518 against 0.515 ms: no gain at 6 slots. There the kernel's compile would only join
+# every new engine program's, `eant2 run servo`'s first buckets (4 and 6 slots) included:
+# with the kernel at those sizes its cold start took 12.3 s against 11.4 s (medians of 3,
+# rounds overlapping); without, 13.8 s against 13.7 s (5 rounds, a slower host).
 _FUSED = True
 _FUSED_NEURONS = (8, _UNROLL_MAX)
 

@@ -142,6 +142,9 @@ def step_batch(
     xt, ht = columns(x, ip), columns(h_prev, hp)
 
     def kernel(in_ref, rec_ref, ff_ref, out_ref, neuron_ref, x_ref, h_ref, y_ref, h_out_ref):
+        def is_finite(v):
+            return jnp.abs(v) < jnp.inf  # false for NaN and +-inf
+
         def plain(ref, v):
             return jnp.sum(ref[0, 0][:, :, None] * v[None, :, :], axis=1)
 
@@ -149,7 +152,7 @@ def step_batch(
             # `network._dot` of a [rows, cols] matrix and v [cols, blk]: the term of a
             # non-finite v[j] is w_nf[i, j] * v[j] where row i reads j, 0 elsewhere.
             w, read, w_nf = ref[0, 0], ref[0, 1] > 0, ref[0, 2]
-            finite = jnp.abs(v) < jnp.inf  # false for NaN and +-inf
+            finite = is_finite(v)
             zero = jnp.zeros_like(v)
             v_fin, v_nf = jnp.where(finite, v, zero), jnp.where(finite, zero, v)
             take = read[:, :, None] & ~finite[None, :, :]
@@ -175,7 +178,7 @@ def step_batch(
             return dot(out_ref, hs), hs
 
         def nonfinite(v):
-            return jnp.sum(jnp.where(jnp.abs(v) < jnp.inf, 0.0, 1.0))
+            return jnp.sum(jnp.where(is_finite(v), 0.0, 1.0))
 
         # Plain products first, the rule only where a value was not finite. With finite
         # inputs and states, a non-finite value inside the network reaches the final states:

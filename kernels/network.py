@@ -368,8 +368,9 @@ def _batched(
         on_cpu = jax.default_backend() == "cpu"
         examples = math.prod(size for size, _ in levels)
         if not on_cpu and (terms == 0 or examples * terms < _GPU_BRANCH_MIN):
-            out = None if fused is None else fused(levels, over_batch("rule"), *leaves)
-            return over_batch("rule")(*leaves) if out is None else out
+            rule = over_batch("rule")
+            out = None if fused is None else fused(levels, rule, *leaves)
+            return rule(*leaves) if out is None else out
         y, h, finite = over_batch("plain")(*leaves)
 
         def rare(leaves):
@@ -406,8 +407,6 @@ def _fused_batch(treedef, levels, leaves, rule: Callable, hidden: str, output: s
         return None
     net, x, h_prev = jax.tree.unflatten(treedef, leaves)
     if not _FUSED_NEURONS[0] <= net.bias.shape[-1] <= _FUSED_NEURONS[1]:
-        return None
-    if x.ndim < 1 or h_prev.ndim < 1:
         return None
     if any(a.dtype != jnp.float32 for a in (net.w_in, x, h_prev)):
         return None

@@ -525,8 +525,6 @@ def test_gpu_step_branches_only_large_batches_of_dot_networks(monkeypatch, neuro
 def _fused_args(seed: int, neurons: int, *, scale: float = 1.0, shared: bool = True):
     """`netfused.step_batch`'s network arguments of `_batch_of_networks`'s eight networks,
     with their inputs ``[1 or 8, 4, N_IN]`` and states ``[8, 4, neurons]``."""
-    from eant2_jax.kernels import netfused  # noqa: F401 (the module under test)
-
     layout, params, x, h = _batch_of_networks(seed, scale=scale, neurons=neurons)
     if scale != 1.0:
         x = x * scale

@@ -1,6 +1,6 @@
 """Whole EANT2 generations on the servo task, pruning overhead, and scaling.
 
-Three parts, each optional:
+Four parts, each optional:
 
 * ``generation``: an EANT2 run (default 20 structures, 1023 moves, kinematic mode) for a few
   generations; per generation its wall time, evaluations, moves per second and the number of
@@ -11,8 +11,14 @@ Three parts, each optional:
 * ``scaling``: one exploitation batch of random genomes for a fixed number of iterations,
   against the number of structures, the number of moves and the network size (without a
   pruner unless ``--scaling-pruner`` names one; ``--lazy-eigen`` applies).
+* ``eigh``: one batched decomposition of S covariances of P x P, as the engine's lazy update
+  and a pruning attempt run it (``vmap`` of `eant2_jax.kernels.cmaes.eigen`, the
+  eigendecomposition with its masking and condition bound): milliseconds per call, each call
+  waiting for the device, against S and P (``--eigh-structures``, ``--eigh-genes``; not in
+  the default parts). On a GPU JAX's ``eigh`` runs cuSOLVER's batched Jacobi up to P = 32
+  and, above, one ``syevd`` per matrix called from the host, so a call's time grows with S.
 
-Run: ``python -m bench generation [--parts generation,pruning,scaling] [--quick]``.
+Run: ``python -m bench generation [--parts generation,pruning,scaling,eigh] [--quick]``.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from bench import harness
 from bench.common import Column, CompileClock, environment, random_population, time_call
 from eant2_jax import exploitation as ex
 from eant2_jax import loop, tasks, tuning
+from eant2_jax.kernels import cmaes
 
 
 def bench_generations(args, clock: CompileClock) -> list[dict]:
@@ -183,6 +190,35 @@ def bench_scaling(args) -> list[dict]:
     return rows
 
 
+def bench_eigh(args) -> list[dict]:
+    """Milliseconds per batched decomposition of S random covariances of P x P."""
+    rows = []
+    rng = np.random.default_rng(args.seed)
+    decompose = jax.jit(jax.vmap(cmaes.eigen, in_axes=(0, 0, None)))
+    for genes in args.eigh_genes:
+        for structures in args.eigh_structures:
+            # A covariance as CMA-ES leaves it: SPD, condition about 1e4, its last quarter
+            # of axes padding (as in a bucket), a fresh draw per (S, P).
+            n = max(1, genes - genes // 4)
+            a = rng.normal(size=(structures, n, n)) * np.logspace(0, 2, n)
+            cov = np.zeros((structures, genes, genes), np.float32)
+            cov[:, :n, :n] = a @ a.transpose(0, 2, 1) / n
+            mask = np.broadcast_to(np.arange(genes) < n, (structures, genes))
+            args_ = (jnp.asarray(cov), jnp.asarray(mask), jnp.float32(1e14))
+            t = time_call(lambda a=args_: decompose(*a), repeats=args.repeats)
+            rows.append(
+                {
+                    "structures": structures,
+                    "P": genes,
+                    "valid": n,
+                    "first_s": t.first_call_s,
+                    "call_ms": 1e3 * t.median_s,
+                    "per_matrix_us": 1e6 * t.median_s / structures,
+                }
+            )
+    return rows
+
+
 def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--parts", default="generation,pruning,scaling")
     p.add_argument("--population", type=int, default=20)
@@ -208,6 +244,8 @@ def _options(p: argparse.ArgumentParser) -> None:
         default="none",
         help="the scaling batch's pruner (its triggers fire as in a run; default none)",
     )
+    p.add_argument("--eigh-structures", type=int, nargs="+", default=[1, 8, 24, 48])
+    p.add_argument("--eigh-genes", type=int, nargs="+", default=[16, 32, 48, 64, 128])
 
 
 def _prepare(args: argparse.Namespace) -> None:
@@ -215,6 +253,7 @@ def _prepare(args: argparse.Namespace) -> None:
         args.population, args.generations, args.max_iters, args.moves = 3, 1, 20, 16
         args.scaling_structures, args.scaling_moves, args.scaling_genes = [2], [16], [34]
         args.scaling_iters, args.repeats = 5, 2
+        args.eigh_structures, args.eigh_genes = [2], [8, 40]
 
 
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
@@ -225,6 +264,7 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
         ("generation", lambda: bench_generations(args, clock)),
         ("pruning", lambda: bench_pruning(args)),
         ("scaling", lambda: bench_scaling(args)),
+        ("eigh", lambda: bench_eigh(args)),
     ):
         if part in parts:
             payload[part] = bench()
@@ -253,6 +293,12 @@ def render(payload: dict[str, Any]) -> str:
             Column("first_s", "first call s", "{:.2f}"), Column("iterations", "iterations"),
             Column("iteration_ms", "ms / iteration", "{:.3g}"),
             Column("moves_per_s", "moves/s", "{:.3g}"),
+        ]),
+        ("eigh", "One batched decomposition of S covariances (cmaes.eigen, vmapped)", [
+            Column("structures", "S"), Column("P", "P"), Column("valid", "valid axes"),
+            Column("first_s", "first call s", "{:.2f}"),
+            Column("call_ms", "ms / call", "{:.3g}"),
+            Column("per_matrix_us", "us / matrix", "{:.3g}"),
         ]),
     ])  # fmt: skip
 

@@ -15,8 +15,8 @@ Four parts, each optional:
   and a pruning attempt run it (``vmap`` of `eant2_jax.kernels.cmaes.eigen`, the
   eigendecomposition with its masking and condition bound): milliseconds per call, each call
   waiting for the device, against S and P (``--eigh-structures``, ``--eigh-genes``; not in
-  the default parts). On a GPU JAX's ``eigh`` runs cuSOLVER's batched Jacobi up to P = 32
-  and, above, one ``syevd`` per matrix called from the host, so a call's time grows with S.
+  the default parts). On a GPU JAX's ``eigh`` calls cuSOLVER (Jacobi up to P = 32,
+  ``syevd`` above); on an H100 a call cost about the same whatever S (docs/benchmarks.md).
 
 Run: ``python -m bench generation [--parts generation,pruning,scaling,eigh] [--quick]``.
 """
@@ -197,8 +197,9 @@ def bench_eigh(args) -> list[dict]:
     decompose = jax.jit(jax.vmap(cmaes.eigen, in_axes=(0, 0, None)))
     for genes in args.eigh_genes:
         for structures in args.eigh_structures:
-            # A covariance as CMA-ES leaves it: SPD, condition about 1e4, its last quarter
-            # of axes padding (as in a bucket), a fresh draw per (S, P).
+            # A covariance as CMA-ES leaves it: SPD and ill-conditioned (its axes' scales
+            # span two decades), its last quarter of axes padding (as in a bucket), a fresh
+            # draw per (S, P).
             n = max(1, genes - genes // 4)
             a = rng.normal(size=(structures, n, n)) * np.logspace(0, 2, n)
             cov = np.zeros((structures, genes, genes), np.float32)

@@ -123,8 +123,12 @@ def _repeat(args, deterministic: bool, index: int) -> dict:
             raise RuntimeError(f"eant2 run failed: {proc.stderr[-2000:]}")
         gens = [json.loads(s) for s in (run_dir / "generations.jsonl").read_text().splitlines()]
         best = (run_dir / "best.genome").read_text()
+        # The last generation's padding bucket (neurons, genes, sweeps): on a GPU, buckets of
+        # 8-12 neuron slots run the network step as one fused kernel (kernels/netfused.py).
+        bucket = json.loads((run_dir / "checkpoint.json").read_text())["state"]["bucket"]
     return {"part": "repeat", "deterministic": deterministic, "run": index, "total_s": total,
-            "best_costs": [g["best_cost"] for g in gens], "best_genome": best}  # fmt: skip
+            "best_costs": [g["best_cost"] for g in gens], "best_genome": best,
+            "bucket": bucket}  # fmt: skip
 
 
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
@@ -209,6 +213,7 @@ def _render(payload: dict) -> str:
             Column(lambda r: " / ".join(f"{c:.8g}" for c in r["best_costs"]),
                    "best cost per generation"),
             Column(lambda r: "yes" if r["same_as_run_1"] else "no", "same as run 1"),
+            Column(lambda r: r.get("bucket") and tuple(r["bucket"]), "last bucket (H, P, sweeps)"),
             Column("total_s", "s", "{:.1f}"),
         ]))  # fmt: skip
     return "\n\n".join(out)

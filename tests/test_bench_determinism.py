@@ -26,6 +26,8 @@ def test_determinism_bench_quick(tmp_path):
     # CPU programs repeat exactly, whatever the flag.
     assert all(r["same_as_run_1"] for r in rep)
     assert all(len(r["best_costs"]) == 2 for r in rep)  # generations 0 and 1
+    # Each row names its last padding bucket (neurons, genes, sweeps), equal across repeats.
+    assert all(len(r["bucket"]) == 3 and r["bucket"] == rep[0]["bucket"] for r in rep)
     md = out.with_suffix(".md").read_text()
     assert "| this | deterministic |" in md and "off (EANT2_GPU_DETERMINISTIC=0)" in md
 

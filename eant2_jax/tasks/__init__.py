@@ -71,6 +71,20 @@ def namespaces() -> list[str]:
     return sorted(_NAMESPACES)
 
 
+def is_registered(spec: object) -> bool:
+    """Whether ``spec`` names a registered task or a task of a registered family
+    (``PREFIX:NAME``): one that `make` builds without importing or running code the spec
+    names. ``module:factory`` and ``file.py[:factory]`` specs are user code: a spec read
+    from a data file (a run directory, a reproduction's manifest) is rebuilt by itself only
+    when this holds (docs/reliability.md, "Trust")."""
+    if not isinstance(spec, str) or not spec:
+        return False
+    if spec in _REGISTRY:
+        return True
+    head, sep, name = spec.partition(":")
+    return bool(sep and name and head in _NAMESPACES)
+
+
 # How each task made by make() was built: id(task) -> (weak reference, spec, options). A
 # side table, not a field, so that a task stays the user's own pytree.
 _SPECS: dict[int, tuple[weakref.ref, str, dict]] = {}

@@ -45,8 +45,6 @@ import dataclasses
 import errno
 import fcntl
 import hashlib
-import json
-import math
 import os
 import shutil
 import stat
@@ -54,6 +52,10 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from . import jsonio
+from .jsonio import as_float, dumps, fsync_dir, typed_fields, write_atomic
+from .jsonio import short as _short
 
 __all__ = ["Committed", "RunDir", "RunDirError", "as_float", "dumps", "loads", "typed_fields"]
 
@@ -67,9 +69,6 @@ FORMAT = 2  # 2: checksums in the checkpoint, strict JSON; 1 is still read (see 
 FORMATS = (1, 2)
 # What the checkpoint's "sha256" holds: the config file, the committed log prefixes, the state.
 SUMS = (CONFIG, GENERATIONS, PRUNING, "state")
-# Nesting deeper than this in a run directory's JSON is corruption (ours is at most 4 deep);
-# refusing it early keeps Python's recursion limit out of the error path.
-MAX_DEPTH = 32
 _CREATING = ".creating-"
 
 
@@ -78,137 +77,14 @@ class RunDirError(ValueError):
 
 
 # ----------------------------------------------------------------------------- strict JSON
-_NONFINITE = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
-
-
-def _encode(obj: Any) -> Any:
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return "nan" if math.isnan(obj) else ("inf" if obj > 0 else "-inf")
-    if isinstance(obj, dict):
-        return {k: _encode(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_encode(v) for v in obj]
-    return obj
-
-
-def dumps(obj: Any, **kwargs) -> str:
-    """Strict JSON: non-finite floats become the strings ``"inf"``, ``"-inf"``, ``"nan"``."""
-    return json.dumps(_encode(obj), allow_nan=False, **kwargs)
-
-
-def as_float(value: Any, what: str) -> float:
-    """A float field as `dumps` wrote it (a number, or "inf", "-inf", "nan")."""
-    if isinstance(value, str) and value in _NONFINITE:
-        return _NONFINITE[value]
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ValueError(f"{what} must be a number, got {_short(value)}")
-    return float(value)
-
-
-def typed_fields(cls, d: Any, what: str, defaults: dict | None = None) -> dict:
-    """The fields of dataclass ``cls`` from a JSON object, each checked against its
-    annotation (``int``, ``float``, ``str``, ``bool``, optionally ``| None``); a ValueError
-    names ``what`` and the field. Floats go through `as_float`."""
-    if not isinstance(d, dict):
-        raise ValueError(f"{what} is not a JSON object")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(d) - set(fields))
-    if unknown:
-        raise ValueError(f"{what} has unknown field(s) {', '.join(map(repr, unknown))}")
-    out = {}
-    for name, f in fields.items():
-        if name not in d:
-            if defaults is not None and name in defaults:
-                out[name] = defaults[name]
-                continue
-            if f.default is not dataclasses.MISSING:
-                continue
-            raise ValueError(f"{what} has no field {name!r}")
-        v = d[name]
-        kind, *rest = str(f.type).replace(" ", "").split("|")
-        if v is None and "None" in rest:
-            out[name] = None
-        elif kind == "float":
-            out[name] = as_float(v, f"{what}: {name}")
-        elif kind == "int" and isinstance(v, int) and not isinstance(v, bool):
-            out[name] = v
-        elif kind == "str" and isinstance(v, str):
-            out[name] = v
-        elif kind == "bool" and isinstance(v, bool):
-            out[name] = v
-        else:
-            raise ValueError(f"{what}: {name} must be {str(f.type)}, got {_short(v)}")
-    return out
-
-
-def _short(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 40 else text[:37] + "..."
-
-
-def _depth_ok(text: str) -> bool:
-    """Whether the JSON text nests at most MAX_DEPTH deep (brackets inside strings count,
-    which only makes the test stricter than needed for text we did not write)."""
-    depth = deepest = 0
-    for ch in text:
-        if ch in "[{":
-            depth += 1
-            deepest = max(deepest, depth)
-            if deepest > MAX_DEPTH:
-                return False
-        elif ch in "]}":
-            depth -= 1
-    return True
+# The strict JSON rules live in `eant2_jax.jsonio`; a run directory's parse errors are
+# RunDirErrors.
 
 
 def loads(data: bytes | str, where: str, *, strict: bool = True) -> Any:
-    """Parse JSON from a run directory; any problem is a one-line `RunDirError` that
-    names ``where``. ``strict`` refuses ``Infinity`` and ``NaN``."""
-    if isinstance(data, bytes):
-        try:
-            data = data.decode("utf-8")
-        except UnicodeDecodeError as e:
-            raise RunDirError(f"{where} is corrupt: not UTF-8 (byte {e.start})") from None
-    if not _depth_ok(data):
-        raise RunDirError(f"{where} is corrupt: JSON nested deeper than {MAX_DEPTH}")
-
-    def constant(name):
-        raise ValueError(f"{name} is not JSON (non-finite numbers are written as strings)")
-
-    try:
-        return json.loads(data, parse_constant=constant if strict else None)
-    except (ValueError, RecursionError) as e:
-        raise RunDirError(f"{where} is corrupt: {str(e).splitlines()[0]}") from None
-
-
-# ----------------------------------------------------------------------------- files
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def write_atomic(path: Path, text: str) -> None:
-    """Replace ``path`` with ``text`` atomically (temporary file, fsync, rename, fsync dir).
-
-    The rename replaces a link at ``path`` itself, never what it points to."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    # mkstemp makes the file 0600; give it the mode an ordinary open() would (umask).
-    umask = os.umask(0)
-    os.umask(umask)
-    os.fchmod(fd, 0o666 & ~umask)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)
+    """Parse JSON from a run directory (`jsonio.loads`); any problem is a one-line
+    `RunDirError` that names ``where``. ``strict`` refuses ``Infinity`` and ``NaN``."""
+    return jsonio.loads(data, where, strict=strict, error=RunDirError)
 
 
 def _sha(data: bytes) -> str:
@@ -316,7 +192,7 @@ class RunDir:
                 run.close()
             shutil.rmtree(tmp, ignore_errors=True)
             raise
-        _fsync_dir(p.parent)
+        fsync_dir(p.parent)
         run.path = p
         run._config_sum = _sha(text.encode())
         run._sums = {name: hashlib.sha256() for name in LOGS}

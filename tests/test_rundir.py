@@ -200,10 +200,11 @@ def test_resume_of_a_live_run_is_refused(tmp_path, capsys, monkeypatch):
 
 
 HOLD = """
-import importlib.util, sys, time
-spec = importlib.util.spec_from_file_location("rundir", sys.argv[1])
-rundir = importlib.util.module_from_spec(spec); sys.modules["rundir"] = rundir
-spec.loader.exec_module(rundir)
+import importlib, os, sys, time, types
+# rundir and the ground-floor module it imports, without the package's __init__ (jax)
+pkg = types.ModuleType("pkg"); pkg.__path__ = [os.path.dirname(sys.argv[1])]
+sys.modules["pkg"] = pkg
+rundir = importlib.import_module("pkg.rundir")
 rd = rundir.RunDir.open(sys.argv[2])
 print("locked", flush=True)
 time.sleep(600)
@@ -235,10 +236,11 @@ def test_concurrent_creations_make_one_directory(tmp_path):
 
 
 KILL = """
-import importlib.util, os, sys, time
-spec = importlib.util.spec_from_file_location("rundir", sys.argv[1])
-rundir = importlib.util.module_from_spec(spec); sys.modules["rundir"] = rundir
-spec.loader.exec_module(rundir)
+import importlib, os, sys, time, types
+# rundir and the ground-floor module it imports, without the package's __init__ (jax)
+pkg = types.ModuleType("pkg"); pkg.__path__ = [os.path.dirname(sys.argv[1])]
+sys.modules["pkg"] = pkg
+rundir = importlib.import_module("pkg.rundir")
 real = os.fsync
 def slow(fd):
     time.sleep(0.04)

@@ -185,7 +185,7 @@ def test_upto_reads_every_run_to_one_generation(tmp_path, capsys, monkeypatch):
     short = [make_run(tmp_path / f"n-{s}", pruner="none", seed=s, generations=6, done=4)
              for s in (0, 1)]  # fmt: skip
     dirs = long + short
-    cut = rp.summarise([rp._upto(r, 3) for r in rp.load_runs(dirs)])
+    cut = rp.summarise([rp.upto(r, 3) for r in rp.load_runs(dirs)])
     alone = []  # the same runs written only up to generation 3
     for d in dirs:
         name = Path(d).name
@@ -204,3 +204,65 @@ def test_upto_reads_every_run_to_one_generation(tmp_path, capsys, monkeypatch):
                         tmp_path)  # fmt: skip
     assert rc == 2 and "its last generation is 3, before 5" in err
     assert len(err.strip().splitlines()) == 1 and not (tmp_path / "r5").exists()
+
+
+def test_strings_from_run_files_are_escaped_on_one_line(tmp_path):
+    """A task (or arm) string read from config.json cannot add lines or Markdown of its own
+    to the report."""
+    hostile = "xor\n# injected [link](http://x) | cell\u2028more"
+    dirs = [make_run(tmp_path / f"{p}-0", task=hostile, pruner=p) for p in ("covariance", "none")]
+    text = rp.report(dirs, tmp_path / "rep").read_text()
+    task_line = next(line for line in text.splitlines() if line.startswith("Task: "))
+    assert task_line.startswith(
+        r"Task: xor\n\# injected \[link\]\(http://x\) \| cell\u2028more; 2 runs"
+    )
+    assert not any(line.startswith("# injected") for line in text.splitlines())
+    assert "\u2028" not in text
+    assert rp.escape("a_b*c`d<e>") == r"a\_b\*c\`d\<e\>"
+    assert rp.escape("plain text, 1.5") == "plain text, 1.5"
+
+
+@pytest.mark.parametrize("dangling", [False, True])
+def test_a_link_planted_in_the_report_folder_is_refused(tmp_path, dangling):
+    dirs = [make_run(tmp_path / f"{p}-0", pruner=p) for p in ("covariance", "none")]
+    target = tmp_path / "bashrc"
+    if not dangling:
+        target.write_text("precious\n")
+    out = tmp_path / "rep"
+    out.mkdir()
+    (out / "report.md").symlink_to(target)
+    with pytest.raises(OSError, match="report.md: is a symbolic link"):
+        rp.report(dirs, out)
+    assert (target.read_text() == "precious\n") if not dangling else not target.exists()
+    # A link in place of the report folder itself is refused too.
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "rep2").symlink_to(tmp_path / "elsewhere")
+    with pytest.raises(OSError, match="rep2: is a symbolic link"):
+        rp.report(dirs, tmp_path / "rep2")
+    assert not any((tmp_path / "elsewhere").iterdir())
+
+
+def test_a_report_is_never_written_inside_a_run_it_reads(tmp_path, capsys, monkeypatch):
+    dirs = [make_run(tmp_path / f"{p}-0", pruner=p) for p in ("covariance", "none")]
+    before = sorted(p.name for p in Path(dirs[0]).iterdir())
+    for out in (Path(dirs[0]), Path(dirs[0]) / "report", Path(dirs[1]) / "a" / "b"):
+        with pytest.raises(ValueError, match="inside the run directory"):
+            rp.report(dirs, out)
+    assert sorted(p.name for p in Path(dirs[0]).iterdir()) == before
+    assert not (Path(dirs[1]) / "a").exists()
+    # Without --out: beside the first directory, even when it is named "."
+    monkeypatch.chdir(dirs[0])
+    assert rp.default_folder(["."]) == tmp_path / "report"
+    rc, _, err = _cli(["report", dirs[0], dirs[1], "--out", str(Path(dirs[0]) / "r")], capsys,
+                      monkeypatch, tmp_path)  # fmt: skip
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and "inside the run directory" in err
+
+
+def test_an_existing_report_is_replaced_whole(tmp_path):
+    dirs = [make_run(tmp_path / f"{p}-0", pruner=p) for p in ("covariance", "none")]
+    out = tmp_path / "rep"
+    first = rp.report(dirs, out).read_text()
+    (out / "notes.txt").write_text("mine\n")
+    assert rp.report(dirs, out).read_text() == first
+    assert (out / "notes.txt").read_text() == "mine\n"  # nothing else is touched
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temp file left

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import distributed
+from . import distributed, programs
 from . import exploitation as ex
 from .compiler import Bucket, CompiledBatch, compile_genomes, network_batch
 from .evaluate import as_genomes
@@ -238,9 +238,9 @@ def compile_ahead(
     tenths of a second each to compile); those then compile while this one does. The
     program is the one `tune` would compile, so results do not change; `tune` waits for it
     instead of compiling it again. Returns whether a compilation was started (not on a
-    CPU, see `eant2_jax.exploitation.compile_ahead_enabled`; not with a warm start).
+    CPU, see `eant2_jax.programs.ahead_enabled`; not with a warm start).
     """
-    if not ex.compile_ahead_enabled():
+    if not programs.ahead_enabled():
         return False
     genomes = list(genomes)
     check_task(task, genomes)
@@ -494,7 +494,7 @@ class _Rescorer:
     count fixed by the engine's (twice it when the mean is scored too), so the program is
     compiled once per bucket, not per generation. On an accelerator it is compiled in a
     background thread while the engine runs, off the critical path (a brax episode program
-    takes seconds to compile): `eant2_jax.exploitation.ahead`. Calling it waits for that
+    takes seconds to compile): `eant2_jax.programs.ahead`. Calling it waits for that
     compilation and scores a list of genomes: ``float64[len(genomes)]``.
     """
 
@@ -503,10 +503,10 @@ class _Rescorer:
         self._rescore = config.rescore
         per_row = 1 if config.recommend == "best" else 2
         self._compile_args = dict(bucket=bucket, min_rows=rows * per_row, pad_count=pad_count)
-        self._ahead = None
+        self.ahead = None  # the program compiled ahead (`eant2_jax.programs.Program`)
         self.used_ahead = False  # whether the program compiled ahead was the one called
-        if ex.compile_ahead_enabled():
-            self._ahead = ex.ahead(*self._inputs(genomes))
+        if programs.ahead_enabled():
+            self.ahead = programs.ahead(*self._inputs(genomes))
 
     def _inputs(self, genomes):
         """The program and its arguments for ``genomes``."""
@@ -521,16 +521,12 @@ class _Rescorer:
 
     def __call__(self, genomes) -> np.ndarray:
         fn, args = self._inputs(genomes)
-        compiled = None if self._ahead is None else self._ahead.get()
-        costs = None
-        if compiled is not None:
-            try:
-                costs = compiled(*args)
-                self.used_ahead = True
-            except (TypeError, ValueError):  # other shapes than foreseen: jit's own path
-                costs = None
-        if costs is None:
+        if self.ahead is None:
             costs = fn(*args)
+        else:  # falls back to jit's own path for other shapes than foreseen
+            fallbacks = self.ahead.fallbacks
+            costs = self.ahead(*args)
+            self.used_ahead = self.ahead.fallbacks == fallbacks
         return np.asarray(costs, np.float64)[: len(genomes)]
 
 

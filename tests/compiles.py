@@ -117,23 +117,28 @@ def nondeterministic_scatters(closed: jax.extend.core.ClosedJaxpr) -> list[str]:
 
 
 def force_compile_ahead(monkeypatch, *, fallback: bool = False) -> list:
-    """Compile ahead on a CPU as on an accelerator (`eant2_jax.exploitation.compile_ahead`),
-    from an empty registry as in a fresh process. Returns the list of the programs compiled
-    ahead that the engine then called: strictly (a mismatch of the arguments raises) unless
-    ``fallback``, where jit's fallback stays as the library has it."""
-    from eant2_jax import exploitation
+    """Compile ahead on a CPU as on an accelerator (`eant2_jax.programs.ahead`), from an
+    empty registry as in a fresh process. Returns the list of the programs compiled ahead
+    that the engine then called: strictly (a mismatch of the arguments raises) unless
+    ``fallback``, where the program's own fallback to jit stays as the library has it."""
+    from eant2_jax import exploitation, programs
 
     used = []
-    with_fallback = exploitation._with_fallback
+    program = programs.program
 
-    def spy(compiled, chunk):
-        used.append(compiled)
-        return with_fallback(compiled, chunk) if fallback else compiled
+    def spy(*args, **kwargs):
+        out = program(*args, **kwargs)
+        if isinstance(out, programs.Program):
+            used.append(out)
+            return out if fallback else out.get()
+        return out
 
-    monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True)
-    monkeypatch.setattr(exploitation, "_with_fallback", spy)
-    monkeypatch.setattr(exploitation, "_AHEAD", {})
-    monkeypatch.setattr(exploitation, "_SEEN", set())
+    monkeypatch.setattr(programs, "ahead_enabled", lambda: True)
+    # The loop's name for it until it calls `programs.ahead_enabled` itself.
+    monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True, raising=False)
+    monkeypatch.setattr(programs, "program", spy)
+    monkeypatch.setattr(programs.REGISTRY, "ahead", {})
+    monkeypatch.setattr(programs.REGISTRY, "ran", set())
     return used
 
 
@@ -141,7 +146,7 @@ def joined(fn, calls: list | None = None):
     """``fn`` (a function that starts compiling ahead), its compilations waited for at once
     (two programs at once on a CPU can deadlock XLA's thread pool), each asserted to have
     compiled; a thread it returns is joined first. ``calls`` collects what it returned."""
-    from eant2_jax import exploitation
+    from eant2_jax import programs
 
     def call(*args, **kwargs):
         out = fn(*args, **kwargs)
@@ -149,7 +154,7 @@ def joined(fn, calls: list | None = None):
             calls.append(out)
         if hasattr(out, "join"):
             out.join()
-        for ahead in list(exploitation._AHEAD.values()):
+        for ahead in list(programs.REGISTRY.ahead.values()):
             assert ahead.get() is not None, "a program compiled ahead failed to compile"
         return out
 

@@ -311,13 +311,13 @@ def test_default_rescoring_averages_fresh_draws_of_both_points(monkeypatch, ahea
     class Spy(eant2_jax.tuning._Rescorer):
         def __init__(self, *a, **k):
             super().__init__(*a, **k)
-            if self._ahead is not None:  # no two programs at once on a CPU
-                self._ahead.get()
+            if self.ahead is not None:  # no two programs at once on a CPU
+                self.ahead.get()
             made.append(self)
 
     monkeypatch.setattr(eant2_jax.tuning, "_Rescorer", Spy)
-    monkeypatch.setattr(eant2_jax.exploitation, "compile_ahead_enabled", lambda: ahead)
-    monkeypatch.setattr(eant2_jax.exploitation, "_AHEAD", {})
+    monkeypatch.setattr(eant2_jax.programs, "ahead_enabled", lambda: ahead)
+    monkeypatch.setattr(eant2_jax.programs.REGISTRY, "ahead", {})
     key = jax.random.key(3)
     config = ExploitConfig(max_iters=30, patience=1000)
     assert (config.recommend, config.rescore) == ("both", 4)
@@ -330,10 +330,10 @@ def test_default_rescoring_averages_fresh_draws_of_both_points(monkeypatch, ahea
     assert res.picked == ["best"]
     assert len(made) == 1 and made[0].used_ahead is ahead
     # The next tuning of the same bucket reuses the program compiled ahead.
-    assert len(eant2_jax.exploitation._AHEAD) == int(ahead)
+    assert len(eant2_jax.programs.REGISTRY.ahead) == int(ahead)
     again = eant2_jax.tuning.tune([eant2_jax.Genome.parse(XOR_GENOME)], Coin(),
                                   key=jax.random.key(4), config=config)  # fmt: skip
-    assert len(eant2_jax.exploitation._AHEAD) == int(ahead) and made[1].used_ahead is ahead
+    assert len(eant2_jax.programs.REGISTRY.ahead) == int(ahead) and made[1].used_ahead is ahead
     assert again.costs[0] != res.costs[0]  # other keys, other draws
 
 
@@ -376,9 +376,9 @@ def test_rescoring_keeps_the_point_of_lower_fresh_cost():
 
 
 def test_progress_reporter_announces_compilation(monkeypatch):
-    from eant2_jax import exploitation
+    from eant2_jax import programs
 
-    monkeypatch.setattr(exploitation, "_SEEN", set())  # as in a fresh process
+    monkeypatch.setattr(programs.REGISTRY, "ran", set())  # as in a fresh process
     stream = io.StringIO()
     eant2_jax.run(
         tasks.make("xor"),

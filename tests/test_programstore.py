@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 import eant2_jax
-from eant2_jax import EANT2Config, ExploitConfig, exploitation, programstore, tasks
+from eant2_jax import EANT2Config, ExploitConfig, exploitation, tasks
+from eant2_jax.programs import store as programstore
 
 CONFIG = EANT2Config(population=4, exploit=ExploitConfig(max_iters=40, pruner="covariance"))
 WALL = eant2_jax.loop.RUN_DEPENDENT
@@ -26,7 +27,7 @@ def store(tmp_path, monkeypatch):
     folder = tmp_path / "programs"
     monkeypatch.setattr(programstore, "directory", lambda: folder)
     monkeypatch.setattr(programstore, "_PROGRAMS", {})
-    monkeypatch.setattr(exploitation, "_STORE_FAILED", [])
+    monkeypatch.setattr(programstore, "_FAILED", [])
     return folder
 
 
@@ -88,7 +89,7 @@ def _chunk_args(task_name: str, config: ExploitConfig):
 def test_the_engine_state_is_equal_to_the_last_bit(store):
     """One chunk of the engine: the stored program's outputs equal jit's, every leaf."""
     task, args = _chunk_args("servo", ExploitConfig(max_iters=30, pruner="covariance"))
-    stored = programstore.program(exploitation._run_chunk, args, {"length": 5}, task=task)
+    stored = programstore.lookup(exploitation._run_chunk, args, {"length": 5}, task=task)
     assert stored is not None
     plain = exploitation._run_chunk(*args, length=5)
     for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(stored(*args)), strict=True):
@@ -104,7 +105,7 @@ def _keys(folder) -> set[str]:
 def _store_chunk(config: ExploitConfig) -> None:
     """Store (trace, not compile) the engine's chunk for one XOR structure under ``config``."""
     task, args = _chunk_args("xor", config)
-    assert programstore.program(exploitation._run_chunk, args, {"length": 5}, task=task)
+    assert programstore.lookup(exploitation._run_chunk, args, {"length": 5}, task=task)
 
 
 def test_what_shapes_the_program_keys_it(store, monkeypatch):
@@ -133,6 +134,7 @@ def test_the_code_digest_covers_every_module_of_the_package(monkeypatch, tmp_pat
     gives another digest."""
     from eant2_jax import kernels
 
+    programstore._code_digest.cache_clear()  # the tree may have changed since it was cached
     digest = programstore._code_digest()
     assert isinstance(digest, bytes) and len(digest) == 32
     copy = tmp_path / "kernels"
@@ -182,7 +184,7 @@ def test_when_the_store_holds_nothing(store, monkeypatch):
 
     Outside.__module__ = "user_tasks"
     outside = Outside(**{f: getattr(task, f) for f in task.__dataclass_fields__})
-    assert programstore.program(exploitation._run_chunk, (outside,), {}, task=outside) is None
+    assert programstore.lookup(exploitation._run_chunk, (outside,), {}, task=outside) is None
     # Off with the compilation cache, or alone by EANT2_PROGRAM_STORE=0.
     monkeypatch.undo()
     old = jax.config.jax_compilation_cache_dir
@@ -205,7 +207,7 @@ def test_the_store_follows_the_compilation_cache(tmp_path, monkeypatch):
         assert programstore.directory() == tmp_path / "xla" / programstore.DIRNAME
     finally:
         jax.config.update("jax_compilation_cache_dir", old)
-    assert "eant2_jax.programstore" in sys.modules
+    assert "eant2_jax.programs.store" in sys.modules
 
 
 def test_the_store_holds_a_gpu_engine_program_with_its_triton_kernel(monkeypatch):

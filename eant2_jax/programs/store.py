@@ -66,12 +66,12 @@ def directory() -> Path | None:
 @functools.cache
 def _code_digest() -> bytes:
     """This package's source and the versions of what it runs on (once per process)."""
-    from . import kernels  # a folder of its own in a source checkout (pyproject.toml)
+    from .. import kernels  # a folder of its own in a source checkout (pyproject.toml)
 
     h = hashlib.sha256()
     # Named as in an installed package (``kernels/cmaes.py``), whichever the layout.
     files = {}
-    package = sys.modules[__name__.rpartition(".")[0]]
+    package = sys.modules[__name__.split(".")[0]]
     for prefix, paths in (("", package.__path__), ("kernels/", kernels.__path__)):
         for root in map(Path, paths):
             for f in root.rglob("*.py"):
@@ -157,7 +157,30 @@ def _write(path: Path, exported: export.Exported, out_tree) -> None:
         pass
 
 
-def program(fn, args: tuple, static: dict, *, task) -> Callable | None:
+_STORABLE: dict[Callable, int] = {}  # the functions whose programs may be stored: task's place
+_FAILED: list[bool] = []
+
+
+def storable(fn, *, task_at: int):
+    """Let the store hold ``fn``'s programs (a jitted function whose ``task_at``-th argument
+    is the task); returns ``fn``."""
+    _STORABLE[fn] = task_at
+    return fn
+
+
+def program(fn, args: tuple, static: dict) -> Callable | None:
+    """`lookup` for a function `storable` registered, or None (the store is off, cannot
+    hold it, or failed before in this process: each try traces)."""
+    if fn not in _STORABLE or _FAILED:
+        return None
+    try:
+        return lookup(fn, args, static, task=args[_STORABLE[fn]])
+    except Exception:  # noqa: BLE001 - e.g. an operation jax.export refuses: trace as usual
+        _FAILED.append(True)
+        return None
+
+
+def lookup(fn, args: tuple, static: dict, *, task) -> Callable | None:
     """``functools.partial(fn, **static)`` for arguments shaped like ``args``, its traced
     program read from the store (traced and stored first when the store lacks it). None
     where the store is off or cannot hold this program (a task from outside this package,

@@ -89,14 +89,14 @@ def test_the_condition_experiment_in_a_background_thread_gives_the_same_result(t
 
 
 def test_a_background_error_reaches_the_caller():
-    from eant2_jax.app.experiments import _Background
+    from eant2_jax.app.experiments import Background
 
     def boom(x):
         raise ValueError(f"bad {x}")
 
     with pytest.raises(ValueError, match="bad 3"):
-        _Background("t", boom, 3).result()
-    assert _Background("t", lambda x: x + 1, 3).result() == 4
+        Background("t", boom, 3).result()
+    assert Background("t", lambda x: x + 1, 3).result() == 4
 
 
 @pytest.mark.slow

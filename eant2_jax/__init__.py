@@ -25,9 +25,9 @@ from .genome import GeneKind as GeneKind
 from .genome import Genome as Genome
 from .genome import GenomeError as GenomeError
 from .genomefile import GenomeFile as GenomeFile
-from .genomefile import LoadedNetwork as LoadedNetwork
-from .genomefile import load as load
 from .kernels import activations as _activations
+from .loaded import LoadedNetwork as LoadedNetwork
+from .loaded import load as load
 from .reference import interpret as interpret
 
 __version__ = "0.1.0"

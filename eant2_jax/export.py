@@ -13,10 +13,19 @@ header, or one given them with ``with_activations``):
 The dense tensors are those of `eant2_jax.kernels.network` for this genome alone,
 without padding: neuron slots in topological order (descending gene index), so ``w_ff`` is
 strictly lower-triangular and ``depth`` sweeps compute a step exactly.
+
+The generated source is built from the validated structure, never from the file's text:
+numbers are formatted from the dense float32 tensors and the genome's canonical form, the
+activations' code comes from this process's registry (the file only names an entry), and
+the only names it carries (task, activations) are those matching ``[A-Za-z0-9_.:-]{1,64}``;
+any other is left out. A hostile genome file therefore cannot put code in it
+(docs/reliability.md, "Genome files").
 """
 
 from __future__ import annotations
 
+import math
+import re
 from collections.abc import Callable
 
 import jax
@@ -30,6 +39,8 @@ from .kernels import activations
 __all__ = ["dense", "formula", "from_json", "to_jax", "to_jax_source", "to_json"]
 
 _KIND_NAMES = {k: k.name.lower() for k in GeneKind}
+# The only text from a genome file that generated source may carry (module docstring).
+_SAFE_NAME = re.compile(r"[A-Za-z0-9_.:-]{1,64}")
 
 
 def _need_activations(spec: GenomeFile) -> None:
@@ -101,10 +112,17 @@ def from_json(d: dict) -> GenomeFile:
 
 
 def _literal(a: np.ndarray) -> str:
-    """A nested list literal whose float32 values parse back exactly."""
+    """A nested list literal whose float32 values parse back exactly (weights that add up
+    beyond float32 in one entry are infinite, as in the kernels' tensors)."""
     if a.ndim == 0:
-        return repr(float(a))
+        x = float(a)
+        return repr(x) if math.isfinite(x) else f"float({str(x)!r})"
     return "[" + ", ".join(_literal(x) for x in a) + "]"
+
+
+def _name(text: object) -> str | None:
+    """``text`` if it may appear in generated source (module docstring), else None."""
+    return text if isinstance(text, str) and _SAFE_NAME.fullmatch(text) else None
 
 
 def _source(name: str) -> str:
@@ -126,12 +144,15 @@ def to_jax_source(spec: GenomeFile) -> str:
     _need_activations(spec)
     d = dense(spec)
     hidden, output = _source(spec.hidden), _source(spec.output)
-    n_in = d["w_in"].shape[1]
-    task = f" on task {spec.task!r}" if spec.task else ""
+    n_in = int(d["w_in"].shape[1])
+    # The file's strings enter only through _name; the genome through its canonical form
+    # (letters from a fixed table, integers, repr of finite floats).
+    task = f" on task {_name(spec.task)}" if _name(spec.task) else ""
+    acts = [_name(spec.hidden) or "(a registered one)", _name(spec.output) or "(a registered one)"]
     lines = [
-        f'"""A network evolved by eant2_jax{task}: {n_in} inputs, {spec.n_outputs} outputs, '
-        f"{len(d['neurons'])} neurons,",
-        f"hidden activation {spec.hidden!r}, output activation {spec.output!r}.",
+        f'"""A network evolved by eant2_jax{task}: {n_in} inputs, {spec.n_outputs:d} outputs, '
+        f"{len(d['neurons']):d} neurons,",
+        f"hidden activation {acts[0]}, output activation {acts[1]}.",
         "",
         f"Genome: {spec.genome}",
         "",
@@ -149,7 +170,7 @@ def to_jax_source(spec: GenomeFile) -> str:
         "W_REC = jnp.array(" + _literal(d["w_rec"]) + ", jnp.float32)",
         "W_OUT = jnp.array(" + _literal(d["w_out"]) + ", jnp.float32)",
         "IS_ROOT = jnp.array(" + _literal(d["is_root"].astype(int)) + ", bool)",
-        f"SWEEPS = {d['sweeps']}",
+        f"SWEEPS = {d['sweeps']:d}",
         "",
         "",
         "def _hidden(a):",

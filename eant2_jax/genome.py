@@ -4,7 +4,8 @@ Paper section III.A, figure 2. Each gene carries exactly one weight, so the geno
 its number of parameters and its weight vector is in gene order.
 
 Text form (tokens separated by whitespace; ``#`` starts a comment that runs to the end of its
-line, which is where genome files keep their header, see `eant2_jax.genomefile`):
+line, which is where genome files keep their header, see `eant2_jax.genomefile`; lines end
+with ``\n`` or ``\r\n`` only, see `split_lines`):
 
 * ``N<id>/<k>*<w>`` neuron ``id`` (non-negative, unique) with ``k >= 1`` inputs, weight ``w``
 * ``I<j>*<w>``      network input ``j`` (0-based)
@@ -29,12 +30,13 @@ from __future__ import annotations
 import dataclasses
 import enum
 import math
+import numbers
 import re
 from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-__all__ = ["Gene", "GeneKind", "Genome", "GenomeError"]
+__all__ = ["MAX_ID", "Gene", "GeneKind", "Genome", "GenomeError", "parse_gene", "split_lines"]
 
 
 class GeneKind(enum.IntEnum):
@@ -71,6 +73,12 @@ _TOKEN = re.compile(
 # Neuron ids, input indices and arities are below 2**31 (they index int32 tables); a
 # longer digit string is refused before int() sees it.
 MAX_ID = 2**31 - 1
+
+# Characters Python's str.splitlines() takes as line ends, besides "\n" and the "\r" of
+# "\r\n". A viewer or terminal shows most of them inside a line (U+2028 as nothing, "\r"
+# by overwriting the line's start), so a parser that broke lines there would read genes
+# out of what a reader sees as a comment; the text is refused instead (docs/genome.md).
+_OTHER_BREAKS = re.compile("[\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")
 
 
 class GenomeError(ValueError):
@@ -120,7 +128,12 @@ def _parse_weight(text: str, position: int, token: str) -> float:
     return w
 
 
-def _parse_token(token: str, position: int) -> Gene:
+def parse_gene(token: str, position: int = 0) -> Gene:
+    """One token of the text form as a `Gene`; ``position`` is the token index errors name.
+
+    Raises:
+      GenomeError: the token is not a gene (the message names it and the reason).
+    """
     m = _TOKEN.match(token)
     if m is None:
         if "*" not in token or token.endswith("*"):
@@ -151,6 +164,31 @@ def _parse_token(token: str, position: int) -> Gene:
     if m["fid"] is not None:
         return Gene(GeneKind.FORWARD, int(m["fid"]), w)
     return Gene(GeneKind.RECURRENT, int(m["rid"]), w)
+
+
+def split_lines(text: str) -> list[str]:
+    """The lines of a genome text, by the one rule every reader of genome text follows.
+
+    A line ends at ``\n`` or ``\r\n``. Any other character that Python's
+    ``str.splitlines`` takes as a line end (a lone ``\r``, ``\x0b``, ``\x0c``,
+    ``\x1c``-``\x1e``, ``\x85``, U+2028, U+2029) is refused wherever it stands, comments
+    included: viewers show those characters inside a line, so genes after one would load
+    as a network other than the file shows.
+
+    Raises:
+      GenomeError: such a character, with its line number (1-based) and code point.
+    """
+    lines = text.split("\n")
+    for number, line in enumerate(lines, start=1):
+        body = line[:-1] if line.endswith("\r") and number < len(lines) else line
+        bad = _OTHER_BREAKS.search(body)
+        if bad is not None:
+            raise GenomeError(
+                f"line {number}: character U+{ord(bad.group()):04X} breaks lines in some "
+                "readers and not in others; genome text ends its lines with \\n or \\r\\n"
+            )
+        lines[number - 1] = body
+    return lines
 
 
 class Genome:
@@ -185,10 +223,10 @@ class Genome:
         """
         if not isinstance(text, str):
             raise TypeError(f"Genome.parse expects a str, got {type(text).__name__}")
-        tokens = [t for line in text.splitlines() for t in line.split("#", 1)[0].split()]
+        tokens = [t for line in split_lines(text) for t in line.split("#", 1)[0].split()]
         if not tokens:
             raise GenomeError("empty genome")
-        return cls(_parse_token(t, i) for i, t in enumerate(tokens))
+        return cls(parse_gene(t, i) for i, t in enumerate(tokens))
 
     def __str__(self) -> str:
         """Canonical text form: one space between tokens, weights as ``repr(float)``."""
@@ -328,14 +366,39 @@ class Genome:
         return out
 
 
+def _is_int(x: object) -> bool:
+    return isinstance(x, numbers.Integral) and not isinstance(x, bool)
+
+
+def _check_fields(g: object, i: int) -> None:
+    """The types and ranges of one gene's fields, before anything reads them (``str`` of a
+    gene of an unknown kind would fail; a float index would make ``n_inputs`` a float)."""
+    if not isinstance(g, Gene):
+        raise GenomeError(f"expected a Gene, got {type(g).__name__}", i)
+    # A GeneKind, or its integer code (an IntEnum equals its code, so both work alike).
+    if not (isinstance(g.kind, GeneKind) or (_is_int(g.kind) and 0 <= g.kind < len(GeneKind))):
+        raise GenomeError(
+            f"unknown gene kind {g.kind!r:.40} (expected a GeneKind: "
+            f"{', '.join(k.name for k in GeneKind)})",
+            i,
+        )
+    name = GeneKind(g.kind).name
+    for field, value in (("ref", g.ref), ("arity", g.arity)):
+        if not _is_int(value):
+            raise GenomeError(f"{name} gene: {field} must be an integer, got {value!r:.40}", i)
+        if abs(value) > MAX_ID:
+            raise GenomeError(f"{name} gene: {field} {value} is beyond +-{MAX_ID}", i)
+    if not isinstance(g.weight, numbers.Real) or isinstance(g.weight, bool):
+        raise GenomeError(f"{name} gene: weight must be a real number, got {g.weight!r:.40}", i)
+
+
 def _validate(genes: tuple[Gene, ...]) -> tuple[np.ndarray, tuple[int, ...], dict[int, int]]:
     """Check the genome and derive (parent, roots, neuron_position). Raises GenomeError."""
     if not genes:
         raise GenomeError("empty genome")
     neuron_position: dict[int, int] = {}
     for i, g in enumerate(genes):
-        if not isinstance(g, Gene):
-            raise GenomeError(f"expected a Gene, got {type(g).__name__}", i)
+        _check_fields(g, i)
         if not math.isfinite(g.weight):
             raise GenomeError(f"non-finite weight {g.weight!r}", i, str(g))
         if g.kind == GeneKind.NEURON:

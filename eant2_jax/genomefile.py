@@ -15,33 +15,37 @@ else null). ``Genome.parse`` skips comments, so every reader of the bare text fo
 these files too; a file without the header (as written before the header existed) is still
 a genome file, whose activations the caller must then name.
 
-`load` returns a `LoadedNetwork`: the network, callable on inputs, evaluated
-by the same kernels as the run that wrote it. Host side, except the call itself.
+Reading (`GenomeFile.read`, `read_text`) trusts nothing the file says about itself: the
+path must lead to a regular file (a symbolic link to one is fine; ``/dev/zero``, a FIFO or
+a directory are refused without blocking), at most `MAX_BYTES` + 1 bytes are read whatever
+its size claims, the text must be UTF-8 whose lines end as `eant2_jax.genome.split_lines`
+says, and the header must be JSON nested at most `eant2_jax.jsonio.MAX_DEPTH` deep, with
+the field types above. Every problem is one `GenomeFileError` line.
+
+`eant2_jax.loaded.load` turns a file into a network callable on inputs, and
+`eant2_jax.export` into JSON, standalone JAX source or a formula; both build on this
+module, which is host-side Python and imports neither.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import os
+import stat
 from pathlib import Path
 from typing import Any
 
-import jax
-import jax.numpy as jnp
-import numpy as np
-from numpy.typing import ArrayLike
+from . import jsonio
+from .genome import MAX_ID, Genome, GenomeError, split_lines
 
-from .compiler import networks
-from .genome import Genome
-from .kernels import activations
-from .kernels import network as kn
-
-__all__ = ["FORMAT", "GenomeFile", "GenomeFileError", "LoadedNetwork", "load"]
+__all__ = ["FORMAT", "HEADER", "MAX_BYTES", "GenomeFile", "GenomeFileError", "read_text"]
 
 FORMAT = 1
 HEADER = "# eant2-genome "
+# The most bytes a genome file may hold (about 4 million genes): a reader reads one more to
+# know, whatever the file system says of the file's size.
+MAX_BYTES = 64 * 2**20
 
 
 class GenomeFileError(ValueError):
@@ -72,12 +76,23 @@ class GenomeFile:
             raise TypeError(f"GenomeFile.genome must be a Genome, got {type(self.genome)}")
         if (self.hidden is None) != (self.output is None):
             raise GenomeFileError("a genome file names both activations or neither")
-        if self.n_inputs is not None and (
-            not isinstance(self.n_inputs, int) or self.n_inputs < self.genome.n_inputs
-        ):
+        for key in ("hidden", "output"):
+            name = getattr(self, key)
+            # Activation names are Python identifiers (kernels.activations.register).
+            if name is not None and not (isinstance(name, str) and name.isidentifier()):
+                raise GenomeFileError(f"{key} activation {jsonio.short(name)} is not a name")
+        n = self.n_inputs
+        if n is not None and (not isinstance(n, int) or isinstance(n, bool) or n > MAX_ID):
+            raise GenomeFileError(f"n_inputs must be an integer up to {MAX_ID}, got {n!r:.40}")
+        if n is not None and n < self.genome.n_inputs:
             raise GenomeFileError(
-                f"n_inputs {self.n_inputs!r} is below the {self.genome.n_inputs} inputs "
-                "the genome reads"
+                f"n_inputs {n!r} is below the {self.genome.n_inputs} inputs the genome reads"
+            )
+        if self.task is not None and not isinstance(self.task, str):
+            raise GenomeFileError(f"task must be a string or null, got {jsonio.short(self.task)}")
+        if self.task_options is not None and not isinstance(self.task_options, dict):
+            raise GenomeFileError(
+                f"task_options must be an object or null, got {jsonio.short(self.task_options)}"
             )
 
     @property
@@ -130,29 +145,37 @@ class GenomeFile:
     @classmethod
     def parse(cls, text: str, *, source: str = "genome file") -> GenomeFile:
         """Read a file's text; ``source`` names it in errors. A file without a header is
-        accepted (its activations are None)."""
-        first = text.lstrip().split("\n", 1)[0]
+        accepted (its activations are None).
+
+        Raises:
+          GenomeFileError: one line naming ``source`` and what is wrong (the genes, a line
+            end, the header's JSON or one of its fields).
+        """
+        if not isinstance(text, str):
+            raise TypeError(f"GenomeFile.parse expects a str, got {type(text).__name__}")
         try:
+            lines = split_lines(text)  # the genes are read by the same rule, in Genome.parse
             genome = Genome.parse(text)
-        except ValueError as e:
+        except GenomeError as e:
             raise GenomeFileError(f"{source}: {e}") from None
+        first = next((line.lstrip() for line in lines if line.strip()), "")
         if not first.startswith(HEADER.rstrip()):
             return cls(genome)
-        try:
-            head = json.loads(first[len(HEADER.rstrip()) :])
-        except json.JSONDecodeError as e:
-            raise GenomeFileError(f"{source}: header is not valid JSON: {e}") from None
-        if not isinstance(head, dict) or head.get("format") != FORMAT:
+        head = jsonio.loads(
+            first[len(HEADER.rstrip()) :], f"{source}: header", strict=False, error=GenomeFileError
+        )
+        fmt = head.get("format") if isinstance(head, dict) else None
+        if not isinstance(fmt, int) or isinstance(fmt, bool) or fmt != FORMAT:
             raise GenomeFileError(f"{source}: header is not of format {FORMAT}")
         for key in ("hidden", "output"):
             if not isinstance(head.get(key), str):
                 raise GenomeFileError(f"{source}: header has no activation name {key!r}")
-        if head.get("n_outputs", genome.n_outputs) != genome.n_outputs:
+        n_out = head.get("n_outputs", genome.n_outputs)
+        if not isinstance(n_out, int) or isinstance(n_out, bool) or n_out != genome.n_outputs:
             raise GenomeFileError(
-                f"{source}: header says {head['n_outputs']} outputs, the genome has "
+                f"{source}: header says {jsonio.short(n_out)} outputs, the genome has "
                 f"{genome.n_outputs}"
             )
-        options = head.get("task_options")
         try:
             return cls(
                 genome,
@@ -160,22 +183,15 @@ class GenomeFile:
                 output=head["output"],
                 n_inputs=head.get("n_inputs"),
                 task=head.get("task"),
-                task_options=options if isinstance(options, dict) else None,
+                task_options=head.get("task_options"),
             )
         except GenomeFileError as e:
-            raise GenomeFileError(f"{source}: {e}") from None
+            raise GenomeFileError(f"{source}: header: {e}") from None
 
     @classmethod
     def read(cls, path: str | os.PathLike) -> GenomeFile:
-        """Read a genome file (with or without a header)."""
-        p = Path(path)
-        try:
-            text = p.read_text(encoding="utf-8")
-        except OSError as e:
-            raise GenomeFileError(f"cannot read {p}: {e.strerror}") from None
-        except UnicodeDecodeError as e:
-            raise GenomeFileError(f"{p}: not UTF-8 text (byte {e.start})") from None
-        return cls.parse(text, source=str(p))
+        """Read a genome file (with or without a header), bounded as `read_text` says."""
+        return cls.parse(read_text(path), source=str(Path(path)))
 
     def write(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
         """Write the file; refuses to replace an existing one unless ``overwrite``."""
@@ -203,131 +219,39 @@ class GenomeFile:
         return dataclasses.replace(self, hidden=hidden, output=output)
 
 
-@functools.partial(jax.jit, static_argnames=("hidden", "output"))
-def _rollout(net: kn.Network, xs: jax.Array, *, hidden: str, output: str) -> jax.Array:
-    """``[T, M, n_in] -> [T, M, n_out]``: one network over M streams (a task's predict)."""
-    run = functools.partial(kn.rollout, net, hidden=hidden, output=output)
-    return jax.vmap(run, in_axes=1, out_axes=1)(xs)
+def read_text(path: str | os.PathLike, *, limit: int = MAX_BYTES) -> str:
+    """The text of a genome file, read within bounds (module docstring).
 
+    The path is opened without blocking (a FIFO with no writer would block a plain open)
+    and must then be a regular file; at most ``limit + 1`` bytes are read, so a file that
+    claims size 0 (``/proc``) or grows while read cannot exhaust memory.
 
-@functools.partial(jax.jit, static_argnames=("hidden", "output"))
-def _step(net: kn.Network, x: jax.Array, h: jax.Array, *, hidden: str, output: str):
-    """``([M, n_in], [M, H]) -> ([M, n_out], [M, H])``: one step of M streams."""
-    one = functools.partial(kn.step, net, hidden=hidden, output=output)
-    return jax.vmap(one)(x, h)
-
-
-class LoadedNetwork:
-    """A network ready to run: a genome file's genome, activations and input width.
-
-    Calls run through the same kernels (``eant2_jax.kernels.network``) and the same
-    compilation route (``eant2_jax.compiler.networks``) as a run's tasks, in float32.
-
-    * ``net(x)`` with ``x`` of shape ``[n_in]`` is one step from the zero state (``[n_out]``);
-      ``[M, n_in]``: M independent examples, one step each (``[M, n_out]``);
-      ``[T, M, n_in]``: M streams of T steps, the recurrent state carried along each stream
-      and zero before the first step, as `eant2_jax.evaluate` (``[T, M, n_out]``).
-    * ``net.step(x, state)`` for closed-loop use: ``x`` ``[n_in]`` or ``[M, n_in]``, ``state``
-      from `initial_state`; returns ``(y, state)``.
+    Raises:
+      GenomeFileError: unreadable, not a regular file, over ``limit`` bytes, or not UTF-8.
     """
-
-    def __init__(self, spec: GenomeFile):
-        if not spec.has_header:
-            raise GenomeFileError("LoadedNetwork needs the activations (a file with a header)")
-        activations.get(spec.hidden), activations.get(spec.output)  # clear error if unknown
-        self.spec = spec
-        self.n_inputs = spec.n_inputs if spec.n_inputs is not None else spec.genome.n_inputs
-        self.n_outputs = spec.genome.n_outputs
-        nets = networks([spec.genome], self.n_inputs)
-        self._net = jax.tree.map(lambda a: a[0], nets)
-
-    @property
-    def genome(self) -> Genome:
-        return self.spec.genome
-
-    def __repr__(self) -> str:
-        s = self.spec
-        return (
-            f"LoadedNetwork({s.genome.n_params} parameters, {self.n_inputs} inputs, "
-            f"{self.n_outputs} outputs, hidden={s.hidden!r}, output={s.output!r}, "
-            f"task={s.task!r})"
-        )
-
-    def _inputs(self, x: ArrayLike, ndims: tuple[int, ...]) -> np.ndarray:
-        a = np.asarray(x)
-        if not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
-            raise TypeError(f"inputs must be real numbers, got dtype {a.dtype}")
-        if a.ndim not in ndims or a.shape[-1] != self.n_inputs:
-            shapes = {1: "[n_in]", 2: "[M, n_in]", 3: "[T, M, n_in]"}
-            raise ValueError(
-                f"inputs must have shape {' or '.join(shapes[n] for n in ndims)} with "
-                f"n_in = {self.n_inputs}, got shape {a.shape}"
-            )
-        return a.astype(np.float32)
-
-    def __call__(self, x: ArrayLike) -> jax.Array:
-        a = self._inputs(x, (1, 2, 3))
-        xs = a.reshape((1,) * (4 - a.ndim - 1) + a.shape) if a.ndim < 3 else a
-        ys = _rollout(self._net, jnp.asarray(xs), hidden=self.spec.hidden, output=self.spec.output)
-        return ys.reshape(*a.shape[:-1], self.n_outputs)
-
-    def initial_state(self, streams: int | None = None) -> jax.Array:
-        """The state before the first step: zeros ``[H]`` (or ``[streams, H]``)."""
-        h = self._net.bias.shape[-1]
-        return jnp.zeros((h,) if streams is None else (streams, h), jnp.float32)
-
-    def step(self, x: ArrayLike, state: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """One step: ``x`` ``[n_in]`` or ``[M, n_in]``, ``state`` of the matching shape."""
-        a = self._inputs(x, (1, 2))
-        s = jnp.asarray(state, jnp.float32)
-        if s.shape != (*a.shape[:-1], self._net.bias.shape[-1]):
-            raise ValueError(
-                f"state must have shape {(*a.shape[:-1], self._net.bias.shape[-1])} "
-                f"(from initial_state), got {s.shape}"
-            )
-        y, h = _step(
-            self._net,
-            jnp.asarray(a.reshape(-1, a.shape[-1])),
-            s.reshape(-1, s.shape[-1]),
-            hidden=self.spec.hidden,
-            output=self.spec.output,
-        )
-        return y.reshape(*a.shape[:-1], self.n_outputs), h.reshape(s.shape)
-
-    # Exports (eant2_jax.export), for convenience.
-    def to_json(self) -> dict:
-        from .export import to_json
-
-        return to_json(self.spec)
-
-    def to_jax(self):
-        from .export import to_jax
-
-        return to_jax(self.spec)
-
-    def to_jax_source(self) -> str:
-        from .export import to_jax_source
-
-        return to_jax_source(self.spec)
-
-    def formula(self, **kw) -> str:
-        from .export import formula
-
-        return formula(self.spec, **kw)
-
-
-def load(
-    path: str | os.PathLike, *, hidden: str | None = None, output: str | None = None
-) -> LoadedNetwork:
-    """Load a genome file as a callable network.
-
-    Args:
-      path: a genome file (a run directory's ``best.genome``, or any file of the format).
-      hidden: activation name of hidden neurons; needed only for a file without a header
-        (one written before genome files had one), and must agree with the header otherwise.
-      output: activation name of root (output) neurons; likewise.
-
-    Returns:
-      The `LoadedNetwork`.
-    """
-    return LoadedNetwork(GenomeFile.read(path).with_activations(hidden, output))
+    p = Path(path)
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(p, flags)
+    except (OSError, ValueError) as e:  # ValueError: a NUL in the path
+        raise GenomeFileError(f"cannot read {p}: {getattr(e, 'strerror', None) or e}") from None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise GenomeFileError(f"{p}: not a regular file (a genome file must be one)")
+        chunks, size = [], 0
+        while size <= limit:
+            chunk = os.read(fd, min(2**20, limit + 1 - size))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+    except OSError as e:
+        raise GenomeFileError(f"cannot read {p}: {e.strerror or e}") from None
+    finally:
+        os.close(fd)
+    if size > limit:
+        raise GenomeFileError(f"{p}: more than {limit:,} bytes, more than a genome file may hold")
+    try:
+        return b"".join(chunks).decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise GenomeFileError(f"{p}: not UTF-8 text (byte {e.start})") from None

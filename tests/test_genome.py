@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from strategies import INVALID_CASES, fewer_examples, genomes, invalid_genomes
 
-from eant2_jax.genome import Gene, GeneKind, Genome, GenomeError, _parse_token
+from eant2_jax.genome import MAX_ID, Gene, GeneKind, Genome, GenomeError, parse_gene, split_lines
 
 # README's worked example: two outputs, a forward jumper to the second root, a recurrent one.
 EXAMPLE = "N0/3*1.0 F2*0.3 N1/2*0.5 I0*1 I1*-2 R0*0.7 N2/2*-1.2 B*0.1 I2*0.4"
@@ -48,7 +48,7 @@ def test_canonical_form():
 def _same_gene_part(reported: str, written: str) -> bool:
     """Errors found while parsing a token quote it as written; errors found by validating the
     whole genome quote the gene in canonical form (``N0/1*1.0`` for ``N00/1*1``)."""
-    return reported == written or reported == str(_parse_token(written, 0))
+    return reported == written or reported == str(parse_gene(written, 0))
 
 
 _TOKEN_PIECES = st.sampled_from(
@@ -286,9 +286,57 @@ def test_forward_jumper_to_a_root_on_its_right_is_valid():
         ([Gene(GeneKind.NEURON, 0, 1.0, 0)], 0, "k >= 1"),
         ([Gene(GeneKind.NEURON, 0, 1.0, 1), Gene(GeneKind.BIAS, -1, math.nan)], 1, "non-finite"),
         ([Gene(GeneKind.NEURON, 0, 1.0, 1), Gene(GeneKind.RECURRENT, -3, 1.0)], 1, "not exist"),
+        # Fields of the wrong type or range: one error naming the gene, before str(gene)
+        # (KeyError: 9) or n_inputs (2.0) could see them.
+        ([Gene(9, 0, 1.0)], 0, "unknown gene kind 9"),
+        ([Gene(GeneKind.NEURON, 0, 1.0, 1), Gene(-1, 0, 1.0)], 1, "unknown gene kind -1"),
+        ([Gene(GeneKind.NEURON, 0, 1.0, 1), Gene("I", 0, 1.0)], 1, "unknown gene kind 'I'"),
+        ([Gene(GeneKind.NEURON, 0, 1.0, 1), Gene(True, 0, 1.0)], 1, "unknown gene kind True"),
+        ([Gene(GeneKind.NEURON, 0, 1.0, 1), Gene(GeneKind.INPUT, 1.0, 1.0)], 1, "ref must be"),
+        ([Gene(GeneKind.NEURON, 0.0, 1.0, 1), Gene(GeneKind.BIAS, -1, 1.0)], 0, "ref must be"),
+        ([Gene(GeneKind.NEURON, 0, 1.0, 1.0), Gene(GeneKind.BIAS, -1, 1.0)], 0, "arity must"),
+        ([Gene(GeneKind.NEURON, 0, 1.0, True), Gene(GeneKind.BIAS, -1, 1.0)], 0, "arity must"),
+        ([Gene(GeneKind.NEURON, 0, 1.0, 1), Gene(GeneKind.INPUT, 2**31, 1.0)], 1, "beyond"),
+        ([Gene(GeneKind.NEURON, 0, "1", 1), Gene(GeneKind.BIAS, -1, 1.0)], 0, "weight must be"),
+        ([Gene(GeneKind.NEURON, 0, 1.0, 1), Gene(GeneKind.BIAS, -1, 1j)], 1, "weight must be"),
     ],
 )
 def test_invalid_genes(genes, position, phrase):
     with pytest.raises(GenomeError, match=phrase) as info:
         Genome(genes)
     assert info.value.position == position
+
+
+def test_gene_fields_of_other_integer_types():
+    """Integer codes and NumPy integers are integers (an IntEnum equals its code); the
+    genome is the one written with GeneKind members and Python ints."""
+    plain = Genome.parse("N3/1*1.5 I2*1.0")
+    other = Genome([Gene(0, np.int64(3), np.float32(1.5), np.int32(1)), Gene(1, 2, 1.0)])
+    assert other == plain and str(other) == str(plain) and other.n_inputs == 3
+    assert type(other.n_inputs) is int
+    assert Genome.parse(f"N{MAX_ID}/1*1 I{MAX_ID}*1").n_inputs == MAX_ID + 1
+
+
+def test_parse_gene():
+    assert parse_gene("N4/2*-0.5") == Gene(GeneKind.NEURON, 4, -0.5, 2)
+    assert parse_gene("B*1e-3") == Gene(GeneKind.BIAS, -1, 1e-3)
+    with pytest.raises(GenomeError, match="token 7 'X1\\*1': unknown token") as e:
+        parse_gene("X1*1", 7)
+    assert e.value.position == 7
+
+
+def test_one_line_rule():
+    """Lines end at \n or \r\n; any other character str.splitlines() breaks at is refused,
+    comments included (a viewer shows it inside the line: genes after it would be read out
+    of what the reader sees as a comment)."""
+    assert split_lines("a\r\nb\nc\r\n") == ["a", "b", "c", ""]
+    assert Genome.parse("N0/2*1 # two\r\n I0*1\r\n\tB*1\r\n") == Genome.parse("N0/2*1 I0*1 B*1")
+    breaks = [c for c in map(chr, range(0x110000)) if len(f"a{c}b".splitlines()) == 2]
+    assert len(breaks) == 10  # \n and the nine below
+    for c in breaks:
+        if c == "\n":
+            continue
+        for text in (f"N0/1*1 # x{c}N1/1*1 B*1\nB*1", f"N0/1*1{c}B*1", f"N0/1*1 B*1\n#{c}"):
+            with pytest.raises(GenomeError, match=f"U\\+{ord(c):04X}") as e:
+                Genome.parse(text)
+            assert e.value.position is None and len(str(e.value).splitlines()) == 1

@@ -8,9 +8,12 @@ order: 1e-12.
 
 from __future__ import annotations
 
+import ast
 import builtins
 import json
+import os
 import re
+import threading
 from pathlib import Path
 from unittest import mock
 
@@ -26,8 +29,9 @@ import eant2_jax
 from eant2_jax import export
 from eant2_jax.compiler import networks
 from eant2_jax.genome import Genome
-from eant2_jax.genomefile import GenomeFile, GenomeFileError, load
+from eant2_jax.genomefile import GenomeFile, GenomeFileError, read_text
 from eant2_jax.kernels import activations
+from eant2_jax.loaded import load
 from eant2_jax.reference import interpret
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,7 +69,7 @@ def test_file_without_header_stays_readable(tmp_path):
 @pytest.mark.parametrize(
     ("header", "message"),
     [
-        ("# eant2-genome {oops", "not valid JSON"),
+        ("# eant2-genome {oops", "header is corrupt: Expecting property name"),
         ('# eant2-genome {"format": 2, "hidden": "tanh", "output": "tanh"}', "format 1"),
         ('# eant2-genome {"format": 1, "hidden": "tanh"}', "no activation name 'output'"),
         (
@@ -253,3 +257,177 @@ def test_export_of_an_activation_without_source():
 
 def test_top_level_names():
     assert eant2_jax.load is load and eant2_jax.GenomeFile is GenomeFile
+
+
+# ------------------------------------------------------------------- trust boundaries
+def _hostile_tasks(marker: Path) -> list[str]:
+    """Task names that try to leave the generated module's docstring or its lines."""
+    run = f'__import__("os").system("touch {marker}")'
+    return [
+        f'x""" + {run} + """',  # closes the docstring (what repr() let through)
+        f"x''' + {run} + '''",
+        f'x"""\n{run}\n"""',
+        f'x\\\\""" + {run} + \\',  # backslashes
+        f"x\u2028{run}\u2029\x85\r",  # line ends Python's tokenizer or a viewer may take
+        f"__import__('os').system('touch {marker}')",
+    ]
+
+
+def test_to_jax_of_a_hostile_header_runs_nothing(tmp_path):
+    """A genome file's strings never reach generated code: for each hostile task name
+    (written by an attacker into a real header), the exported source holds none of it, its
+    only string is its docstring, exec runs nothing (no marker file), and the function
+    computes what eant2_jax.evaluate computes."""
+    marker = tmp_path / "ran"
+    x = np.random.default_rng(3).uniform(-1, 1, size=(4, 2, 4)).astype(np.float32)
+    want = eant2_jax.evaluate(EXAMPLE, x, hidden="sigmoid", output="tanh")
+    for i, task in enumerate(_hostile_tasks(marker)):
+        path = tmp_path / f"h{i}.genome"
+        head = _spec(task=task, task_options={"k": task}).header()
+        path.write_text("# eant2-genome " + json.dumps(head) + "\n" + EXAMPLE)
+        net = load(path)
+        assert net.spec.task == task
+        source = net.to_jax_source()
+        module = ast.parse(source)
+        strings = [n.value for n in ast.walk(module) if isinstance(n, ast.Constant)]
+        strings = [v for v in strings if isinstance(v, str)]
+        assert strings == [ast.get_docstring(module, clean=False)], strings
+        assert "import" not in strings[0] and "task" not in strings[0]
+        assert [type(n).__name__ for n in module.body[:3]] == ["Expr", "Import", "Import"]
+        got = np.asarray(net.to_jax()(x))
+        assert not marker.exists(), f"to_jax ran the file's code (task {task!r})"
+        assert_close(got[None], want)
+
+
+def test_exported_names_pass_a_whitelist():
+    spec = _spec(task="gymnax:CartPole-v1")
+    assert "on task gymnax:CartPole-v1:" in export.to_jax_source(spec)
+    assert "hidden activation sigmoid, output activation tanh." in export.to_jax_source(spec)
+    assert " on task" not in export.to_jax_source(_spec(task="a b"))
+    assert " on task" not in export.to_jax_source(_spec(task="x" * 65))
+
+
+@pytest.mark.parametrize(
+    ("header", "message"),
+    [
+        ('{"format": 1, "hidden": "tanh", "output": "tanh", "task": 5}', "task must be a str"),
+        ('{"format": 1, "hidden": "tanh", "output": "tanh", "task": ["x"]}', "task must be"),
+        ('{"format": 1, "hidden": "tanh", "output": "tanh", "task_options": [1]}', "an object"),
+        ('{"format": true, "hidden": "tanh", "output": "tanh"}', "not of format 1"),
+        ('{"format": 1.0, "hidden": "tanh", "output": "tanh"}', "not of format 1"),
+        ('{"format": 1, "hidden": "tanh", "output": "tanh", "n_outputs": 2.0}', "says 2.0 out"),
+        ('{"format": 1, "hidden": "tanh", "output": "tanh", "n_inputs": 4.0}', "n_inputs must"),
+        ('{"format": 1, "hidden": "tanh", "output": "tanh", "n_inputs": true}', "n_inputs must"),
+        ('{"format": 1, "hidden": "tanh", "output": "tanh", "n_inputs": 1e999}', "n_inputs must"),
+        ('{"format": 1, "hidden": "tanh", "output": "tanh", "n_inputs": 2147483648}', "up to"),
+        ('{"format": 1, "hidden": "a b", "output": "tanh"}', "hidden activation 'a b' is not"),
+        ('{"format": 1, "hidden": "tanh", "output": "tanh", "x": ' + "[" * 100_000, "deeper"),
+        ('{"format": 1, "hidden": "tanh", "output": "tanh", "n_inputs": 1' + "0" * 5000, "corr"),
+    ],
+)
+def test_hostile_header_fields_end_in_one_line(tmp_path, header, message):
+    """Header fields of the wrong type or size (a 100,000-deep header, a non-string task)
+    are one GenomeFileError line naming the file, before anything uses them."""
+    path = tmp_path / "bad.genome"
+    path.write_text("# eant2-genome " + header + "\n" + EXAMPLE + "\n")
+    with pytest.raises(GenomeFileError, match=re.escape(message)) as e:
+        GenomeFile.read(path)
+    assert str(path) in str(e.value) and len(str(e.value).splitlines()) == 1
+
+
+def test_one_line_rule_for_genome_files(tmp_path):
+    """Genes after a line end other than \\n (U+2028 inside the header, a lone \\r, NEL)
+    would load as a network other than the file shows: such a file is refused, whatever
+    reads it; \\r\\n (a file saved on Windows) reads as \\n."""
+    head = _spec(n_inputs=3, task="x<SEP>N9/1*5 B*1 #").header()
+    del head["n_outputs"]  # so that an extra root would not be noticed
+    line = "# eant2-genome " + json.dumps(head) + "\n" + EXAMPLE + "\n"
+    for sep in ("\u2028", "\u2029", "\r", "\x85", "\x0b", "\x0c", "\x1c"):
+        text = line.replace("<SEP>", sep)  # a viewer shows it inside the header line
+        with pytest.raises(GenomeFileError, match=f"U\\+{ord(sep):04X}"):
+            GenomeFile.parse(text)
+        path = tmp_path / "sep.genome"
+        path.write_text(text, newline="")
+        with pytest.raises(GenomeFileError, match="line 1: character"):
+            load(path)
+        with pytest.raises(eant2_jax.GenomeError, match="line 1: character"):
+            Genome.parse(text)
+    plain = _spec(task="xor").to_text()
+    assert GenomeFile.parse(plain.replace("\n", "\r\n")) == GenomeFile.parse(plain)
+
+
+def test_reads_are_bounded_by_bytes_read(tmp_path):
+    """Reading trusts no size the file system reports: /proc files claim 0 bytes, and a
+    limit is met by counting what was read."""
+    proc = Path("/proc/self/status")
+    if proc.exists():
+        assert proc.stat().st_size == 0
+        with pytest.raises(GenomeFileError, match="more than 100 bytes"):
+            read_text(proc, limit=100)
+        assert "Name:" in read_text(proc)
+    path = tmp_path / "a.genome"
+    path.write_bytes(b"N0/1*1 B*1\n")
+    assert read_text(path, limit=11) == "N0/1*1 B*1\n"
+    with pytest.raises(GenomeFileError, match="more than 10 bytes"):
+        read_text(path, limit=10)
+    path.write_bytes(b"N0/1*1 B*\xff1\n")
+    with pytest.raises(GenomeFileError, match="not UTF-8 text"):
+        GenomeFile.read(path)
+
+
+def _in_thread(fn, timeout=20.0):
+    """``fn()``'s exception (None if it returned), failing the test if it blocks."""
+    out: dict = {}
+
+    def target():
+        try:
+            fn()
+        except BaseException as e:  # noqa: BLE001 - handed back to the test
+            out["error"] = e
+
+    thread = threading.Thread(target=target, daemon=True)
+    thread.start()
+    thread.join(timeout)
+    assert not thread.is_alive(), "the read blocked"
+    return out.get("error")
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_special_files_end_in_one_line(tmp_path):
+    """A best.genome linked to /dev/zero, a FIFO nobody writes, a directory: one line each,
+    without blocking or reading; a link to a regular file is read."""
+    (tmp_path / "zero.genome").symlink_to("/dev/zero")
+    os.mkfifo(tmp_path / "fifo.genome")
+    (tmp_path / "dir.genome").mkdir()
+    for name in ("zero.genome", "fifo.genome", "dir.genome"):
+        for read in (GenomeFile.read, load):
+            err = _in_thread(lambda read=read, name=name: read(tmp_path / name))
+            assert isinstance(err, GenomeFileError), err
+            assert "not a regular file" in str(err) and len(str(err).splitlines()) == 1
+    err = _in_thread(lambda: GenomeFile.read(tmp_path / "missing.genome"))
+    assert isinstance(err, GenomeFileError) and "No such file" in str(err)
+    _spec().write(tmp_path / "real.genome")
+    (tmp_path / "link.genome").symlink_to(tmp_path / "real.genome")
+    assert GenomeFile.read(tmp_path / "link.genome") == _spec()
+
+
+def _package_imports(module: str) -> set[str]:
+    """The eant2_jax modules a module's source imports, at any depth of its code."""
+    tree = ast.parse((ROOT / "eant2_jax" / f"{module}.py").read_text())
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.level == 1:
+            found |= {node.module} if node.module else {a.name for a in node.names}
+    return found
+
+
+def test_genome_file_modules_import_one_way():
+    """genome <- genomefile <- export <- loaded: the file format imports neither its
+    exports nor the loader (they imported each other), nor JAX."""
+    assert _package_imports("genomefile") <= {"genome", "jsonio"}
+    assert "loaded" not in _package_imports("export")
+    assert {"genomefile", "export"} <= _package_imports("loaded")
+    tree = ast.parse((ROOT / "eant2_jax" / "genomefile.py").read_text())
+    absolute = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    absolute |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and not n.level}
+    assert not any(m.split(".")[0] in {"jax", "numpy"} for m in absolute), absolute

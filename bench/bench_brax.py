@@ -143,7 +143,7 @@ def _options(p: argparse.ArgumentParser) -> None:
                    help='"ENV ARGS...": brax:ENV (or a task NAMESPACE:NAME, e.g. '
                    "playground:CartpoleBalance) and arguments of eant2 run (repeatable; "
                    "default: the two cases of the module docstring)")  # fmt: skip
-    p.add_argument("--seed", type=int, default=0)
+    harness.run_options(p, seed=0)
     p.add_argument("--episodes", type=int, default=100,
                    help="new episodes the best network plays after the run (0: none)")  # fmt: skip
     p.add_argument("--budget-s", type=float, default=600.0,

@@ -256,7 +256,7 @@ def _options(ap: argparse.ArgumentParser) -> None:
         choices=["batched", "buckets", "scan", "lazy", "evosax", "pycma"],
         help="engines to run (default all)",
     )
-    ap.add_argument("--seed", type=int, default=0)
+    harness.run_options(ap, seed=0)
 
 
 def _prepare(args: argparse.Namespace) -> None:

@@ -118,10 +118,7 @@ def _render(payload: dict) -> str:
 
 
 def _options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--task", default="servo")
-    p.add_argument("--population", type=int, default=5)
-    p.add_argument("--generations", type=int, default=1)
-    p.add_argument("--seed", type=int, default=0)
+    harness.run_options(p, task="servo", population=5, generations=1, seed=0)
     p.add_argument("--pythonpath", nargs="*", default=[],
                    help="other installs of eant2_jax to time side by side")  # fmt: skip
     p.add_argument("--rounds", type=int, default=1,

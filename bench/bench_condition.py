@@ -25,11 +25,10 @@ from bench.common import BenchInputError, Column, environment, markdown_table
 
 def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--genome-file", required=True)
-    p.add_argument("--task", default="servo")
+    harness.run_options(p, task="servo", seed=0)
     p.add_argument("--iters", type=int, default=10_000)
     p.add_argument("--inits", type=int, default=5)
     p.add_argument("--max-condition", type=float, default=1e17)
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--prune-iters", type=int, default=2000)
     p.add_argument(
         "--evolved-warmup", type=int, default=0,

@@ -169,10 +169,14 @@ def _options(p: argparse.ArgumentParser) -> None:
                    choices=["none", "covariance"],
                    help="engines timed by the iteration part (none: the tax's base)")  # fmt: skip
     p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--task", default="servo", help="task of the repeat part")
-    p.add_argument("--population", type=int, default=5)
-    p.add_argument("--generations", type=int, default=2)
-    p.add_argument("--seed", type=int, default=0)
+    harness.run_options(
+        p,
+        task="servo",
+        population=5,
+        generations=2,
+        seed=0,
+        helps={"task": "task of the repeat part"},
+    )
     p.add_argument("--pythonpath", nargs="*", default=[],
                    help="other installs of eant2_jax to time side by side")  # fmt: skip
 

@@ -548,9 +548,9 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--envs", nargs="+", choices=sorted(ENVS), default=None,
                    help="default: all (with --quick: cartpole)")  # fmt: skip
     p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
-    p.add_argument("--seeds", type=int, default=3)
-    p.add_argument("--first-seed", type=int, default=0,
-                   help="seeds are first-seed .. first-seed + seeds - 1")  # fmt: skip
+    harness.run_options(
+        p, seeds=3, first_seed=0, population=None, helps={"population": "eant2 population override"}
+    )
     p.add_argument("--budget", type=int, default=None,
                    help="evaluations per run (default: each environment's, ENVS)")  # fmt: skip
     p.add_argument("--deadline-s", type=float, default=600.0,
@@ -562,7 +562,6 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-episodes", type=int, default=100,
                    help="new episodes each champion plays after the run")  # fmt: skip
     p.add_argument("--backend", default="spring", help="brax physics backend, both methods")
-    p.add_argument("--population", type=int, default=None, help="eant2 population override")
     p.add_argument("--max-iters", type=int, default=None, help="eant2 CMA-ES iterations override")
     p.add_argument("--tensorneat", default=None,
                    help="folder holding TensorNEAT's tensorneat package (its src/)")  # fmt: skip

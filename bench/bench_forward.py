@@ -218,7 +218,7 @@ def _options(ap: argparse.ArgumentParser) -> None:
         default=None,
         help="genome sizes also run with 2x padding (default: the middle size)",
     )
-    ap.add_argument("--seed", type=int, default=0)
+    harness.run_options(ap, seed=0)
 
 
 def _prepare(args: argparse.Namespace) -> None:

@@ -53,7 +53,7 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cases", type=int, default=10_000, help="corrupted run directories")
     p.add_argument("--genomes", type=int, default=5_000, help="corrupted genome texts")
     p.add_argument("--resumes", type=int, default=3, help="accepted cases really resumed")
-    p.add_argument("--seed", type=int, default=0, help="seed of the mutations' PRNG key")
+    harness.run_options(p, seed=0, helps={"seed": "seed of the mutations' PRNG key"})
 
 
 def _prepare(args: argparse.Namespace) -> None:

@@ -222,12 +222,10 @@ def bench_eigh(args) -> list[dict]:
 
 def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--parts", default="generation,pruning,scaling")
-    p.add_argument("--population", type=int, default=20)
-    p.add_argument("--generations", type=int, default=4)
+    harness.run_options(p, task="servo", population=20, generations=4, seed=0)
     p.add_argument("--max-iters", type=int, default=300)
     p.add_argument("--moves", type=int, default=1023)
     p.add_argument("--mode", default="kinematic")
-    p.add_argument("--task", default="servo", help="servo (default) or another registered task")
     p.add_argument("--pruner", default="covariance")
     p.add_argument(
         "--lazy-eigen",
@@ -235,7 +233,6 @@ def _options(p: argparse.ArgumentParser) -> None:
         default=ex.ExploitConfig.lazy_eigen,
         help="ExploitConfig.lazy_eigen (default: its default; 0: eager)",
     )
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--scaling-structures", type=int, nargs="+", default=[8, 20, 40, 80])
     p.add_argument("--scaling-moves", type=int, nargs="+", default=[256, 1023, 4092])
     p.add_argument("--scaling-genes", type=int, nargs="+", default=[40, 80, 160])

@@ -415,7 +415,7 @@ def _options(p: argparse.ArgumentParser) -> None:
         default=["cmaes", "pycma", "neat", "eant2"],
         choices=["cmaes", "pycma", "neat", "eant2"],
     )
-    p.add_argument("--seed", type=int, default=0)
+    harness.run_options(p, seed=0)
     p.add_argument("--sigma0", type=float, default=0.5)
     p.add_argument("--n-starts", type=int, default=1023)
     p.add_argument("--pycma-device", default="cpu", help="cpu or default")

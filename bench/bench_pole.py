@@ -203,11 +203,9 @@ COLUMNS = [
 
 
 def _options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seeds", type=int, default=20, help="number of seeds")
-    p.add_argument("--first-seed", type=int, default=0, help="seeds K, K+1, ...")
+    harness.run_options(p, seeds=20, first_seed=0, population=10)
     p.add_argument("--tasks", nargs="+", default=["dpv", "dpnv"], choices=["dpv", "dpnv"])
     p.add_argument("--budget", type=int, default=40_000, help="evaluations before failure")
-    p.add_argument("--population", type=int, default=10, help="EANT2Config.population")
     p.add_argument(
         "--offspring", type=int, default=None, help="EANT2Config.offspring (default: population)"
     )

@@ -308,13 +308,11 @@ def _parse_value(text: str) -> Any:
 # --------------------------------------------------------------------------------- main
 def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--parts", default="cold,trace,compile")
-    p.add_argument("--population", type=int, default=20)
-    p.add_argument("--generations", type=int, default=4)
+    harness.run_options(p, population=20, generations=4, seed=0)
     p.add_argument("--max-iters", type=int, default=300)
     p.add_argument("--moves", type=int, default=1023)
     p.add_argument("--mode", default="kinematic")
     p.add_argument("--pruner", default="covariance")
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--compiler-options",
         nargs="*",

@@ -102,7 +102,7 @@ def _mean(rows: list[dict], value) -> float:
 
 
 def _options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seeds", type=int, default=10)
+    harness.run_options(p, seeds=10)
     p.add_argument("--pruners", nargs="+", default=["covariance"])
     p.add_argument("--modes", nargs="+", default=["default", "literal"])
     p.add_argument("--problems", nargs="+", default=None)

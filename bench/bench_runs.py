@@ -98,15 +98,12 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
 
 
 def _options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--task", default="servo")
+    harness.run_options(p, task="servo", population=20, generations=3, seed=0)
     p.add_argument("--task-option", action="append", default=[], metavar="KEY=VALUE",
                    help="as for eant2 run (VALUE is JSON or a string)")  # fmt: skip
     p.add_argument("--runs", type=int, default=10)
-    p.add_argument("--generations", type=int, default=3)
-    p.add_argument("--population", type=int, default=20)
     p.add_argument("--max-iters", type=int, default=None)
     p.add_argument("--workers", type=int, default=10, help="runs in flight in 'threads'")
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--modes", nargs="+", default=list(MODES))
 
 

@@ -11,6 +11,7 @@ import dataclasses
 import datetime
 import os
 import platform
+import re
 import statistics
 import sys
 import time
@@ -78,9 +79,31 @@ def unseen_key(seed: int) -> jax.Array:
     return jax.random.fold_in(jax.random.key(seed), 2**31 - 1)
 
 
-def device_tag() -> str:
-    """The tag of result file names: the default JAX platform (``cpu``, ``gpu``, ``tpu``)."""
-    return jax.devices()[0].platform
+# Words of a device kind that name its maker or family, not the model (left out of tags).
+_MAKERS = {"nvidia", "amd", "intel", "geforce", "tesla", "google", "instinct"}
+
+
+def device_tag(platform: str | None = None, kind: str | None = None) -> str:
+    """The tag of result file names, one per kind of device: the platform, then the model's
+    first word on accelerators (``cpu``; ``gpu-h100`` for "NVIDIA H100 80GB HBM3", ``gpu-h200``
+    for "NVIDIA H200"), so that each suite keeps one result file per device.
+
+    Args:
+      platform: a device's ``platform``; kind: its ``device_kind`` (default: the first
+        device's).
+    """
+    if platform is None or kind is None:
+        dev = jax.devices()[0]
+        platform, kind = dev.platform, dev.device_kind
+    if platform == "cpu":
+        return "cpu"
+    model = ""
+    for word in [w for w in re.findall("[a-z0-9]+", kind.lower()) if w not in _MAKERS][:3]:
+        if word != platform:
+            model += word
+        if any(c.isdigit() for c in word):  # "h100"; "rtx", "4090" -> "rtx4090"
+            break
+    return f"{platform}-{model}" if model else platform
 
 
 def default_out(name: str) -> Path:

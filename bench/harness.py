@@ -3,6 +3,9 @@
 A suite declares a :class:`Suite`: its name, its own options, how to measure (``run``) and
 how to show a payload (``render``). The harness does the rest, the same way for every suite:
 
+* the run options several suites share (``--task``, ``--population``, ``--generations``,
+  ``--seed``, ``--seeds``, ``--first-seed``): one definition each, in one group, added by
+  :func:`run_options` with the suite's defaults;
 * common options: ``--quick`` (smoke-test sizes), ``--out`` (default
   ``bench/results/<name>-<device tag>.json``), ``--force``, ``--render JSON`` (redo the
   markdown of a result file without measuring), and ``--repeats`` / ``--warmup`` where the
@@ -35,6 +38,7 @@ from bench.common import BenchInputError, Column, default_out, markdown_table
 
 __all__ = [
     "HARNESS_OPTIONS",
+    "RUN_OPTIONS",
     "Output",
     "Suite",
     "execute",
@@ -42,12 +46,24 @@ __all__ = [
     "log",
     "main",
     "parse_args",
+    "run_options",
     "sections",
     "settings",
 ]
 
 # The harness's own options: not part of a suite's settings (see :func:`settings`).
 HARNESS_OPTIONS = ("out", "force", "render")
+
+# The run options several suites share: (type, help). One definition each; a suite picks the
+# ones it has and their defaults with :func:`run_options`.
+RUN_OPTIONS: dict[str, tuple[type, str]] = {
+    "task": (str, "the task, as `eant2 run TASK` names it"),
+    "population": (int, "EANT2Config.population (structures per generation)"),
+    "generations": (int, "generations to run"),
+    "seed": (int, "seed of the PRNG key (jax.random.key(seed))"),
+    "seeds": (int, "how many seeds: first-seed, first-seed + 1, ..."),
+    "first_seed": (int, "the first of the seeds"),
+}
 
 Payload = dict[str, Any]
 Save = Callable[[Payload], object]
@@ -108,7 +124,7 @@ def parse_args(suite: Suite, argv: Sequence[str] | None = None) -> argparse.Name
         "--out",
         default=None,
         help=f"JSON path; the markdown goes next to it (default bench/results/{suite.name}-"
-        "<device tag>.json)",
+        "<device tag>.json, e.g. -cpu, -gpu-h100)",
     )
     common.add_argument(
         "--force", action="store_true", help="replace existing result files (refused otherwise)"
@@ -138,6 +154,38 @@ def parse_args(suite: Suite, argv: Sequence[str] | None = None) -> argparse.Name
     if suite.prepare is not None:
         suite.prepare(args)
     return args
+
+
+def run_options(
+    parser: argparse.ArgumentParser, *, helps: dict[str, str] | None = None, **defaults: Any
+) -> None:
+    """Add the run options a suite shares with the others, in one group of its ``--help``.
+
+    Args:
+      parser: the suite's parser (the ``options`` of its :class:`Suite`).
+      helps: a suite's own help text for some of them (e.g. what its ``--task`` times).
+      **defaults: the options the suite has, each with its default (None: unset, the suite
+        decides), by name: ``task``, ``population``, ``generations``, ``seed``, ``seeds``,
+        ``first_seed`` (``--first-seed``). Options not named are not added.
+
+    Raises:
+      ValueError: a name that is not one of :data:`RUN_OPTIONS`.
+    """
+    unknown = sorted(set(defaults) - set(RUN_OPTIONS))
+    if unknown:
+        raise ValueError(f"not a shared run option: {', '.join(unknown)}")
+    helps = helps or {}
+    group = parser.add_argument_group("run options (shared by the suites)")
+    for name, (kind, text) in RUN_OPTIONS.items():
+        if name in defaults:
+            default = defaults[name]
+            suffix = "" if default is None else f" (default {default})"
+            group.add_argument(
+                "--" + name.replace("_", "-"),
+                type=kind,
+                default=default,
+                help=helps.get(name, text) + suffix,
+            )
 
 
 def settings(args: argparse.Namespace, *exclude: str) -> dict[str, Any]:

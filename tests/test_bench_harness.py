@@ -109,3 +109,54 @@ def test_command_line_refusal_is_one_line_and_exit_2(tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "exists; pass --force" in lines[0], proc.stderr
     assert out.read_text() == "{}\n"
+
+
+def test_run_options_add_the_named_shared_options_in_one_group():
+    import argparse
+
+    p = argparse.ArgumentParser()
+    harness.run_options(p, task="servo", seed=3, first_seed=None, helps={"task": "what runs"})
+    args = p.parse_args([])
+    assert vars(args) == {"task": "servo", "seed": 3, "first_seed": None}
+    args = p.parse_args(["--task", "xor", "--seed", "7", "--first-seed", "2"])
+    assert (args.task, args.seed, args.first_seed) == ("xor", 7, 2)
+    with pytest.raises(SystemExit):
+        p.parse_args(["--population", "5"])  # not named: not added
+    group = next(g for g in p._action_groups if g.title.startswith("run options"))
+    helps = {a.dest: a.help for a in group._group_actions}
+    assert helps["task"] == "what runs (default servo)"
+    assert helps["first_seed"] == harness.RUN_OPTIONS["first_seed"][1]  # no default to name
+    with pytest.raises(ValueError, match="not a shared run option: steps"):
+        harness.run_options(argparse.ArgumentParser(), steps=3)
+
+
+def test_suites_define_shared_options_only_through_run_options():
+    """No suite's ``_options`` adds --task, --population, --generations, --seed, --seeds or
+    --first-seed itself: each has one definition, in the harness."""
+    import ast
+
+    shared = {"--" + name.replace("_", "-") for name in harness.RUN_OPTIONS}
+    found = []
+    for path in sorted((ROOT / "bench").glob("bench_*.py")):
+        tree = ast.parse(path.read_text())
+        for fn in ast.walk(tree):
+            if isinstance(fn, ast.FunctionDef) and fn.name == "_options":
+                for call in ast.walk(fn):
+                    if (
+                        isinstance(call, ast.Call)
+                        and getattr(call.func, "attr", None) == "add_argument"
+                        and call.args
+                        and getattr(call.args[0], "value", None) in shared
+                    ):
+                        found.append(f"{path.name}: {call.args[0].value}")
+    assert not found, found
+
+
+def test_device_tag_names_the_platform_and_the_model():
+    from bench.common import device_tag
+
+    assert device_tag("cpu", "cpu") == "cpu"
+    assert device_tag("gpu", "NVIDIA H100 80GB HBM3") == "gpu-h100"
+    assert device_tag("gpu", "NVIDIA H200") == "gpu-h200"
+    assert device_tag("gpu", "NVIDIA GeForce RTX 4090") == "gpu-rtx4090"
+    assert device_tag("gpu", "NVIDIA A100-SXM4-80GB") == "gpu-a100"

@@ -37,8 +37,8 @@ from bench.common import (
 )
 from eant2_jax.tasks.brax_task import PRECISIONS  # (brax itself is imported on first use)
 
-# The spring backend: on an H100 (2026-11-23) a generalized-backend inverted_pendulum run
-# did not finish its first generation in 262 s (bench/results/brax-generalized-gpu-h100.md);
+# The spring backend: on an H100 (2026-11-23) a generalized-backend inverted_pendulum run did
+# not finish its first generation in 262 s (bench/results/brax-generalized-gpu-h100.md, 3a13bcd);
 # spring's step is one small loop with few scatters (generalized: 4 loops, 68 scatters).
 CASES = (
     "inverted_pendulum --task-option backend=spring --population 10 --max-iters 50 "

@@ -31,7 +31,7 @@ from typing import Any
 
 from bench import harness
 from bench.common import Column, child_env, environment, markdown_table
-from eant2_jax.app.cli import _task_options
+from eant2_jax.app.parser import task_options
 
 _CHILD = textwrap.dedent(
     """
@@ -67,7 +67,7 @@ MODES = {"lockstep": (True, None), "threads": (False, "workers"), "sequential": 
 def _one(args, mode: str) -> dict[str, Any]:
     lockstep, workers = MODES[mode]
     spec = {
-        "task": args.task, "options": _task_options(args.task_option), "runs": args.runs,
+        "task": args.task, "options": task_options(args.task_option), "runs": args.runs,
         "generations": args.generations, "population": args.population,
         "max_iters": args.max_iters, "seed": args.seed, "lockstep": lockstep,
         "workers": args.workers if workers == "workers" else 1,

@@ -301,7 +301,7 @@ class Configured:
                 known = [row[0] for row in cls().describe()]
                 close = difflib.get_close_matches(path, known, n=1)
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
-                raise ValueError(f"unknown option {path!r}{hint}; eant2 options lists them")
+                raise ValueError(f"unknown option {path!r}{hint}; eant2 config lists them")
             if inner is not None:
                 owner = inner
         return owner, f

@@ -1,0 +1,134 @@
+"""The ``eant2`` command line: options generated from the configuration's field specs, one
+validated path (flags, ``--set``, ``--config``), one-line errors before anything is
+created, outputs never written through a link, and no code run because a directory names
+it (issue 39 item 4, issue 40)."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+import pytest
+
+from eant2_jax import EANT2Config, ExploitConfig
+from eant2_jax.app.cli import main
+from eant2_jax.app.parser import build_parser, config_from
+
+
+def _main(argv, capsys, monkeypatch):
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")
+    monkeypatch.setattr(sys, "path", list(sys.path))  # --task appends the working directory
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as e:  # argparse's errors
+        rc = e.code
+    cap = capsys.readouterr()
+    return rc, cap.out, [x for x in cap.err.splitlines() if x.strip()]
+
+
+@pytest.mark.parametrize(
+    ("argv", "phrase"),
+    [
+        (["run", "xor", "--max-iters", "2147483648"], "argument --max-iters: ExploitConfig."),
+        (["run", "xor", "--set", "exploit.patience=2147483648"], "patience must be at most"),
+        (["run", "xor", "--population", "0"], "argument --population: EANT2Config.population"),
+        (["run", "xor", "--max-iters", "x"], "ExploitConfig.max_iters must be an integer"),
+        (["run", "xor", "--pop", "3"], "unrecognized arguments: --pop 3"),  # no abbreviations
+        (["run", "xor", "--set", "exploit.sigma=1"], "did you mean 'exploit.sigma0'"),
+        (["run", "xor", "--set", "sigma0"], "expected NAME=VALUE"),
+        (["run", "xor", "--pruner", "random"], "pruner must be one of covariance"),
+        (["run", "xor", "--min-bucket", "8,40"], "min_bucket must be None or three integers"),
+        (["run", "xor", "--generations", "-1"], "argument --generations: must be in [0, "),
+    ],
+)
+def test_option_errors_are_one_line_and_create_nothing(argv, phrase, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "run"
+    rc, stdout, err = _main([*argv, "--out", out], capsys, monkeypatch)
+    assert rc == 2 and len(err) == 1 and phrase in err[0], err
+    assert "usage:" not in err[0] and stdout == ""
+    assert not out.exists()
+
+
+def test_cross_field_and_file_errors_are_one_line_before_the_run_directory(
+    tmp_path, capsys, monkeypatch
+):
+    out = tmp_path / "run"
+    bad = tmp_path / "bad.json"
+    for text, phrase in [
+        ('{"exploit": {"sigma0": 1e-45}}', "outside the range of a float32 state"),
+        ('{"populaton": 3}', "unknown EANT2Config option(s): populaton"),
+        ('{"exploit": {"max_iters": 2.5}}', "max_iters must be int"),
+        ("[1, 2]", "not a JSON object of configuration fields"),
+        ('{"exploit": NaN}', "is corrupt"),
+    ]:
+        bad.write_text(text)
+        rc, _, err = _main(["run", "xor", "--config", bad, "--out", out], capsys, monkeypatch)
+        assert rc == 2 and len(err) == 1 and err[0].startswith("eant2: error: "), err
+        assert phrase in err[0], err
+    rc, _, err = _main(["run", "xor", "--config", tmp_path, "--out", out], capsys, monkeypatch)
+    assert rc == 2 and "not a regular file" in err[0]
+    assert not out.exists()
+
+
+def test_flags_set_and_config_files_reach_the_same_fields(tmp_path):
+    parse = build_parser().parse_args
+    by_flags = config_from(parse(["run", "xor", "--max-iters", "40", "--population", "7"]))
+    by_set = config_from(
+        parse(["run", "xor", "--set", "exploit.max_iters=40", "--set", "population=7"])
+    )
+    want = EANT2Config(population=7, exploit=ExploitConfig(max_iters=40, pruner="covariance"))
+    assert by_flags == by_set == want
+    assert config_from(parse(["run", "xor"])) == EANT2Config()  # eant2 run's defaults
+    # The older spellings are the same path: --x64 is exploit.dtype, --no-prune the pruner.
+    old = parse(["run", "xor", "--x64", "--no-prune", "--min-bucket", "8,40,4", "--rescore", "2"])
+    config = config_from(old)
+    assert (config.exploit.dtype, config.exploit.max_condition) == ("float64", 1e14)
+    assert (config.exploit.pruner, config.min_bucket, config.exploit.rescore) == (
+        "none", (8, 40, 4), 2
+    )  # fmt: skip
+    # A file, then flags, then each --set in order; a run directory's config.json works.
+    f = tmp_path / "c.json"
+    f.write_text(json.dumps({"format": 2, "config": {"population": 5, "exploit": {"sigma0": 0.2}}}))
+    args = parse(["run", "xor", "--config", str(f), "--population", "6", "--set", "population=9"])
+    config = config_from(args)
+    assert (config.population, config.exploit.sigma0, config.exploit.pruner) == (
+        9, 0.2, "covariance"
+    )  # fmt: skip
+    args = parse(["run", "xor", "--set", "min_bucket=[8, 40, 4]", "--set", "devices=all"])
+    assert (config_from(args).min_bucket, config_from(args).devices) == ((8, 40, 4), "all")
+    # eant2 reproduce's base leaves the pruner to its arms.
+    rep = config_from(parse(["reproduce", "--max-iters", "30", "--set", "exploit.chunk=10"]))
+    assert rep == EANT2Config(exploit=ExploitConfig(max_iters=30, chunk=10))
+
+
+def test_config_lists_every_field_from_the_specs(capsys, monkeypatch):
+    rc, out, _ = _main(["config"], capsys, monkeypatch)
+    assert rc == 0
+    for name, kind, _, help_ in EANT2Config().describe():
+        assert f"\n{name} = " in "\n" + out and kind in out and help_ in out, name
+    assert '\nexploit.pruner = "covariance"  (str)\n' in out
+    rc, out, _ = _main(["config", "--json"], capsys, monkeypatch)
+    assert EANT2Config.from_dict(json.loads(out), complete=True) == EANT2Config()
+
+
+def test_show_writes_its_png_whole_and_never_through_a_link(tmp_path, capsys, monkeypatch):
+    src = tmp_path / "best.genome"
+    src.write_text("N0/2*1 I0*0.5 I1*-0.5\n")
+    png = tmp_path / "best.genome.png"
+    target = tmp_path / "victim"
+    png.symlink_to(target)  # dangling
+    for force in ([], ["--force"]):
+        rc, _, err = _main(["show", src, *force], capsys, monkeypatch)
+        assert rc == 2 and len(err) == 1, err
+        assert not target.exists()
+    png.unlink()
+    rc, out, err = _main(["show", src], capsys, monkeypatch)
+    assert rc == 0 and png.read_bytes()[:4] == b"\x89PNG" and f"drawing: {png}" in out
+    rc, _, err = _main(["show", src], capsys, monkeypatch)
+    assert rc == 2 and "exists; not overwriting" in err[0]
+    assert _main(["show", src, "--force"], capsys, monkeypatch)[0] == 0
+    fifo = tmp_path / "fifo.genome"
+    os.mkfifo(fifo)
+    rc, _, err = _main(["show", fifo, "--out", tmp_path / "f.png"], capsys, monkeypatch)
+    assert rc == 2 and len(err) == 1 and "not a regular file" in err[0], err

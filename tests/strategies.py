@@ -16,11 +16,16 @@ shrink towards one output, few neurons, inputs only, jumpers to the nearest neur
 
 ``invalid_genomes()`` applies one invalidating edit to a valid genome and says which token
 the error must name and a phrase its message must contain.
+
+``genome_file_texts()`` writes genome files as an attacker or a damaged disk would: headers
+whose fields take values of any JSON type, hostile strings (quotes, backslashes, every line
+end Python knows), deep nesting, comment lines and line ends of every kind.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 from hypothesis import settings
@@ -30,10 +35,13 @@ from eant2_jax.genome import Gene, GeneKind, Genome
 
 __all__ = [
     "INVALID_CASES",
+    "LINE_BREAKS",
     "Invalid",
     "fewer_examples",
     "genome_batches",
+    "genome_file_texts",
     "genomes",
+    "hostile_strings",
     "invalid_genomes",
     "weights",
 ]
@@ -265,3 +273,75 @@ def invalid_genomes(draw, case: str | None = None, base: st.SearchStrategy[Genom
     a, b = sorted(draw(st.lists(st.sampled_from(neurons), min_size=2, max_size=2, unique=True)))
     tok[b] = f"N{g[a].ref}/{g[b].arity}*{g[b].weight!r}"
     return Invalid(" ".join(tok), b, "duplicate neuron id", case)
+
+
+# Every character str.splitlines() ends a line at.
+LINE_BREAKS = "\n\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029"
+_HOSTILE_PIECES = [
+    '"""', "'''", '"', "'", "\\", "\\n", "#", "{", "}", "[", "]", "\x00", "\x1b[2J",
+    "__import__('os').system('true')", '__import__("os").system("true")', "+", ";", "\t",
+    "N9/1*5", "B*1", " ", "xor", "gymnax:CartPole-v1", "\ufeff", "\u00e9", "\U0001f600",
+    *LINE_BREAKS,
+]  # fmt: skip
+
+
+def hostile_strings(max_size: int = 12) -> st.SearchStrategy[str]:
+    """Strings built of pieces that break out of quotes, lines or comments, and any text."""
+    pieces = st.lists(st.sampled_from(_HOSTILE_PIECES) | st.text(max_size=4), max_size=max_size)
+    return pieces.map("".join)
+
+
+_JSON_LEAVES = (
+    st.none()
+    | st.booleans()
+    | st.integers(-(2**40), 2**40)
+    | st.floats(allow_nan=False, allow_infinity=False)
+    | hostile_strings()
+)
+_JSON = st.recursive(
+    _JSON_LEAVES,
+    lambda inner: (
+        st.lists(inner, max_size=3) | st.dictionaries(hostile_strings(4), inner, max_size=3)
+    ),
+    max_leaves=8,
+)
+_FIELDS = ("format", "hidden", "output", "n_inputs", "n_outputs", "task", "task_options")
+
+
+@st.composite
+def genome_file_texts(draw, activations: tuple[str, ...] = ("tanh", "sigmoid", "identity")):
+    """The text of a genome file, valid or not (module docstring).
+
+    A valid genome and a header true to it are drawn first; then each header field may be
+    replaced by any JSON value or dropped, a key added, raw non-ASCII kept in the JSON
+    (``ensure_ascii=False``), the object wrapped in deep brackets, comment lines added, the
+    lines ended by any line end, and the genome's tokens separated by any whitespace.
+    """
+    g = draw(genomes(max_neurons=4))
+    head = {
+        "format": 1,
+        "hidden": draw(st.sampled_from(activations)),
+        "output": draw(st.sampled_from(activations)),
+        "n_inputs": g.n_inputs + draw(st.integers(0, 2)),
+        "n_outputs": g.n_outputs,
+        "task": draw(st.none() | hostile_strings()),
+        "task_options": draw(st.none() | st.dictionaries(hostile_strings(4), _JSON, max_size=3)),
+    }
+    for key in draw(st.lists(st.sampled_from(_FIELDS), max_size=3, unique=True)):
+        if draw(st.booleans()):
+            head[key] = draw(_JSON)
+        else:
+            del head[key]
+    if draw(st.booleans()):
+        head[draw(hostile_strings(4))] = draw(_JSON)
+    body = json.dumps(head, ensure_ascii=draw(st.booleans()))
+    depth = draw(st.sampled_from([0, 0, 0, 30, 40, 100_000]))
+    if depth:
+        body = body[:-1] + ', "deep": ' + "[" * depth + "]" * depth * draw(st.booleans()) + "}"
+    lines = [] if draw(st.integers(0, 4)) == 0 else ["# eant2-genome " + body]
+    lines += ["#" + draw(hostile_strings()) for _ in range(draw(st.integers(0, 2)))]
+    tokens = [str(gene) for gene in g]
+    seps = st.sampled_from([" ", "  ", "\t", "\n", "\r\n", "\u00a0", "\u3000", *LINE_BREAKS])
+    genes = tokens[0] + "".join(draw(seps) + t for t in tokens[1:])
+    end = draw(st.sampled_from(["\n", "\r\n", *LINE_BREAKS]))
+    return end.join([*lines, genes]) + draw(st.sampled_from(["", "\n", end]))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -340,3 +341,32 @@ def test_one_line_rule():
             with pytest.raises(GenomeError, match=f"U\\+{ord(c):04X}") as e:
                 Genome.parse(text)
             assert e.value.position is None and len(str(e.value).splitlines()) == 1
+
+
+_ANY_FIELD = (
+    st.integers(-3, 8)
+    | st.sampled_from(list(GeneKind))
+    | st.floats()
+    | st.booleans()
+    | st.none()
+    | st.text(max_size=2)
+    | st.integers(MAX_ID - 1, MAX_ID + 2)
+)
+
+
+@given(genomes(), st.data())
+def test_genes_of_any_field_values(g, data):
+    """One field of one gene of a valid genome set to any value: a GenomeError naming a
+    gene, or a genome whose text form parses back to it (so str() and n_inputs work on every
+    Genome)."""
+    genes = list(g)
+    i = data.draw(st.integers(0, len(genes) - 1))
+    field = data.draw(st.sampled_from(["kind", "ref", "weight", "arity"]))
+    genes[i] = dataclasses.replace(genes[i], **{field: data.draw(_ANY_FIELD)})
+    try:
+        h = Genome(genes)
+    except GenomeError as err:
+        assert err.position is None or 0 <= err.position < len(genes)
+        assert len(str(err).splitlines()) == 1
+    else:
+        assert Genome.parse(str(h)) == h and type(h.n_inputs) is int

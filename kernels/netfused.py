@@ -2,7 +2,7 @@
 
 `eant2_jax.kernels.network.step` is written for one network and one example and batched
 with ``vmap``. On a GPU, networks of at most 12 neurons run it with the non-finite rule
-inline (unrolled element-wise products, `network._dot_unrolled`), which XLA turns into two
+inline (unrolled element-wise products, `netdot.dot`), which XLA turns into two
 fusions per sweep that write every neuron's column, its finiteness and its finite and
 non-finite parts to memory between them: for a servo batch (384 networks of 8 neurons times
 1023 moves) most of an engine iteration's device time. Here one program computes a block of
@@ -129,7 +129,7 @@ def step_batch(
             return jnp.sum(ref[0, 0][:, :, None] * v[None, :, :], axis=1)
 
         def ruled(ref, v):
-            # `network._dot` of a [rows, cols] matrix and v [cols, blk]: the term of a
+            # `netdot.dot` of a [rows, cols] matrix and v [cols, blk]: the term of a
             # non-finite v[j] is w_nf[i, j] * v[j] where row i reads j, 0 elsewhere.
             w, read, w_nf = ref[0, 0], ref[0, 1] > 0, ref[0, 2]
             finite = is_finite(v)
@@ -151,7 +151,7 @@ def step_batch(
             if sweeps == 0:
                 hs = jnp.zeros_like(base)
             else:
-                # The first sweep reads h = 0 (`network._step`).
+                # The first sweep reads h = 0 (`network.step_inline`).
                 hs = jax.lax.fori_loop(
                     1, sweeps, lambda _, v: settle(base + dot(ff_ref, v)), settle(base)
                 )

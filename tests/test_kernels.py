@@ -32,6 +32,7 @@ from strategies import fewer_examples, genomes
 import eant2_jax
 from eant2_jax.compiler import Bucket, compile_genomes
 from eant2_jax.genome import GeneKind, Genome
+from eant2_jax.kernels import netdot, netfused
 from eant2_jax.kernels import network as kn
 from eant2_jax.reference import interpret
 
@@ -293,7 +294,7 @@ def _grad(layout, w, x, cot):
 
 # ------------------------------------------------------------- the product, short and long
 def _stack_product(w, read, w_nf, v):
-    """NumPy, entry by entry, what `kn._dot` computes: the finite values through ``w``; a
+    """NumPy, entry by entry, what `netdot.dot` computes: the finite values through ``w``; a
     non-finite ``v[j]`` only into the rows that read it, times ``w_nf`` (float64 sums)."""
     out = np.zeros(w.shape[0])
     with np.errstate(all="ignore"):
@@ -307,12 +308,12 @@ def _stack_product(w, read, w_nf, v):
 
 
 def _summed_product(w, v, reads):
-    return jnp.sum(kn._dot(w, reads, v))
+    return jnp.sum(netdot.dot(w, reads, v))
 
 
-@pytest.mark.parametrize("k", [1, 3, 6, kn._UNROLL_MAX, kn._UNROLL_MAX + 1, 40])
+@pytest.mark.parametrize("k", [1, 3, 6, kn.UNROLL_MAX, kn.UNROLL_MAX + 1, 40])
 def test_product_short_unrolled_and_long_dot_match_numpy(k):
-    """Both ways `_dot` is written (an unrolled sum up to `_UNROLL_MAX` terms, XLA's dot
+    """Both ways `netdot.dot` is written (an unrolled sum up to `netdot.UNROLL_MAX` terms, XLA's dot
     past it) against NumPy on fresh random inputs: finite ones, and ones with NaN and +-inf
     entries read by some rows and not others; with finite inputs the gradient is finite
     although ``w_nf`` holds NaNs."""
@@ -328,7 +329,7 @@ def test_product_short_unrolled_and_long_dot_match_numpy(k):
         if trial % 2:
             special = rng.choice([np.nan, np.inf, -np.inf], size=k)
             v = np.where(rng.random(k) < 0.3, special, v).astype(np.float32)
-        got = np.asarray(kn._dot(jnp.asarray(w), (jnp.asarray(read), jnp.asarray(w_nf)), v))
+        got = np.asarray(netdot.dot(jnp.asarray(w), (jnp.asarray(read), jnp.asarray(w_nf)), v))
         want = _stack_product(w, read, w_nf, v)
         np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
         np.testing.assert_array_equal(np.isposinf(got), np.isposinf(want))
@@ -336,7 +337,7 @@ def test_product_short_unrolled_and_long_dot_match_numpy(k):
         fin = np.isfinite(want)
         np.testing.assert_allclose(got[fin], want[fin], rtol=1e-5, atol=1e-5)
         v_fin = np.where(np.isfinite(v), v, 0).astype(np.float32)
-        plain = np.asarray(kn._dot(jnp.asarray(w), None, jnp.asarray(v_fin)))
+        plain = np.asarray(netdot.dot(jnp.asarray(w), None, jnp.asarray(v_fin)))
         want_plain = np.asarray(w, np.float64) @ v_fin.astype(np.float64)
         np.testing.assert_allclose(plain, want_plain, rtol=1e-5, atol=1e-5)
         if not trial % 2:  # finite v: the NaN entries of w_nf must not reach the gradient
@@ -352,9 +353,9 @@ def test_long_product_batched_matches_numpy(monkeypatch, branch_min, nonfinite):
     and networks and jitted, as the engine runs it, with the batch-level branch
     (``branch_min`` 0) and without it (a bound no batch reaches): NumPy's values, and with
     finite inputs the gradient of a plain product (differentiation takes the plain pass)."""
-    monkeypatch.setattr(kn, "_BRANCH_MIN", branch_min)
+    monkeypatch.setattr(netdot, "BRANCH_MIN", branch_min)
     rng = np.random.default_rng(7 + 2 * nonfinite)
-    nets, examples, rows, k = 3, 4, 5, kn._UNROLL_MAX + 3
+    nets, examples, rows, k = 3, 4, 5, kn.UNROLL_MAX + 3
     read = rng.random((nets, rows, k)) < 0.6
     w = np.where(read, rng.normal(size=(nets, rows, k)), 0).astype(np.float32)
     w_nf = np.where(read, np.where(rng.random((nets, rows, k)) < 0.2, np.nan, w), 0)
@@ -364,7 +365,7 @@ def test_long_product_batched_matches_numpy(monkeypatch, branch_min, nonfinite):
         v[1, 2, [0, 5]] = [np.inf, np.nan]
 
     def product(w, read, w_nf, v):
-        return kn._dot(w, (read, w_nf), v)
+        return netdot.dot(w, (read, w_nf), v)
 
     batched = jax.jit(jax.vmap(jax.vmap(product, in_axes=(None, None, None, 0))))
     got = np.asarray(batched(w, read, w_nf, v))
@@ -410,7 +411,7 @@ def _batch_of_networks(seed: int, scale: float = 1.0, neurons: int = 8):
 
 def _assert_same_values(got, want):
     """The same NaN and +-inf entries, the finite ones equal to float32 rounding (the rule's
-    branch may sum in another order, `kn._dot`'s compact form)."""
+    branch may sum in another order, `netdot.dot`'s compact form)."""
     for a, b in zip(got, want, strict=True):
         a, b = np.asarray(a), np.asarray(b)
         for kind in (np.isnan, np.isposinf, np.isneginf):
@@ -422,7 +423,7 @@ def _assert_same_values(got, want):
 def _batched_step(layout, params, x, h, *, rule: bool, hidden="tanh", output="identity"):
     """``[nets, examples]`` outputs and states: vmapped over networks, then over examples
     sharing each network (the network's arrays unbatched there, the inputs unbatched over
-    networks); ``rule`` runs `kn._step` with the non-finite rule, inline."""
+    networks); ``rule`` runs `kn.step_inline` with the non-finite rule, inline."""
     return _batched_step_fn(rule, hidden, output)(layout, params, x, h)
 
 
@@ -431,7 +432,7 @@ def _batched_step_fn(rule: bool, hidden: str, output: str):
     def one(lay, p, x, h):
         net = kn.network(lay, p)
         if rule:
-            return kn._step(net, x, h, hidden, output)
+            return kn.step_inline(net, x, h, hidden=hidden, output=output)
         return kn.step(net, x, h, hidden=hidden, output=output)
 
     per_net = jax.vmap(one, in_axes=(None, None, 0, 0))
@@ -442,7 +443,7 @@ def _batched_step_fn(rule: bool, hidden: str, output: str):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_cpu_step_equals_the_rule_with_finite_and_non_finite_values(seed):
     """On a CPU `kn.step` runs plain products over the whole batch and the non-finite rule
-    only when some value entering a product was not finite. Against `kn._step` with the
+    only when some value entering a product was not finite. Against `kn.step_inline` with the
     rule inline, on fresh random networks, states and inputs: finite values agree to float32
     rounding (plain products may contract into fused multiply-adds); a NaN or inf input of
     one example, and an overflow to inf inside a network with finite inputs, take the rule:
@@ -471,7 +472,7 @@ def test_cpu_step_equals_the_rule_with_finite_and_non_finite_values(seed):
 
     def plain(lay, p, x, h):
         net = kn.network(lay, p).replace(reads=None)
-        return kn._step(net, x, h, "identity", "identity")
+        return kn.step_inline(net, x, h, hidden="identity", output="identity")
 
     per_net = jax.vmap(plain, in_axes=(None, None, 0, 0))
     ys = jax.jit(jax.vmap(per_net, in_axes=(0, 0, None, 0)))(*args[:4])[0]
@@ -495,10 +496,10 @@ _TRITON = "xla.gpu.triton"
 
 @pytest.mark.parametrize("neurons", [8, 16])
 def test_gpu_step_branches_only_large_batches_of_dot_networks(monkeypatch, neurons):
-    """Off the CPU (traced as a GPU backend would) a network of at most `kn._UNROLL_MAX`
+    """Off the CPU (traced as a GPU backend would) a network of at most `kn.UNROLL_MAX`
     neurons runs as one fused kernel (`netfused`), whatever the batch; without that kernel
-    (``kn._FUSED`` off) the rule stays inline with no conditional. Larger networks keep the
-    rule inline below `kn._GPU_BRANCH_MIN` product terms; above it they branch once,
+    (``kn.FUSED`` off) the rule stays inline with no conditional. Larger networks keep the
+    rule inline below `kn.GPU_BRANCH_MIN` product terms; above it they branch once,
     passthrough first, and the values (run here on the CPU, in the GPU's branch order) are
     the rule's: finite ones to rounding, NaN and inf entries exactly, with a non-finite
     input and without."""
@@ -509,11 +510,11 @@ def test_gpu_step_branches_only_large_batches_of_dot_networks(monkeypatch, neuro
     def fresh(rule):
         return _batched_step_fn.__wrapped__(rule, "tanh", "identity")
 
-    small = neurons <= kn._UNROLL_MAX
+    small = neurons <= kn.UNROLL_MAX
     assert _cuda_text(args).count(_TRITON) == small
-    monkeypatch.setattr(kn, "_FUSED", False)
+    monkeypatch.setattr(kn, "FUSED", False)
     assert _conditionals(_cuda_text(args)) == 0  # 8 x 4 examples: a small batch
-    monkeypatch.setattr(kn, "_GPU_BRANCH_MIN", 0)
+    monkeypatch.setattr(kn, "GPU_BRANCH_MIN", 0)
     assert _conditionals(_cuda_text(args)) == (not small)
     bad = x.at[1, 2].set(np.nan)
     for inputs in (x, bad):
@@ -536,8 +537,6 @@ def _fused_args(seed: int, neurons: int, *, scale: float = 1.0, shared: bool = T
 @functools.partial(jax.jit, static_argnames=("hidden", "output", "block"))
 def _fused(nets, xs, h, hidden="tanh", output="identity", block=None):
     """`netfused.step_batch` in Pallas' interpreter (jitted: interpreting is slow to trace)."""
-    from eant2_jax.kernels import netfused
-
     return netfused.step_batch(
         nets.w_in, nets.bias, nets.w_ff, nets.w_rec, nets.w_out, nets.reads, nets.is_root,
         nets.neuron_mask, xs, h, sweeps=nets.sweeps, hidden=hidden, output=output,
@@ -547,18 +546,20 @@ def _fused(nets, xs, h, hidden="tanh", output="identity", block=None):
 
 @functools.partial(jax.jit, static_argnames=("hidden", "output", "shared"))
 def _ruled(layout, params, x, h, hidden="tanh", output="identity", shared=True):
-    """`kn._step` with the rule inline, vmapped over networks and their examples."""
+    """`kn.step_inline` with the rule inline, vmapped over networks and their examples."""
 
     def one(lay, p, xs, hs):
         net = kn.network(lay, p)
-        return jax.vmap(lambda a, b: kn._step(net, a, b, hidden, output))(xs, hs)
+        return jax.vmap(lambda a, b: kn.step_inline(net, a, b, hidden=hidden, output=output))(
+            xs, hs
+        )
 
     return jax.vmap(one, in_axes=(0, 0, None if shared else 0, 0))(layout, params, x, h)
 
 
-@pytest.mark.parametrize(("neurons", "shared"), [(6, False), (7, True), (kn._UNROLL_MAX, True)])
+@pytest.mark.parametrize(("neurons", "shared"), [(6, False), (7, True), (kn.UNROLL_MAX, True)])
 def test_fused_step_equals_the_rule(neurons, shared):
-    """`netfused.step_batch` (run in Pallas' interpreter) against `kn._step` with the
+    """`netfused.step_batch` (run in Pallas' interpreter) against `kn.step_inline` with the
     non-finite rule inline, on fresh random networks, states and inputs: finite values to
     float32 rounding (its sums may be ordered otherwise); a NaN or +-inf input of one
     example takes the kernel's rule: the same NaN and inf entries. Inputs shared by every
@@ -585,14 +586,15 @@ def test_fused_step_takes_the_rule_when_a_value_inside_overflows():
     """Finite inputs, weights of 1e20 and identity neurons: sums overflow to inf inside
     the networks, where the kernel's plain products alone would give NaN (checked); the
     kernel finds it from the final states and takes the rule: the same NaN and inf
-    entries as `kn._step` with the rule."""
+    entries as `kn.step_inline` with the rule."""
     (layout, params, x, h), nets, xs = _fused_args(3, 8, scale=1e20)
     want = _ruled(layout, params, x, h, "identity", "identity")
     assert not np.all(np.isfinite(np.asarray(want[1])))
     _assert_same_values(_fused(nets, xs, h, "identity", "identity"), want)
     plain = jax.vmap(
-        lambda n, hs: jax.vmap(lambda a, b: kn._step(n.replace(reads=None), a, b, "identity",
-                                                     "identity"))(x, hs)
+        lambda n, hs: jax.vmap(lambda a, b: kn.step_inline(n.replace(reads=None), a, b,
+                                                           hidden="identity",
+                                                           output="identity"))(x, hs)
     )(nets, h)  # fmt: skip
     assert not np.array_equal(np.isnan(np.asarray(plain[0])), np.isnan(np.asarray(want[0])))
 
@@ -602,14 +604,14 @@ def test_fused_step_lowers_for_cuda_with_each_activation(monkeypatch):
     lowering, on any machine): the names listed there are the ones Triton lowers."""
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     (layout, params, x, h), _, _ = _fused_args(7, 8)
-    for activation in sorted(kn.netfused.ACTIVATIONS):
+    for activation in sorted(netfused.ACTIVATIONS):
         text = _cuda_text((layout, params, x, h), activation, "identity")
         assert text.count(_TRITON) == 1, activation
 
 
 def test_fused_step_applies_only_where_it_can(monkeypatch):
     """The kernel is left out (the rule stays inline) for buckets of fewer than 8 neuron
-    slots (`kn._FUSED_NEURONS`), for a registered activation Triton is not known to lower,
+    slots (`kn.FUSED_NEURONS`), for a registered activation Triton is not known to lower,
     and for a batch whose networks vary at an inner level (examples outside, networks
     inside); a network's own arrays may be shared at an outer level."""
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
@@ -621,7 +623,7 @@ def test_fused_step_applies_only_where_it_can(monkeypatch):
     try:
         text = _cuda_text((layout, params, x, h), "test_fused_softsign")
     finally:
-        kn.activations.ACTIVATIONS.pop("test_fused_softsign")
+        eant2_jax.kernels.activations.ACTIVATIONS.pop("test_fused_softsign")
     assert text.count(_TRITON) == 0
 
     def examples_outside(lay, p, xs, hs):
@@ -645,7 +647,7 @@ def test_fused_step_applies_only_where_it_can(monkeypatch):
 
 def test_step_gradient_is_the_rules():
     """Differentiation of `kn.step` takes the rule's own path: the gradient of a batched loss
-    in the parameters equals the one through `kn._step` with the rule. (Second order works
+    in the parameters equals the one through `kn.step_inline` with the rule. (Second order works
     the same way; its compile of a minute on 2 cores is left to `jax.hessian`'s users.)"""
     layout, params, x, h = _batch_of_networks(3)
     layout, params, h = jax.tree.map(lambda a: a[:2], (layout, params, h))

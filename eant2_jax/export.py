@@ -99,7 +99,8 @@ def to_json(spec: GenomeFile) -> dict:
 
 def from_json(d: dict) -> GenomeFile:
     """The `GenomeFile` of a `to_json` document (its ``genome`` text rules)."""
-    if not isinstance(d, dict) or d.get("format") != FORMAT or "genome" not in d:
+    fmt = d.get("format") if isinstance(d, dict) else None
+    if type(fmt) is not int or fmt != FORMAT or not isinstance(d.get("genome"), str):
         raise GenomeFileError(f"not an eant2 network document of format {FORMAT}")
     return GenomeFile(
         Genome.parse(d["genome"]),

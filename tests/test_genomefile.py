@@ -203,8 +203,13 @@ def test_json_round_trip_and_dense_tensors():
     assert dense["w_in"] == [[0, 0, pytest.approx(0.4), 0], [1, -2, 0, 0], [0, 0, 0, 0]]
     assert dense["w_out"] == [[0, 0, 1.0], [pytest.approx(-1.2), 0, 0]]
     assert dense["is_root"] == [True, False, True]
+    for bad in ({"genome": EXAMPLE}, {"format": True, "genome": EXAMPLE}, {"format": 1}, []):
+        with pytest.raises(GenomeFileError, match="not an eant2 network document"):
+            export.from_json(bad)
     with pytest.raises(GenomeFileError, match="not an eant2 network document"):
-        export.from_json({"genome": EXAMPLE})
+        export.from_json(doc | {"genome": 5})  # a TypeError from Genome.parse before
+    with pytest.raises(GenomeFileError, match="task must be a string"):
+        export.from_json(doc | {"task": 5})
 
 
 @given(g=genomes(n_inputs=3, recurrent=False, max_neurons=5), hidden=ACTS, output=ACTS)

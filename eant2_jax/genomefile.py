@@ -194,9 +194,18 @@ class GenomeFile:
         return cls.parse(read_text(path), source=str(Path(path)))
 
     def write(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
-        """Write the file; refuses to replace an existing one unless ``overwrite``."""
+        """Write the file; refuses to replace an existing one unless ``overwrite``.
+
+        Neither way follows a link at ``path``: a new file is created exclusively (an
+        existing name, a dangling link included, is refused), and a replacement is a
+        temporary file renamed over the name (`eant2_jax.jsonio.write_atomic`), so a link
+        there is replaced, not written through, and a kill leaves the old file or the new.
+        """
         p = Path(path)
-        with open(p, "w" if overwrite else "x", encoding="utf-8") as f:
+        if overwrite:
+            jsonio.write_atomic(p, self.to_text())
+            return p
+        with open(p, "x", encoding="utf-8") as f:
             f.write(self.to_text())
         return p
 

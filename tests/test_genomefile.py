@@ -99,6 +99,20 @@ def test_explicit_activations_must_agree_with_the_header(tmp_path):
         _spec().write(path)  # nothing is overwritten unless asked
 
 
+def test_write_never_follows_a_link(tmp_path):
+    target = tmp_path / "bashrc"
+    target.write_text("keep\n")
+    (tmp_path / "a.genome").symlink_to(target)
+    (tmp_path / "b.genome").symlink_to(tmp_path / "absent")
+    for name in ("a.genome", "b.genome"):
+        with pytest.raises(FileExistsError):
+            _spec().write(tmp_path / name)
+    _spec().write(tmp_path / "a.genome", overwrite=True)
+    assert target.read_text() == "keep\n" and not (tmp_path / "a.genome").is_symlink()
+    assert GenomeFile.read(tmp_path / "a.genome") == _spec()
+    assert not (tmp_path / "absent").exists()
+
+
 def test_unknown_activation_in_a_header(tmp_path):
     path = _spec(hidden="mine").write(tmp_path / "a.genome")
     with pytest.raises(ValueError, match="unknown activation 'mine'"):

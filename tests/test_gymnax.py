@@ -66,7 +66,25 @@ def test_a_batch_of_networks_gets_one_cost_each(name, options, n_in, n_out):
         ("gymnax:Nope-v0", {}, "unknown gymnax environment 'Nope-v0'"),
         ("gymnax:CartPole-v1", {"normalize": "running"}, "normalize must be one of"),
         ("gymnax:CartPole-v1", {"params": {"gravty": 1}}, "unknown params gravty"),
-        ("gymnax:CartPole-v1", {"episodes": 0}, "episodes and chunk must be >= 1"),
+        ("gymnax:CartPole-v1", {"episodes": 0}, "episodes must be an integer >= 1"),
+        ("gymnax:CartPole-v1", {"episodes": 2.5}, "episodes must be an integer, got 2.5"),
+        ("gymnax:CartPole-v1", {"episodes": 10**6}, "episodes must be an integer >= 1 and <="),
+        ("gymnax:CartPole-v1", {"chunk": True}, "chunk must be an integer, got True"),
+        ("gymnax:CartPole-v1", {"max_steps": "abc"}, "max_steps must be an integer, got 'abc'"),
+        ("gymnax:CartPole-v1", {"max_steps": 0}, "max_steps must be an integer >= 1"),
+        ("gymnax:CartPole-v1", {"max_steps": 2**31}, "max_steps must be an integer >= 1 and <="),
+        ("gymnax:CartPole-v1", {"normalize": None}, "normalize must be one of bounds, none"),
+        ("gymnax:CartPole-v1", {"hidden": 3}, "hidden must be an activation name, got 3"),
+        ("gymnax:CartPole-v1", {"output": "tanhh"}, "output: unknown activation 'tanhh'"),
+        ("gymnax:CartPole-v1", {"params": [1]}, "params must be an object"),
+        ("gymnax:CartPole-v1", {"params": {"gravity": "x"}}, "params.gravity must be a finite"),
+        ("gymnax:CartPole-v1", {"params": {"gravity": 1e999}}, "params.gravity must be a finite"),
+        ("gymnax:CartPole-v1", {"params": {"gravity": [9.8]}}, "params.gravity must be a finite"),
+        ("gymnax:CartPole-v1", {"params": {"max_steps_in_episode": -5}}, "max_steps_in_episode"),
+        ("gymnax:CartPole-v1", {"params": {"max_steps_in_episode": 2.5}}, "max_steps_in_episode"),
+        ("gymnax:Acrobot-v1", {"params": {"available_torque": [1, 2]}}, "list of shape [3]"),
+        ("gymnax:Acrobot-v1", {"params": {"available_torque": [1, 2, "x"]}}, "torque[2] must"),
+        ("gymnax:DeepSea-bsuite", {"params": {"deterministic": 1}}, "must be true or false"),
         ("gymnax:CartPole-v1", {"bogus": 1}, "bad options"),
     ],
 )
@@ -74,6 +92,18 @@ def test_bad_gymnax_options_are_one_line(spec, options, phrase):
     with pytest.raises(ValueError) as e:
         tasks.make(spec, **options)
     assert phrase in str(e.value) and "\n" not in str(e.value)
+
+
+def test_params_reach_the_environment_with_their_kinds():
+    task = tasks.make(
+        "gymnax:Acrobot-v1", max_steps=40, params={"available_torque": [-2, 0, 2], "dt": 1}
+    )
+    np.testing.assert_array_equal(task.env_params.available_torque, [-2.0, 0.0, 2.0])
+    assert task.env_params.available_torque.dtype == np.float32  # the default's dtype
+    assert task.env_params.dt == 1.0 and isinstance(task.env_params.dt, float)
+    assert (task.max_steps, task.env_params.max_steps_in_episode) == (40, 40)
+    task = tasks.make("gymnax:CartPole-v1", params={"max_steps_in_episode": 30})
+    assert (task.max_steps, task.env_params.max_steps_in_episode) == (30, 30)
 
 
 @pytest.mark.slow

@@ -63,8 +63,24 @@ def test_a_batch_of_networks_gets_one_cost_each():
     [
         ({"impl": "c"}, "impl must be one of jax, warp"),
         ({"config": {"ctrl_dtt": 0.02}}, "unknown config ctrl_dtt"),
-        ({"episodes": 0}, "episodes and chunk must be >= 1"),
-        ({"max_steps": 0}, "max_steps must be >= 1"),
+        ({"impl": None}, "impl must be one of jax, warp"),
+        ({"episodes": 0}, "episodes must be an integer >= 1"),
+        ({"max_steps": 0}, "max_steps must be an integer >= 1"),
+        ({"max_steps": "abc"}, "max_steps must be an integer, got 'abc'"),
+        ({"chunk": 1.5}, "chunk must be an integer, got 1.5"),
+        ({"obs_key": 3}, "obs_key must be a string"),
+        ({"config": []}, "config must be an object"),
+        ({"config": {"episode_length": -5}}, "config.episode_length must be an integer >= 1"),
+        ({"config": {"episode_length": "x"}}, "config.episode_length must be an integer"),
+        ({"config": {"action_repeat": 0}}, "config.action_repeat must be an integer >= 1"),
+        ({"config": {"ctrl_dt": -0.01}}, "config.ctrl_dt must be > 0"),
+        ({"config": {"ctrl_dt": "fast"}}, "config.ctrl_dt must be a finite number"),
+        ({"config": {"sim_dt": 0.5}}, "config.sim_dt (0.5) must be <= config.ctrl_dt"),
+        ({"config": {"impl": "warp"}}, "config.impl: set it with the impl option"),
+        ({"config": {"vision": True}}, "config.vision: image observations are not supported"),
+        ({"config": {"vision_config": 3}}, "config.vision_config must be an object"),
+        ({"config": {"vision_config": {"cam_res": [3]}}}, "vision_config.cam_res must be a list"),
+        ({"config": {"vision_config": {"nope": 3}}}, "unknown config.vision_config nope"),
         ({"precision": "tf32"}, "precision must be one of highest, high, default"),
         ({"hidden": "tanhh"}, "tanhh"),
     ],
@@ -84,6 +100,10 @@ def test_config_reaches_the_environment():
     task = tasks.make("playground:CartpoleBalance", config={"episode_length": 300})
     assert task.max_steps == 300 and ("episode_length", 300) in task.overrides
     assert task.env._config.episode_length == 300
+    # a nested config's fields, as Playground's dotted keys
+    task = tasks.make("playground:CartpoleBalance", config={"vision_config": {"nworld": 3}})
+    assert ("vision_config.nworld", 3) in task.overrides
+    assert task.env._config.vision_config.nworld == 3
 
 
 @pytest.mark.slow

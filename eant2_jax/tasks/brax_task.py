@@ -48,11 +48,12 @@ import jax.numpy as jnp
 from flax import struct
 
 from ..kernels import network as kn
-from .episodic import EpisodicTask
+from .episodic import EpisodicTask, check_choice, check_episode_options, check_int, check_like
 from .episodic import returns as returns
 
 __all__ = [
     "BACKENDS",
+    "MAX_FRAMES",
     "PRECISIONS",
     "BraxTask",
     "PipelineTask",
@@ -68,8 +69,10 @@ BACKENDS = ("generalized", "mjx", "positional", "spring")
 # GPU use TF32 (a 10-bit mantissa), which is faster but makes a GPU's trajectories differ
 # from a CPU's after a few steps.
 PRECISIONS = ("highest", "high", "default")
-# Constructor arguments of brax's PipelineEnv that an environment passes on (**kwargs).
-_PIPELINE_OPTIONS = ("n_frames",)
+# Constructor arguments of brax's PipelineEnv that an environment passes on (**kwargs), and
+# their defaults (an environment sets its own n_frames when not given).
+_PIPELINE_OPTIONS = {"n_frames": 1}
+MAX_FRAMES = 1000  # physics steps per environment step (action repeat) at most
 
 
 # What brax itself warns about, none of it the user's doing (each an error under the test
@@ -122,21 +125,40 @@ def _environment(name: str, backend: str, params: tuple[tuple[str, Any], ...]) -
         return envs.get_environment(name, backend=backend, **dict(params))
 
 
-def _known_params(cls: type) -> list[str]:
-    names = [
-        p.name
+def _known_params(cls: type) -> dict[str, Any]:
+    """The constructor arguments of an environment class and their defaults."""
+    known = {
+        p.name: p.default
         for p in inspect.signature(cls.__init__).parameters.values()
         if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) and p.name not in ("self", "backend")
-    ]
-    return sorted(names + list(_PIPELINE_OPTIONS))
+    }
+    return dict(sorted({**known, **_PIPELINE_OPTIONS}.items()))
+
+
+def _checked_params(where: str, cls: type, params: Any) -> tuple[tuple[str, Any], ...]:
+    """``params`` checked against the constructor's defaults (`check_like`: a number for a
+    number, a pair for a pair...); ``n_frames`` (the action repeat) is an integer in
+    1..`MAX_FRAMES`. Returns them as sorted, hashable ``(name, value)`` pairs."""
+    if params is None:
+        return ()
+    if not isinstance(params, dict):
+        raise ValueError(f"{where}: params must be an object of name: value, got {params!r:.60}")
+    known = _known_params(cls)
+    unknown = sorted(str(k) for k in set(params) - set(known))
+    if unknown:
+        raise ValueError(f"{where}: unknown params {', '.join(unknown)}; known: {', '.join(known)}")
+    checked = {}
+    for key, value in params.items():
+        if key == "n_frames":
+            checked[key] = check_int(where, "params.n_frames", value, high=MAX_FRAMES)
+        else:
+            checked[key] = check_like(where, f"params.{key}", value, known[key])
+    return tuple(sorted((k, _hashable(v)) for k, v in checked.items()))
 
 
 def check_precision(where: str, precision: str) -> None:
     """One clear line unless ``precision`` is one of `PRECISIONS`."""
-    if precision not in PRECISIONS:
-        raise ValueError(
-            f"{where}: precision must be one of {', '.join(PRECISIONS)}, got {precision!r}"
-        )
+    check_choice(where, "precision", precision, PRECISIONS)
 
 
 @struct.dataclass(kw_only=True)
@@ -243,44 +265,35 @@ def brax(
     Returns:
       The `BraxTask`.
     """
+    where = f"brax:{name}"
     envs = _import_brax_envs()
     known = sorted(envs._envs)  # brax's registry (get_environment raises a bare KeyError)
     if name not in known:
         raise ValueError(f"unknown brax environment {name!r}; known: {', '.join(known)}")
-    if backend not in BACKENDS:
-        raise ValueError(f"brax:{name}: backend must be one of {', '.join(BACKENDS)}")
-    params = dict(params or {})
-    unknown = sorted(set(params) - set(_known_params(envs._envs[name])))
-    if unknown:
-        raise ValueError(
-            f"brax:{name}: unknown params {', '.join(unknown)}; "
-            f"known: {', '.join(_known_params(envs._envs[name]))}"
-        )
-    check_precision(f"brax:{name}", precision)
-    if int(episodes) < 1 or int(chunk) < 1:
-        raise ValueError(f"brax:{name}: episodes and chunk must be >= 1")
-    if int(max_steps) < 1:
-        raise ValueError(f"brax:{name}: max_steps must be >= 1, got {max_steps}")
-    kn.activation(hidden), kn.activation(output)
-    frozen = tuple(sorted((k, _hashable(v)) for k, v in params.items()))
+    check_choice(where, "backend", backend, BACKENDS)
+    frozen = _checked_params(where, envs._envs[name], params)
+    check_precision(where, precision)
+    episodes, max_steps, chunk = check_episode_options(
+        where, episodes=episodes, max_steps=max_steps, chunk=chunk, hidden=hidden, output=output
+    )
     try:
         env = _environment(name, backend, frozen)
-    except (TypeError, ValueError) as e:
+        with calling_brax():
+            obs = jax.eval_shape(env.reset, jax.random.key(0)).obs
+    except (TypeError, ValueError, KeyError, IndexError, AttributeError) as e:
         first = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise ValueError(f"brax:{name}: cannot build the environment: {first}") from None
-    with calling_brax():
-        obs = jax.eval_shape(env.reset, jax.random.key(0)).obs
+        raise ValueError(f"{where}: cannot build the environment: {first}") from None
     if not hasattr(obs, "shape"):
-        raise ValueError(f"brax:{name}: observations are {type(obs).__name__}, not one array")
+        raise ValueError(f"{where}: observations are {type(obs).__name__}, not one array")
     return BraxTask(
         env_name=name,
         backend=backend,
         params=frozen,
         n_inputs=math.prod(obs.shape),
         n_outputs=int(env.action_size),
-        episodes=int(episodes),
-        max_steps=int(max_steps),
-        chunk=int(chunk),
+        episodes=episodes,
+        max_steps=max_steps,
+        chunk=chunk,
         hidden=hidden,
         output=output,
         precision=precision,

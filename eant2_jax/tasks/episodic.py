@@ -24,6 +24,7 @@ them (``play``) and turns episodes into the cost the engine minimises:
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -35,7 +36,122 @@ from flax import struct
 from ..kernels import network as kn
 from .base import map_networks
 
-__all__ = ["EpisodicTask", "returns", "rollout"]
+__all__ = [
+    "INT32_MAX",
+    "MAX_EPISODES",
+    "EpisodicTask",
+    "check_choice",
+    "check_episode_options",
+    "check_int",
+    "check_like",
+    "returns",
+    "rollout",
+]
+
+INT32_MAX = 2**31 - 1  # step counters and lengths are int32 on the device
+# Episodes per evaluation at most: each is a vmapped lane of every network's evaluation.
+MAX_EPISODES = 65_536
+
+
+# ------------------------------------------------------------------------------ options
+# The adapters check every option by type and range when the task is made (before a run
+# directory exists), each with one line naming it: an option read from the command line or
+# a run directory may be a string, a float, a list or a JSON object of anything.
+
+
+def _short(value: Any) -> str:
+    """A value for an error message: its repr, on one line, at most 60 characters."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def check_int(where: str, name: str, value: Any, *, low: int = 1, high: int = INT32_MAX) -> int:
+    """``value`` as an int in ``[low, high]``, else one line naming option ``name``."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise ValueError(f"{where}: {name} must be an integer, got {_short(value)}")
+    if not low <= value <= high:
+        raise ValueError(
+            f"{where}: {name} must be an integer >= {low} and <= {high}, got {_short(value)}"
+        )
+    return int(value)
+
+
+def check_choice(where: str, name: str, value: Any, choices: tuple[str, ...]) -> str:
+    """``value`` if it is one of ``choices``, else one line naming option ``name``."""
+    if not isinstance(value, str) or value not in choices:
+        raise ValueError(
+            f"{where}: {name} must be one of {', '.join(choices)}, got {_short(value)}"
+        )
+    return value
+
+
+def _real(value: Any) -> bool:
+    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(
+        value, bool | np.bool_
+    )
+
+
+def check_like(where: str, name: str, value: Any, default: Any) -> Any:
+    """``value`` checked against the kind of ``default`` (the setting it replaces): a bool
+    for a bool, an int (within int32) for an int, a finite number for a float, a string for
+    a string, and for a sequence or array one of the same length (shape) whose items
+    follow these rules (an infinite bound is allowed where the default has one). Values of
+    other kinds (an enumeration, None) are left to the environment. Returns the value, a
+    list becoming a tuple."""
+    if isinstance(default, bool | np.bool_):
+        if not isinstance(value, bool | np.bool_):
+            raise ValueError(f"{where}: {name} must be true or false, got {_short(value)}")
+    elif isinstance(default, int | np.integer):
+        return check_int(where, name, value, low=-INT32_MAX - 1)
+    elif isinstance(default, float | np.floating):
+        if not _real(value) or not math.isfinite(value):
+            raise ValueError(f"{where}: {name} must be a finite number, got {_short(value)}")
+        return float(value)
+    elif isinstance(default, str):
+        if not isinstance(value, str):
+            raise ValueError(f"{where}: {name} must be a string, got {_short(value)}")
+    elif isinstance(default, list | tuple) or hasattr(default, "shape"):
+        want, flat = np.shape(default), np.ravel(np.asarray(default))
+        if want == ():  # a 0-d array: a number of its dtype
+            return check_like(where, name, value, flat[0].item())
+        try:
+            got = np.asarray(value, dtype=object) if isinstance(value, list | tuple) else None
+        except ValueError:  # ragged beyond numpy's object arrays
+            got = None
+        if got is None or got.shape != want:
+            raise ValueError(
+                f"{where}: {name} must be a list of shape {list(want)}, got {_short(value)}"
+            )
+        for i, (v, d) in enumerate(zip(np.ravel(got), flat, strict=True)):
+            d = d.item()
+            if _real(d) and _real(v) and math.isinf(v) and math.isinf(d):
+                continue  # an unbounded end, as the default has
+            check_like(where, f"{name}[{i}]", v, d)
+        return tuple(value) if isinstance(value, list) else value
+    return value
+
+
+def check_episode_options(
+    where: str, *, episodes: Any, max_steps: Any, chunk: Any, hidden: Any, output: Any
+) -> tuple[int, int | None, int]:
+    """Check the options every adapter shares (one line naming the option): ``episodes``
+    in 1..`MAX_EPISODES`, ``max_steps`` (None: the environment's) and ``chunk`` in
+    1..`INT32_MAX`, activation names. Returns ``(episodes, max_steps, chunk)`` as ints."""
+    episodes = check_int(where, "episodes", episodes, high=MAX_EPISODES)
+    if max_steps is not None:
+        max_steps = check_int(where, "max_steps", max_steps)
+    chunk = check_int(where, "chunk", chunk)
+    for name, value in (("hidden", hidden), ("output", output)):
+        if value is None and name == "output":
+            continue
+        if not isinstance(value, str):
+            raise ValueError(f"{where}: {name} must be an activation name, got {_short(value)}")
+        try:
+            kn.activation(value)
+        except ValueError as e:
+            raise ValueError(f"{where}: {name}: {e}") from None
+    return episodes, max_steps, chunk
+
 
 # reset(key) -> (obs, state); step(key, state, action) -> (obs, state, reward, done).
 Reset = Callable[[jax.Array], tuple[Any, Any]]

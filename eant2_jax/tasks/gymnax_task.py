@@ -43,7 +43,7 @@ import numpy as np
 from flax import struct
 
 from ..kernels import network as kn
-from .episodic import EpisodicTask
+from .episodic import EpisodicTask, check_choice, check_episode_options, check_int, check_like
 from .episodic import returns as returns
 
 __all__ = ["GymnaxTask", "NORMALIZE", "gymnax", "returns"]
@@ -148,6 +148,36 @@ def _bounds(space: Any, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]
     return low, high
 
 
+def _with_params(where: str, env_params: Any, params: Any) -> Any:
+    """The environment's parameters with ``params`` replacing fields, each checked against
+    the kind of the field's default (`check_like`: a number for a number, an array of the
+    same shape for an array); ``max_steps_in_episode`` is a whole number of steps >= 1."""
+    if params is None:
+        return env_params
+    if not isinstance(params, dict):
+        raise ValueError(f"{where}: params must be an object of field: value, got {params!r:.60}")
+    known = vars(env_params)
+    unknown = sorted(str(k) for k in set(params) - set(known))
+    if unknown:
+        raise ValueError(
+            f"{where}: unknown params {', '.join(unknown)}; known: {', '.join(sorted(known))}"
+        )
+    fields = {}
+    for key, value in params.items():
+        default = known[key]
+        if key == "max_steps_in_episode":
+            if isinstance(value, float) and value.is_integer() and isinstance(default, float):
+                value = int(value)  # a float limit (the bandits') given as one
+            value = check_int(where, "params.max_steps_in_episode", value)
+            fields[key] = type(default)(value)
+        elif hasattr(default, "shape") and np.ndim(default):
+            checked = check_like(where, f"params.{key}", value, default)
+            fields[key] = jnp.asarray(checked, default.dtype)
+        else:
+            fields[key] = check_like(where, f"params.{key}", value, default)
+    return env_params.replace(**fields)
+
+
 def gymnax(
     name: str,
     *,
@@ -176,28 +206,20 @@ def gymnax(
     Returns:
       The `GymnaxTask`.
     """
+    where = f"gymnax:{name}"
     env, env_params = _environment(name)
-    if params:
-        unknown = sorted(set(params) - set(vars(env_params)))
-        if unknown:
-            raise ValueError(
-                f"gymnax:{name}: unknown params {', '.join(unknown)}; "
-                f"known: {', '.join(sorted(vars(env_params)))}"
-            )
-        env_params = env_params.replace(**params)
-    if int(episodes) < 1 or int(chunk) < 1:
-        raise ValueError(f"gymnax:{name}: episodes and chunk must be >= 1")
+    episodes, max_steps, chunk = check_episode_options(
+        where, episodes=episodes, max_steps=max_steps, chunk=chunk, hidden=hidden, output=output
+    )
+    check_choice(where, "normalize", normalize, NORMALIZE)
+    env_params = _with_params(where, env_params, params)
     limit = getattr(env_params, "max_steps_in_episode", None)
     if max_steps is None:
         if limit is None:
-            raise ValueError(f"gymnax:{name} has no episode limit: pass max_steps")
+            raise ValueError(f"{where} has no episode limit: pass max_steps")
         max_steps = int(limit)
-    elif int(max_steps) < 1:
-        raise ValueError(f"gymnax:{name}: max_steps must be >= 1, got {max_steps}")
     elif limit is not None:
-        env_params = env_params.replace(max_steps_in_episode=min(int(limit), int(max_steps)))
-    if normalize not in NORMALIZE:
-        raise ValueError(f"gymnax:{name}: normalize must be one of {', '.join(NORMALIZE)}")
+        env_params = env_params.replace(max_steps_in_episode=min(int(limit), max_steps))
     obs_shape = jax.eval_shape(env.reset, jax.random.key(0), env_params)[0].shape
     n_inputs = math.prod(obs_shape)
     offset, scale = np.zeros(n_inputs), np.ones(n_inputs)
@@ -217,7 +239,6 @@ def gymnax(
         n_outputs = max(1, math.prod(action_shape))
         low, high = _bounds(space, action_shape)
     output = output or ("identity" if discrete else "tanh")
-    kn.activation(hidden), kn.activation(output)
     return GymnaxTask(
         env_params=env_params,
         obs_offset=jnp.asarray(offset, jnp.float32),
@@ -229,9 +250,9 @@ def gymnax(
         n_outputs=n_outputs,
         discrete=discrete,
         action_shape=action_shape,
-        episodes=int(episodes),
-        max_steps=int(max_steps),
-        chunk=int(chunk),
+        episodes=episodes,
+        max_steps=max_steps,
+        chunk=chunk,
         hidden=hidden,
         output=output,
     )

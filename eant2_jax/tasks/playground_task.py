@@ -34,8 +34,8 @@ from typing import Any
 import jax
 from flax import struct
 
-from ..kernels import network as kn
 from .brax_task import PipelineTask, _hashable, calling_brax, check_precision
+from .episodic import check_choice, check_episode_options, check_int, check_like
 
 __all__ = ["IMPLS", "PlaygroundTask", "playground"]
 
@@ -95,6 +95,54 @@ class PlaygroundTask(PipelineTask):
         return super().inputs(obs[self.obs_key] if isinstance(obs, dict) else obs)
 
 
+# Config fields of every Playground environment with a range: steps and repeats are
+# integers >= 1, time steps positive (and the physics step no longer than the control step,
+# or an environment step would advance no physics).
+_COUNTS = ("episode_length", "action_repeat")
+_TIMES = ("ctrl_dt", "sim_dt")
+
+
+def _checked_config(where: str, defaults: Any, config: Any, prefix: str = "") -> dict:
+    """``config`` checked against the environment's default config, recursively: known
+    keys only, each value of its default's kind (`check_like`; an object for a nested
+    config), `_COUNTS` and `_TIMES` in range; ``impl`` is its own option. Returns the
+    overrides with dotted keys for nested fields (``{"vision_config.nworld": 4}``), as
+    Playground applies them."""
+    if config is None:
+        return {}
+    name = f"config{prefix}"
+    if not isinstance(config, dict):
+        raise ValueError(f"{where}: {name} must be an object of key: value, got {config!r:.60}")
+    if not prefix and "impl" in config:
+        raise ValueError(f"{where}: config.impl: set it with the impl option")
+    if not prefix and config.get("vision", False) is not False:
+        raise ValueError(f"{where}: config.vision: image observations are not supported")
+    unknown = sorted(str(k) for k in config if k not in defaults)
+    if unknown:
+        raise ValueError(
+            f"{where}: unknown {name} {', '.join(unknown)}; "
+            f"known: {', '.join(sorted(defaults.keys()))}"
+        )
+    out = {}
+    for key, value in config.items():
+        default = defaults[key]
+        if hasattr(default, "keys"):  # a nested ConfigDict: Playground takes dotted keys
+            nested = _checked_config(where, default, value, f"{prefix}.{key}")
+            out.update({f"{key}.{k}": v for k, v in nested.items()})
+        elif not prefix and key in _COUNTS:
+            out[key] = check_int(where, f"config.{key}", value)
+        else:
+            out[key] = check_like(where, f"{name}.{key}", value, default)
+            if not prefix and key in _TIMES and out[key] <= 0:
+                raise ValueError(f"{where}: config.{key} must be > 0, got {value!r}")
+    if not prefix:
+        ctrl = out.get("ctrl_dt", defaults.get("ctrl_dt"))
+        sim = out.get("sim_dt", defaults.get("sim_dt"))
+        if isinstance(ctrl, float) and isinstance(sim, float) and sim > ctrl:
+            raise ValueError(f"{where}: config.sim_dt ({sim}) must be <= config.ctrl_dt ({ctrl})")
+    return out
+
+
 def playground(
     name: str,
     *,
@@ -127,40 +175,33 @@ def playground(
     Returns:
       The `PlaygroundTask`.
     """
+    where = f"playground:{name}"
     registry = _registry()
     known = list(registry.ALL_ENVS)
     if name not in known:
         raise ValueError(f"unknown playground environment {name!r}; known: {', '.join(known)}")
-    if impl not in IMPLS:
-        raise ValueError(f"playground:{name}: impl must be one of {', '.join(IMPLS)}")
-    check_precision(f"playground:{name}", precision)
-    if int(episodes) < 1 or int(chunk) < 1:
-        raise ValueError(f"playground:{name}: episodes and chunk must be >= 1")
-    kn.activation(hidden), kn.activation(output)
-    config = dict(config or {})
+    check_choice(where, "impl", impl, IMPLS)
+    check_precision(where, precision)
+    episodes, max_steps, chunk = check_episode_options(
+        where, episodes=episodes, max_steps=max_steps, chunk=chunk, hidden=hidden, output=output
+    )
+    if not isinstance(obs_key, str):
+        raise ValueError(f"{where}: obs_key must be a string, got {obs_key!r:.60}")
     defaults = registry.get_default_config(name)
-    unknown = sorted(k for k in config if k not in defaults)
-    if unknown:
-        raise ValueError(
-            f"playground:{name}: unknown config {', '.join(unknown)}; "
-            f"known: {', '.join(sorted(defaults.keys()))}"
-        )
+    config = _checked_config(where, defaults, config)  # flat, dotted keys
     overrides = tuple(sorted((k, _hashable(v)) for k, v in {**config, "impl": impl}.items()))
     try:
         env = _environment(name, overrides)
-    except (TypeError, ValueError, RuntimeError) as e:
+        with calling_brax():
+            obs = jax.eval_shape(env.reset, jax.random.key(0)).obs
+    except (TypeError, ValueError, RuntimeError, KeyError, AttributeError) as e:
         first = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise ValueError(f"playground:{name}: cannot build the environment: {first}") from None
-    length = config.get("episode_length", defaults.get("episode_length", 1000))
-    steps = int(length if max_steps is None else max_steps)
-    if steps < 1:
-        raise ValueError(f"playground:{name}: max_steps must be >= 1, got {steps}")
-    with calling_brax():
-        obs = jax.eval_shape(env.reset, jax.random.key(0)).obs
+        raise ValueError(f"{where}: cannot build the environment: {first}") from None
+    steps = max_steps or int(config.get("episode_length", defaults.get("episode_length", 1000)))
     if isinstance(obs, dict):
         if obs_key not in obs:
             raise ValueError(
-                f"playground:{name}: observations are a dictionary without {obs_key!r}; "
+                f"{where}: observations are a dictionary without {obs_key!r}; "
                 f"obs_key must be one of {', '.join(sorted(obs))}"
             )
         obs = obs[obs_key]
@@ -170,9 +211,9 @@ def playground(
         obs_key=obs_key,
         n_inputs=math.prod(obs.shape),
         n_outputs=int(env.action_size),
-        episodes=int(episodes),
+        episodes=episodes,
         max_steps=steps,
-        chunk=int(chunk),
+        chunk=chunk,
         hidden=hidden,
         output=output,
         precision=precision,

@@ -34,15 +34,21 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .genome import Gene, GeneKind, Genome
 
+if TYPE_CHECKING:  # config.py imports this module (OPERATORS)
+    from .config import EANT2Config
+
 __all__ = [
     "OPERATORS",
     "initial_genome",
     "mutate",
+    "mutate_once",
+    "offspring",
     "rank",
     "select",
     "similarity_key",
@@ -224,6 +230,62 @@ def mutate(
         gene = Gene(kind, options[int(rng.integers(len(options)))], 0.0)
         return _insert_child(genome, target, [gene])
     raise ValueError(f"unknown operator {operator!r}; known: {', '.join(OPERATORS)}")
+
+
+def mutate_once(
+    rng: np.random.Generator, genome: Genome, n_inputs: int, next_id: int, config: EANT2Config
+) -> tuple[Genome | None, str]:
+    """One structural mutation with an operator drawn by ``config.operator_weights``;
+    returns the child (None if the operator had nothing to act on) and the operator."""
+    p = np.asarray(config.operator_weights) / sum(config.operator_weights)
+    op = OPERATORS[int(rng.choice(len(OPERATORS), p=p))]
+    child = mutate(
+        rng,
+        genome,
+        op,
+        n_inputs=n_inputs,
+        next_id=next_id,
+        input_fraction=config.input_fraction,
+        weight_scale=config.new_weight_scale,
+    )
+    return child, op
+
+
+def offspring(
+    rng: np.random.Generator,
+    parents: Sequence[Genome],
+    n_inputs: int,
+    next_id: int,
+    config: EANT2Config,
+) -> tuple[list[Genome], list[str], list[int], int]:
+    """The explore box (paper figure 3): ``config.offspring`` (default ``population``)
+    children, each of a parent drawn uniformly, by one `mutate_once`; a child whose
+    structure exists among the parents or the children already made is dropped (after
+    ``20 * wanted`` draws the generation makes do with fewer).
+
+    Returns:
+      The children, the operator that made each, each one's parent (an index into
+      ``parents``) and the next free neuron id.
+    """
+    want = config.offspring or config.population
+    seen = {g.structure_key() for g in parents}
+    children: list[Genome] = []
+    ops: list[str] = []
+    made_from: list[int] = []
+    for _ in range(20 * want):  # give up on duplicates after a while
+        if len(children) == want:
+            break
+        parent = int(rng.integers(len(parents)))
+        child, op = mutate_once(rng, parents[parent], n_inputs, next_id, config)
+        if child is None or child.structure_key() in seen:
+            continue
+        if op == "add_subnetwork":
+            next_id += 1
+        seen.add(child.structure_key())
+        children.append(child)
+        ops.append(op)
+        made_from.append(parent)
+    return children, ops, made_from, next_id
 
 
 def rank(

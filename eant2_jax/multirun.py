@@ -22,9 +22,10 @@ from pathlib import Path
 
 import jax
 
-from .lockstep import run_lockstep
-from .loop import EANT2Config, RunResult, run
+from .config import EANT2Config
 from .loop import resume as resume_run
+from .loop import run, run_lockstep
+from .records import RunResult
 from .tasks.base import Task
 
 __all__ = ["run_many"]
@@ -84,49 +85,24 @@ def run_many(
         generation of all of them tuned in one batch), split into one group per device;
         the groups are what the workers take. On a GPU this saves the most where one run's
         generation is too small to keep the device busy; a run then shares its padding
-        bucket with its group (see `eant2_jax.lockstep`). ``exploit``/``compiling``
+        bucket with its group (see `eant2_jax.loop`). ``exploit``/``compiling``
         events carry ``runs``.
 
     Returns:
       The results, in the order of ``keys``.
     """
     keys = list(keys)
-    configs = list(config) if isinstance(config, Sequence) else [config] * len(keys)
-    configs = [EANT2Config() if c is None else c for c in configs]
-    outs = [None] * len(keys) if outs is None else list(outs)
-    if not (len(configs) == len(outs) == len(keys)):
-        raise ValueError("run_many: keys, configs and outs must have the same length")
-    if any(c.devices is not None for c in configs):
-        raise ValueError("run_many places each run on one device: leave config.devices None")
+    configs, outs = _per_run(config, keys, outs)
+    if workers_per_device < 1:
+        raise ValueError(f"workers_per_device must be >= 1, got {workers_per_device}")
     chosen = chosen_devices(devices)
-    jobs = [[i] for i in range(len(keys))]
-    if lockstep:
-        by_config: dict = {}
-        for i, c in enumerate(configs):
-            by_config.setdefault(c, []).append(i)
-        parts = 1 if chosen[0].platform == "cpu" else len(chosen)
-        jobs = [g[k::parts] for g in by_config.values() for k in range(parts) if g[k::parts]]
     todo: queue.Queue = queue.Queue()
-    for job in jobs:
+    for job in _jobs(configs, chosen, lockstep):
         todo.put(job)
     results: list[RunResult | None] = [None] * len(keys)
     errors: list[BaseException] = []
-    lock = threading.Lock()
-
-    def relay(job):
-        if callback is None:
-            return None
-
-        def cb(event):
-            # A lock-step group's events name their run by its index in the group (exploit
-            # events the group, by "runs"); a run alone's carry no run.
-            event = {**event, "run": job[event.get("run", 0)]}
-            if "runs" in event:
-                event["runs"] = [job[r] for r in event["runs"]]
-            with lock:
-                callback(event)
-
-        return cb
+    relay = _Relay(callback)
+    common = dict(task=task, generations=generations, meta=meta, resume=resume)
 
     def worker(device):
         # Ctrl-C goes to the main thread, which is waiting for these (see below).
@@ -137,56 +113,24 @@ def run_many(
             except queue.Empty:
                 return
             here = device if device is not None else chosen[job[0] % len(chosen)]
-            cb = relay(job)
             try:
                 with jax.default_device(here):
-                    if lockstep:
-                        group = run_lockstep(
-                            task,
-                            [keys[i] for i in job],
-                            config=configs[job[0]],
-                            generations=generations,
-                            outs=[outs[i] for i in job],
-                            callback=cb,
-                            meta=meta,
-                            resume=resume,
-                        )
-                        for i, r in zip(job, group, strict=True):
-                            results[i] = r
-                        continue
-                    i = job[0]
-                    if resume and outs[i] is not None and Path(outs[i]).exists():
-                        results[i] = resume_run(outs[i], task, callback=cb)
-                        continue
-                    results[i] = run(
-                        task,
-                        key=keys[i],
-                        config=configs[i],
-                        generations=generations,
-                        out=outs[i],
-                        callback=cb,
-                        meta=meta,
-                    )
+                    got = _run_job(job, keys, configs, outs, relay(job), lockstep, **common)
+                for i, r in zip(job, got, strict=True):
+                    results[i] = r
             except BaseException as e:  # re-raised in the caller's thread
                 errors.append(e)
 
-    if workers_per_device < 1:
-        raise ValueError(f"workers_per_device must be >= 1, got {workers_per_device}")
-    if all(d.platform == "cpu" for d in chosen):
-        if workers_per_device > 1:
-            warnings.warn(
-                f"workers_per_device={workers_per_device} on CPU devices: running one run at "
-                "a time (concurrent programs can deadlock XLA's CPU thread pool)",
-                stacklevel=2,
-            )
-        # One worker (device None: each run goes to chosen[i % len]).
-        slots: list = [None]
-    else:
-        slots = [d for d in chosen for _ in range(workers_per_device)]
     threads = [
         threading.Thread(target=worker, args=(d,), daemon=True, name=f"{WORKER}-{k}")
-        for k, d in enumerate(slots)
+        for k, d in enumerate(_slots(chosen, workers_per_device))
     ]
+    _wait(threads, errors)
+    return results
+
+
+def _wait(threads: list[threading.Thread], errors: list[BaseException]) -> None:
+    """Start the workers and wait for them; the first error of any is raised here."""
     for t in threads:
         t.start()
     try:
@@ -201,4 +145,80 @@ def run_many(
         raise
     if errors:
         raise errors[0]
-    return results
+
+
+def _per_run(config, keys, outs) -> tuple[list[EANT2Config], list[str | None]]:
+    """One config and one output directory per run, checked."""
+    configs = list(config) if isinstance(config, Sequence) else [config] * len(keys)
+    configs = [EANT2Config() if c is None else c for c in configs]
+    outs = [None] * len(keys) if outs is None else list(outs)
+    if not (len(configs) == len(outs) == len(keys)):
+        raise ValueError("run_many: keys, configs and outs must have the same length")
+    if any(c.devices is not None for c in configs):
+        raise ValueError("run_many places each run on one device: leave config.devices None")
+    return configs, outs
+
+
+def _jobs(configs, chosen, lockstep: bool) -> list[list[int]]:
+    """What the workers take: one run each, or with ``lockstep`` the runs of equal configs
+    in groups, one group per device."""
+    if not lockstep:
+        return [[i] for i in range(len(configs))]
+    by_config: dict = {}
+    for i, c in enumerate(configs):
+        by_config.setdefault(c, []).append(i)
+    parts = 1 if chosen[0].platform == "cpu" else len(chosen)
+    return [g[k::parts] for g in by_config.values() for k in range(parts) if g[k::parts]]
+
+
+class _Relay:
+    """The caller's callback, serialised across workers, with each event's run index
+    (and a group's ``runs``) mapped back to the index in ``keys``."""
+
+    def __init__(self, callback):
+        self.callback, self.lock = callback, threading.Lock()
+
+    def __call__(self, job):
+        if self.callback is None:
+            return None
+
+        def cb(event):
+            # A lock-step group's events name their run by its index in the group (exploit
+            # events the group, by "runs"); a run alone's carry no run.
+            event = {**event, "run": job[event.get("run", 0)]}
+            if "runs" in event:
+                event["runs"] = [job[r] for r in event["runs"]]
+            with self.lock:
+                self.callback(event)
+
+        return cb
+
+
+def _run_job(job, keys, configs, outs, cb, lockstep, *, task, generations, meta, resume):
+    """The runs of one job (a run alone, or a lock-step group), on the current device."""
+    if lockstep:
+        return run_lockstep(
+            task, [keys[i] for i in job], config=configs[job[0]], generations=generations,
+            outs=[outs[i] for i in job], callback=cb, meta=meta, resume=resume,
+        )  # fmt: skip
+    (i,) = job
+    if resume and outs[i] is not None and Path(outs[i]).exists():
+        return [resume_run(outs[i], task, callback=cb)]
+    return [
+        run(task, key=keys[i], config=configs[i], generations=generations, out=outs[i],
+            callback=cb, meta=meta)
+    ]  # fmt: skip
+
+
+def _slots(chosen, workers_per_device: int) -> list:
+    """One worker per slot: a device each (``workers_per_device`` per device), or on CPU
+    devices one worker between them (device None: each run goes to ``chosen[i % len]``)."""
+    if all(d.platform == "cpu" for d in chosen):
+        if workers_per_device > 1:
+            warnings.warn(
+                f"workers_per_device={workers_per_device} on CPU devices: running one run at "
+                "a time (concurrent programs can deadlock XLA's CPU thread pool)",
+                stacklevel=3,
+            )
+        return [None]
+    return [d for d in chosen for _ in range(workers_per_device)]

@@ -8,32 +8,20 @@ A run directory holds
 * ``best.genome``        the best genome so far, in text form (a copy of the checkpoint's);
 * ``checkpoint.json``    everything needed to continue after the last complete generation.
 
-Crash safety: after a generation, its lines are appended to the ``.jsonl`` files and
-flushed to disk, then ``best.genome`` and ``checkpoint.json`` are replaced atomically (write
-a temporary file, fsync, rename, fsync the directory). The checkpoint records the length of
-each ``.jsonl`` file at that moment; resuming truncates them back to it. So a run killed at
-any instant — even with SIGKILL inside a checkpoint write — resumes from its last complete
-generation with no duplicate or half-written line, and loses at most the generation in
-progress.
+Crash safety: a generation's lines are appended to the logs and fsynced, then
+``best.genome`` and ``checkpoint.json`` are replaced atomically (`jsonio.write_atomic`).
+The checkpoint records each log's length; resuming truncates the logs back to it, so a run
+killed at any instant resumes from its last complete generation with no duplicate or torn
+line.
 
-Trust (docs/reliability.md):
-
-* one writer: a process that writes a run directory holds an exclusive ``flock`` on the
-  directory itself for its whole life (the OS drops it when the process dies, so a killed
-  run is resumable at once); a second ``resume`` of a live run is refused;
-* atomic creation: a new directory is built under a hidden temporary name in the same
-  folder, locked, and renamed into place, so the path is either absent or a complete run
-  directory (with no checkpoint yet: a stub that ``resume`` starts from generation 0);
-* no links followed: every file is opened with ``O_NOFOLLOW`` relative to the directory and
-  must be a regular file (the logs also with a single link), or the directory is refused;
-* validate, then truncate: the checkpoint's offsets must be integers at line ends of the
-  logs, and the records before them must number the checkpoint's generation + 1; the
-  checkpoint (format 2) carries SHA-256 sums of ``config.json``, the committed log prefixes
-  and its own state, so a silent edit of any committed byte is detected; nothing is
-  truncated before all of this has passed;
-* strict JSON: files are written with ``allow_nan=False`` (a non-finite float is written as
-  the string ``"inf"``, ``"-inf"`` or ``"nan"``, which `as_float` reads back) and
-  format-2 files are read with ``Infinity``/``NaN`` refused.
+Trust (docs/reliability.md, "Guarantees"): one writer (an exclusive ``flock`` on the
+directory for the writer's life; a second ``resume`` of a live run is refused); atomic
+creation (built under a hidden name, locked, renamed into place, so the path is absent or a
+complete directory); no links followed (every file opened with ``O_NOFOLLOW`` relative to
+the directory, regular, the logs with one link); validate, then truncate (offsets at line
+ends, records numbering the checkpoint's generation + 1, and in format 2 SHA-256 sums of
+``config.json``, the committed log prefixes and the state, all checked before anything is
+truncated); strict JSON (`eant2_jax.jsonio`; format 2 refuses ``Infinity``/``NaN``).
 
 Directories of format 1 (before checksums) are still read and resumed; their files may
 hold bare ``Infinity``/``NaN`` and their checkpoint has no checksums.
@@ -77,10 +65,6 @@ class RunDirError(ValueError):
 
 
 # ----------------------------------------------------------------------------- strict JSON
-# The strict JSON rules live in `eant2_jax.jsonio`; a run directory's parse errors are
-# RunDirErrors.
-
-
 def loads(data: bytes | str, where: str, *, strict: bool = True) -> Any:
     """Parse JSON from a run directory (`jsonio.loads`); any problem is a one-line
     `RunDirError` that names ``where``. ``strict`` refuses ``Infinity`` and ``NaN``."""
@@ -351,51 +335,10 @@ class RunDir:
                 f"{where} is missing but {GENERATIONS} holds {lines} records; "
                 "refusing to start over"
             )
-        offsets = {}
-        for name in LOGS:
-            if ckpt is None:
-                offsets[name] = 0
-                continue
-            off = ckpt["offsets"].get(name)
-            if isinstance(off, bool) or not isinstance(off, int):
-                raise RunDirError(
-                    f"{where} is corrupt: the offset of {name} is {_short(off)}, not an integer"
-                )
-            if off < 0 or off > len(logs[name]):
-                raise RunDirError(
-                    f"{self.path / name} is shorter than its checkpoint says "
-                    f"({len(logs[name])} < {off} bytes); the run is corrupt"
-                )
-            if off > 0 and logs[name][off - 1 : off] != b"\n":
-                raise RunDirError(
-                    f"{where} is corrupt: the offset {off} of {name} is not at a line end"
-                )
-            offsets[name] = off
+        offsets = dict.fromkeys(LOGS, 0) if ckpt is None else self._offsets(ckpt, logs, where)
         if ckpt is not None and (strict or "sha256" in ckpt):
-            sums = ckpt.get("sha256")
-            if not isinstance(sums, dict) or sorted(sums) != sorted(SUMS):
-                raise RunDirError(f"{where} is corrupt: no checksums of {', '.join(SUMS)}")
-            actual = {
-                CONFIG: _sha(config_bytes),
-                **{name: _sha(logs[name][: offsets[name]]) for name in LOGS},
-                "state": _state_sum(ckpt["state"]),
-            }
-            for name in SUMS:
-                if sums[name] != actual[name]:
-                    what = "the checkpoint's state" if name == "state" else name
-                    raise RunDirError(
-                        f"{self.path}: {what} does not match the checksum of its last "
-                        "commit (edited or damaged); refusing the run directory"
-                    )
-        records = {}
-        for name in LOGS:
-            rows = []
-            for n, line in enumerate(logs[name][: offsets[name]].split(b"\n")[:-1], 1):
-                row = loads(line, f"{self.path / name}:{n}", strict=strict)
-                if not isinstance(row, dict):
-                    raise RunDirError(f"{self.path / name}:{n} is corrupt: not a JSON object")
-                rows.append(row)
-            records[name] = rows
+            self._check_sums(ckpt, config_bytes, logs, offsets, where)
+        records = {name: self._records(name, logs[name][: offsets[name]], strict) for name in LOGS}
         gens = records[GENERATIONS]
         for i, row in enumerate(gens):
             if row.get("generation") != i or isinstance(row.get("generation"), bool):
@@ -419,6 +362,55 @@ class RunDir:
         self._config_sum = _sha(config_bytes)
         self._sums = {name: hashlib.sha256(logs[name][: offsets[name]]) for name in LOGS}
         return Committed(config, ckpt, offsets, gens, records[PRUNING], best, strict)
+
+    def _offsets(self, ckpt: dict, logs: dict[str, bytes], where: str) -> dict[str, int]:
+        """The checkpoint's offset of each log, checked: an integer at a line end within it."""
+        offsets = {}
+        for name in LOGS:
+            off = ckpt["offsets"].get(name)
+            if isinstance(off, bool) or not isinstance(off, int):
+                raise RunDirError(
+                    f"{where} is corrupt: the offset of {name} is {_short(off)}, not an integer"
+                )
+            if off < 0 or off > len(logs[name]):
+                raise RunDirError(
+                    f"{self.path / name} is shorter than its checkpoint says "
+                    f"({len(logs[name])} < {off} bytes); the run is corrupt"
+                )
+            if off > 0 and logs[name][off - 1 : off] != b"\n":
+                raise RunDirError(
+                    f"{where} is corrupt: the offset {off} of {name} is not at a line end"
+                )
+            offsets[name] = off
+        return offsets
+
+    def _check_sums(self, ckpt: dict, config_bytes, logs, offsets, where: str) -> None:
+        """The checkpoint's SHA-256 sums against the config, the log prefixes and its state."""
+        sums = ckpt.get("sha256")
+        if not isinstance(sums, dict) or sorted(sums) != sorted(SUMS):
+            raise RunDirError(f"{where} is corrupt: no checksums of {', '.join(SUMS)}")
+        actual = {
+            CONFIG: _sha(config_bytes),
+            **{name: _sha(logs[name][: offsets[name]]) for name in LOGS},
+            "state": _state_sum(ckpt["state"]),
+        }
+        for name in SUMS:
+            if sums[name] != actual[name]:
+                what = "the checkpoint's state" if name == "state" else name
+                raise RunDirError(
+                    f"{self.path}: {what} does not match the checksum of its last "
+                    "commit (edited or damaged); refusing the run directory"
+                )
+
+    def _records(self, name: str, committed: bytes, strict: bool) -> list[dict]:
+        """A log's committed lines as JSON objects."""
+        rows = []
+        for n, line in enumerate(committed.split(b"\n")[:-1], 1):
+            row = loads(line, f"{self.path / name}:{n}", strict=strict)
+            if not isinstance(row, dict):
+                raise RunDirError(f"{self.path / name}:{n} is corrupt: not a JSON object")
+            rows.append(row)
+        return rows
 
     # ------------------------------------------------------------------ writing
     def rewind(self, offsets: dict[str, int], best: str | None = None) -> None:

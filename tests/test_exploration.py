@@ -23,6 +23,7 @@ from eant2_jax.exploration import (
     OPERATORS,
     initial_genome,
     mutate,
+    offspring,
     rank,
     select,
     similarity_key,
@@ -518,3 +519,24 @@ def test_select_rules_hold(items, size, limit):
             if i not in kept:
                 assert gs[i].structure_key() in keys or groups.count(similarity_key(gs[i])) >= limit
     assert select(gs, costs, size, similar_limit=limit) == kept  # deterministic
+
+
+def test_offspring_are_new_distinct_structures_with_fresh_ids():
+    """The explore box: ``offspring`` children, none a parent's or another child's
+    structure, each made by the operator it names from the parent it names (the same draws
+    again give it back), new neuron ids counted from ``next_id``; the same seed gives the
+    same children."""
+    config = eant2_jax.EANT2Config(population=3, offspring=12)
+    rng = np.random.default_rng(0)
+    parents = [initial_genome(rng, N_INPUTS, 2, weight_scale=1.0) for _ in range(3)]
+    made = offspring(np.random.default_rng(5), parents, N_INPUTS, 2, config)
+    children, ops, made_from, next_id = made
+    assert len(children) == len(ops) == len(made_from) == 12
+    keys = [g.structure_key() for g in children]
+    assert len(set(keys)) == 12 and not set(keys) & {p.structure_key() for p in parents}
+    assert set(ops) <= set(OPERATORS) and all(0 <= i < 3 for i in made_from)
+    assert next_id == 2 + ops.count("add_subnetwork")
+    hidden = [i for g in children for i in g.neuron_ids if i >= 2]
+    assert sorted(hidden) == list(range(2, next_id))
+    again = offspring(np.random.default_rng(5), parents, N_INPUTS, 2, config)
+    assert [str(g) for g in again[0]] == [str(g) for g in children] and again[1:] == made[1:]

@@ -10,7 +10,7 @@ import pytest
 from compiles import force_compile_ahead, joined
 
 import eant2_jax as E
-from eant2_jax.lockstep import run_lockstep
+from eant2_jax import run_lockstep
 
 
 def _task():
@@ -141,27 +141,27 @@ def test_each_run_stops_at_its_own_target():
 
 def test_programs_compiled_ahead_are_used_and_change_nothing(monkeypatch):
     """On an accelerator a group compiles generation 0's program from shapes and, during
-    each generation, its guessed next bucket's (`loop._compile_next_bucket` over every
+    each generation, its guessed next bucket's (`programs.guesses.compile_next_bucket` over every
     run's pool, for the group's rows). Forced on here, each compilation waited for at once
     (two programs at once on a CPU can deadlock XLA's thread pool): the group runs
     programs compiled ahead (generation 0's called without jit's fallback) and gives
     exactly the group of the usual path."""
-    from eant2_jax import lockstep, loop
+    from eant2_jax.programs import guesses as g
 
     task, cfg = _task(), _config()
     keys = [jax.random.key(s) for s in (3, 4, 5)]
     plain = run_lockstep(task, keys, config=cfg, generations=4)
 
     guesses = []
-    guess = loop._compile_next_bucket
+    guess = g.compile_next_bucket
 
-    def spy_guess(runs, *args):
-        guesses.append(len(runs))
-        return guess(runs, *args)
+    def spy_guess(pools, *args):
+        guesses.append(len(pools))
+        return guess(pools, *args)
 
     used = force_compile_ahead(monkeypatch, fallback=True)
-    monkeypatch.setattr(lockstep, "compile_first_ahead", joined(loop.compile_first_ahead))
-    monkeypatch.setattr(lockstep, "_compile_next_bucket", joined(spy_guess))
+    monkeypatch.setattr(g, "compile_first_ahead", joined(g.compile_first_ahead))
+    monkeypatch.setattr(g, "compile_next_bucket", joined(spy_guess))
     ahead = run_lockstep(task, keys, config=cfg, generations=4)
     assert guesses and set(guesses) == {3}  # every run's pool, once per generation
     assert len(guesses) == 4  # not in the last generation

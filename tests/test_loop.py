@@ -897,9 +897,9 @@ def test_recurrent_start_option():
     assert EANT2Config.from_dict(old, complete=True) == CONFIG
     with pytest.raises(ValueError, match="init_recurrent must be bool"):
         EANT2Config(init_recurrent=1)
-    from eant2_jax.loop import _initialise
+    from eant2_jax.strategy import initialise
 
-    genomes, _ = _initialise(tasks.make("xor"), jax.random.key(0), config)
+    genomes, _ = initialise(jax.random.key(0), tasks.make("xor"), config)
     assert [str(g).split()[-1] for g in genomes] == ["R0*0.0"]
     from eant2_jax.app.cli import _parser
 
@@ -913,15 +913,15 @@ def test_diverse_start_option():
     ids unique across the population; 0 keeps the paper's start, and the same key gives the
     same genomes."""
     from eant2_jax.app.cli import _parser
-    from eant2_jax.loop import _initialise
     from eant2_jax.reference import interpret
+    from eant2_jax.strategy import initialise
 
     task = tasks.make("servo", mode="kinematic", n_starts=4)
-    plain, next_plain = _initialise(task, jax.random.key(3), EANT2Config(population=8))
+    plain, next_plain = initialise(jax.random.key(3), task, EANT2Config(population=8))
     assert len(plain) == 1 and next_plain == task.n_outputs
     config = EANT2Config(population=8, init_mutations=3)
-    genomes, next_id = _initialise(task, jax.random.key(3), config)
-    again, _ = _initialise(task, jax.random.key(3), config)
+    genomes, next_id = initialise(jax.random.key(3), task, config)
+    again, _ = initialise(jax.random.key(3), task, config)
     assert [str(g) for g in genomes] == [str(g) for g in again]
     assert len({g.structure_key() for g in genomes}) == len(genomes) == 8
     assert any(g.n_neurons > task.n_outputs for g in genomes)  # some grew hidden neurons
@@ -986,11 +986,12 @@ def _record_json() -> dict:
 @pytest.mark.parametrize("task", ["xor", "servo"])
 def test_first_program_compiled_ahead_from_shapes_is_used_and_changes_nothing(monkeypatch, task):
     """On an accelerator generation 0's engine program starts compiling from shapes alone,
-    before any key or engine state exists (`loop.compile_first_ahead`). Forced on here:
+    before any key or engine state exists (`programs.guesses.compile_first_ahead`). Forced on here:
     generation 0 runs that very program (called without jit's fallback, so arguments placed
     otherwise than foreseen would raise), and the run is exactly that of the usual path. The
     servo task's arrays are committed to the device; XOR's are not."""
-    from eant2_jax import exploitation, loop
+    from eant2_jax import programs
+    from eant2_jax.programs import guesses
 
     exploit = ExploitConfig(max_iters=30 if task == "xor" else 4, pruner="covariance")
     config = EANT2Config(population=4, exploit=exploit)
@@ -1001,49 +1002,52 @@ def test_first_program_compiled_ahead_from_shapes_is_used_and_changes_nothing(mo
 
     plain = run()
     used = force_compile_ahead(monkeypatch)  # no fallback to jit: a mismatch raises
-    monkeypatch.setattr(loop, "compile_first_ahead", joined(loop.compile_first_ahead))
+    monkeypatch.setattr(guesses, "compile_first_ahead", joined(guesses.compile_first_ahead))
     ahead = run()
-    assert len(used) == 1 and len(exploitation._AHEAD) == 1
+    assert len(used) == 1 and len(programs.REGISTRY.ahead) == 1
     assert ahead.best == plain.best
     assert _without_wall(_json(ahead.generations)) == _without_wall(_json(plain.generations))
     assert _without_wall(_json(ahead.pruning)) == _without_wall(_json(plain.pruning))
     # Where generation 0's structure depends on the run's draws, nothing is guessed.
-    monkeypatch.setattr(exploitation, "_AHEAD", {})
+    monkeypatch.setattr(programs.REGISTRY, "ahead", {})
     diverse = dataclasses.replace(config, init_mutations=2)
-    assert not loop.compile_first_ahead(tasks.make(task), jax.random.key(3), diverse)
-    assert not exploitation._AHEAD
+    assert not guesses.compile_first_ahead(tasks.make(task), jax.random.key(3), diverse)
+    assert not programs.REGISTRY.ahead
 
 
 def test_cli_starts_the_first_program_before_the_key_exists(monkeypatch, tmp_path):
     """`eant2 run` starts generation 0's program from the seed's key shape before it makes
     the key; the run then uses that program (strictly: no fallback to jit)."""
-    from eant2_jax import exploitation, loop
+    from eant2_jax import loop, programs
     from eant2_jax.app import cli
+    from eant2_jax.programs import guesses
 
     calls = []
-    first = joined(loop.compile_first_ahead)
+    first = joined(guesses.compile_first_ahead)
 
-    def spy(task, key, config):
+    def spy(task, key, config, runs=1):
         calls.append(isinstance(key, jax.ShapeDtypeStruct))
-        return first(task, key, config)
+        return first(task, key, config, runs)
 
     used = force_compile_ahead(monkeypatch)
-    monkeypatch.setattr(loop, "compile_first_ahead", spy)
+    monkeypatch.setattr(loop, "compile_first_ahead", spy)  # the CLI's name of it
+    monkeypatch.setattr(guesses, "compile_first_ahead", spy)  # the driver's
     monkeypatch.setenv("EANT2_CACHE_DIR", "")
     argv = ["run", "xor", "--population", "3", "--generations", "0", "--max-iters", "20",
             "--out", str(tmp_path / "run")]  # fmt: skip
     assert cli.main(argv) == 0
     assert calls == [True, False]  # the CLI's, from the key's shape; then run's own
-    assert len(used) == 1 and len(exploitation._AHEAD) == 1
+    assert len(used) == 1 and len(programs.REGISTRY.ahead) == 1
 
 
 def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
     """On an accelerator the loop guesses the next bucket and compiles its engine program in
-    a background thread (`loop._compile_next_bucket`). Forced on here, with the threads
+    a background thread (`programs.guesses.compile_next_bucket`). Forced on here, with the threads
     joined at once (two programs at once on a CPU can deadlock XLA's thread pool): a run
     whose buckets were guessed uses the programs compiled ahead, and gives exactly the run
     of the usual path."""
-    from eant2_jax import exploitation, loop
+    from eant2_jax import programs
+    from eant2_jax.programs import guesses
 
     config = EANT2Config(population=10, exploit=ExploitConfig(max_iters=50, pruner="covariance"))
 
@@ -1052,19 +1056,19 @@ def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
                              generations=6)  # fmt: skip
 
     plain = run()
-    guess = loop._compile_next_bucket
+    guess = guesses.compile_next_bucket
 
     def joined_guess(*args):
         thread = guess(*args)
         if thread is not None:
             thread.join()
-            for ahead in list(exploitation._AHEAD.values()):
+            for ahead in list(programs.REGISTRY.ahead.values()):
                 ahead.get()
         return thread
 
     used = force_compile_ahead(monkeypatch, fallback=True)
-    monkeypatch.setattr(loop, "_compile_next_bucket", joined_guess)
-    monkeypatch.setattr(loop, "compile_first_ahead", joined(loop.compile_first_ahead))
+    monkeypatch.setattr(guesses, "compile_next_bucket", joined_guess)
+    monkeypatch.setattr(guesses, "compile_first_ahead", joined(guesses.compile_first_ahead))
     ahead = run()
     assert used, "no generation ran a program compiled ahead"
     assert ahead.best == plain.best

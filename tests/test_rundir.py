@@ -408,7 +408,7 @@ CORRUPT = [
         "checksum",
     ),  # fmt: skip
     ("config []", _config_edit("config", []), "no configuration object"),
-    ("config without exploit", _config_edit("exploit", DELETE, sub="config"), "'exploit'"),
+    ("config without exploit", _config_edit("exploit", DELETE, sub="config"), "missing: exploit"),
     ("config float population", _config_edit("population", 2.5, sub="config"), "population"),
     ("config missing a field", _config_edit("similar_limit", DELETE, sub="config"), "missing"),
     ("config sigma0 1e-45", _config_edit("sigma0", 1e-45, sub="exploit"), "sigma0"),

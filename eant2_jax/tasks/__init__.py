@@ -11,7 +11,9 @@
 
 ``register(name, factory)`` and ``register_namespace(prefix, factory)`` add to the registry.
 A task built by `make` remembers its spec and options (`spec_of`), so a run
-directory records how to rebuild it and `eant2_jax.resume` needs no task.
+directory records how to rebuild it: `eant2_jax.resume` rebuilds a registered task by
+itself (`is_registered`), and checks a user's task, which the caller names again, against
+the recorded spec (nothing a data file names is imported: docs/reliability.md, "Trust").
 The protocol a task must follow is `Task` (``docs/tasks-custom.md``);
 `check_task` checks it with one clear line per mistake.
 """

@@ -68,7 +68,9 @@ def evaluate(
 
     Genomes of different sizes are padded into one bucket (see `eant2_jax.compiler`),
     so a later call whose genomes fall in the same bucket, with inputs of the same shape,
-    reuses the compiled program.
+    reuses the compiled program. The program does not grow with the genomes' depth (past 64
+    sweeps a step loops over them), but each step of each stream costs about the depth
+    times the neurons squared in multiply-adds (docs/genome.md, Deep networks).
 
     Args:
       genomes: a `Genome` (or its text) or a sequence of them, all with the same

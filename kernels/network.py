@@ -34,6 +34,8 @@ import jax
 import jax.numpy as jnp
 
 from . import activations, netfused
+
+# The build's names, importable from here as before the split (documented in netbuild).
 from .netbuild import Layout as Layout
 from .netbuild import Network as Network
 from .netbuild import buffer_size as buffer_size
@@ -41,22 +43,13 @@ from .netbuild import network as network
 from .netdot import UNROLL_MAX as UNROLL_MAX
 from .netdot import dot
 
-__all__ = [
-    "Layout",
-    "Network",
-    "activation",
-    "buffer_size",
-    "network",
-    "rollout",
-    "step",
-    "step_inline",
-]
+__all__ = ["activation", "rollout", "step", "step_inline"]
 
-# Up to this many sweeps a step writes them out one after another (each sweep a fusion of
-# its own that XLA may merge with the next); above, it runs them as one loop, a program whose
-# size does not depend on the depth. Written out, a 1,000-deep chain compiled for minutes
-# (issue 40). The buckets of the engine's runs and benchmarks so far have had at most 32
-# sweeps: their programs, so their results to the bit, are the ones written out as before.
+# Up to this many sweeps a step writes them out one after another; above, it runs them as
+# one loop, a program whose size does not depend on the depth (written out, a 1,000-deep
+# chain compiled for minutes: issue 40). The buckets of the engine's runs and benchmarks so
+# far have had at most 32 sweeps: their programs, so their results to the bit, are the ones
+# written out as before (docs/genome.md, Deep networks).
 SWEEPS_UNROLLED = 64
 
 
@@ -112,13 +105,17 @@ def step_inline(
     check: bool = False,
     compact: bool = False,
     unroll: bool | None = None,
-):
+) -> tuple[jax.Array, ...]:
     """One step of one network on one example, with no branch over the batch: `step`'s
     values with the non-finite rule in every product (`netdot.dot`), or plain products for
     a network without ``reads``.
 
     Args:
-      net, x, h_prev, hidden, output: as in `step`.
+      net: the network.
+      x: ``[n_in]`` inputs at this step.
+      h_prev: ``[H]`` neuron outputs at the previous step (zeros at the first).
+      hidden: activation name of hidden neurons.
+      output: activation name of root (output) neurons.
       check: also return whether every value that entered a product was finite. Without it
         the program is exactly the one before the check existed (GPU programs, and their
         float32 results, stay as they were measured).

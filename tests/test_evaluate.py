@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import time
 
 import jax
 import jax.numpy as jnp
@@ -242,6 +243,57 @@ def test_same_bucket_does_not_compile_again():
     assert_close(y1, reference(g1, x))
     assert_close(y2, reference(g2, x))
     np.testing.assert_array_equal(y3[:2], y2)
+
+
+# ---------------------------------------------------------------------------- deep networks
+# The first sweep bucket past `kn.SWEEPS_UNROLLED`: a step's sweeps run as one loop.
+LOOPED_SWEEPS = 96
+
+
+@fewer_examples(0.2)  # two programs in all
+@given(batch=genome_batches(max_size=ROWS), x=inputs(4, 2))
+def test_sweeps_as_a_loop_match_reference_and_the_written_out_program(batch, x):
+    """Genomes run in a bucket of 96 sweeps, past `kn.SWEEPS_UNROLLED`, where the sweeps
+    are one loop: the reference's values; and on a CPU the bits of the program that writes
+    out the sweeps of the smaller bucket (sweeps past a network's depth leave it as it is)."""
+    assert kn.SWEEPS_UNROLLED < LOOPED_SWEEPS
+    looped = run_fixed_bucket(batch, x, sweeps=LOOPED_SWEEPS)
+    assert_close(looped, reference(batch, x))
+    if jax.default_backend() == "cpu":
+        np.testing.assert_array_equal(looped, run_fixed_bucket(batch, x, sweeps=MAX_DEPTH))
+
+
+def _chain(depth: int, seed: int) -> Genome:
+    """``depth`` neurons, each reading the next one, the last reading input 0; weights of
+    +-1 with random signs (so the output's sign is the product of theirs)."""
+    signs = np.random.default_rng(seed).choice([-1.0, 1.0], size=depth + 1)
+    text = " ".join(f"N{i}/1*{s:g}" for i, s in enumerate(signs[:-1]))
+    return Genome.parse(f"{text} I0*{signs[-1]:g}")
+
+
+@pytest.mark.slow
+def test_a_chain_of_3000_neurons_evaluates_in_seconds():
+    """Issue 40: a 3,000-deep chain (3,072 neurons and sweeps) took over 300 s and 7.3 GB
+    to compile with every sweep written out; as a loop, `evaluate` (compile and run) took
+    5.5 s for one stream on the 2-core CPU machine, and for these 4 streams 35 s of wall
+    time (12 s of CPU time) while other processes loaded it 6 times over. So the test bounds
+    the wall time by the issue's minute and the CPU time, which waiting for a core does not
+    count, by half of it. The values
+    are the reference's: with ``tanh`` and weights of +-1 the chain's value decays as the
+    depth grows (so a missing sweep would leave the output at 0) and each neuron adds at
+    most a few float32 roundings to its input's relative error without amplifying it
+    (``|tanh'| <= 1``), hence a relative tolerance of 4 roundings (2^-24 each) per neuron."""
+    depth = 3000
+    g = _chain(depth, seed=3)
+    assert g.depth() == depth and bucket_for([g]).sweeps > kn.SWEEPS_UNROLLED
+    x = np.array([[[-2.0], [-0.5], [0.25], [1.0]]], np.float32)  # [T=1, M=4, 1]
+    wall, cpu = time.perf_counter(), time.process_time()
+    got = np.asarray(eant2_jax.evaluate(g, x))
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    want = interpret(g, x.astype(np.float64))
+    assert np.all(np.abs(want) > 1e-3)  # the input reached the root
+    np.testing.assert_allclose(got[0], want, rtol=4 * depth * 2.0**-24, atol=0)
+    assert wall < 60 and cpu < 30, f"a {depth}-deep chain: {wall:.1f} s wall, {cpu:.1f} s CPU"
 
 
 # -------------------------------------------------------------------------------- bad input

@@ -247,6 +247,88 @@ def test_empty_padding_rows_output_zero():
     np.testing.assert_allclose(np.asarray(ys[0]), 1 / (1 + np.exp(-1.0)), rtol=1e-6)
 
 
+# ------------------------------------------------------------ sweeps: written out or a loop
+@functools.cache
+def _step_fn(form: str, unroll: bool):
+    """`kn.step_inline` vmapped over networks ``[N]``, then over their examples ``[E]``
+    (inputs ``[E, n_in]`` shared by the networks, states ``[N, E, H]``), jitted. ``form``:
+    "rule" (the non-finite rule in every product), "plain" (plain products and the
+    finiteness check) or "compact" (every product a dot)."""
+
+    def one(layout, params, x, h):
+        net = kn.network(layout, params)
+        if form == "plain":
+            net = net.replace(reads=None)
+        check, compact = form == "plain", form == "compact"
+        return kn.step_inline(
+            net, x, h, hidden="tanh", output="sigmoid", check=check, compact=compact,
+            unroll=unroll,
+        )  # fmt: skip
+
+    per_net = jax.vmap(one, in_axes=(None, None, 0, 0))
+    return jax.jit(jax.vmap(per_net, in_axes=(0, 0, None, 0)))
+
+
+def _assert_loop_equals_written_out(layout, params, x, h):
+    for form in ("rule", "plain", "compact"):
+        written = _step_fn(form, True)(layout, params, x, h)
+        looped = _step_fn(form, False)(layout, params, x, h)
+        for a, b in zip(written, looped, strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=form)
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="the exact claim is the CPU's")
+@fewer_examples(0.25)
+@given(
+    g=genomes(),
+    x=hnp.arrays(np.float32, (4, N_IN), elements=st.floats(-3, 3, width=32)),
+    h=hnp.arrays(np.float32, (4, H), elements=st.floats(-3, 3, width=32)),
+    bad=st.sampled_from([None, np.nan, np.inf, -np.inf]),
+)
+def test_sweeps_as_a_loop_equal_the_sweeps_written_out(g, x, h, bad):
+    """A step whose sweeps run as one loop (past `kn.SWEEPS_UNROLLED`) gives the bits of the
+    same sweeps written out one after another, in each form of the step: with the
+    non-finite rule (and a NaN or inf input of one example), plain with the finiteness
+    check, and compact; on fresh random genomes (unrolled products), inputs and states."""
+    layout, w = one_layout(g)
+    if bad is not None:
+        x = np.array(x)
+        x[1, 0] = bad
+    batch = jax.tree.map(lambda a: a[None], (layout, w, jnp.asarray(h)))
+    _assert_loop_equals_written_out(batch[0], batch[1], jnp.asarray(x), batch[2])
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="the exact claim is the CPU's")
+@pytest.mark.parametrize("seed", [0, 1])
+def test_sweeps_as_a_loop_equal_the_sweeps_written_out_with_dots(seed):
+    """The same on eight random networks of 16 neuron slots (products over neurons are
+    dots, `netdot.UNROLL_MAX`), with finite inputs and with a NaN input."""
+    layout, params, x, h = _batch_of_networks(seed, neurons=16)
+    _assert_loop_equals_written_out(layout, params, x, h)
+    _assert_loop_equals_written_out(layout, params, x.at[2, 1].set(np.nan), h)
+
+
+def test_deep_step_is_one_loop_whose_program_does_not_grow():
+    """Up to `kn.SWEEPS_UNROLLED` sweeps a step writes each sweep out (the programs every
+    run so far compiled); past it the sweeps are one loop, so a step of 3,072 sweeps lowers
+    to a program as long as one of 96 (the next bucket past 64)."""
+    g = Genome.parse(EXAMPLE)
+
+    def lowered(sweeps: int) -> str:
+        layout, w = one_layout(g, neurons=4, genes=12, sweeps=sweeps)
+        per_example = jax.vmap(lambda lay, p, x, h: kn.step(kn.network(lay, p), x, h),
+                               in_axes=(None, None, 0, 0))  # fmt: skip
+        return (
+            jax.jit(per_example).lower(layout, w, jnp.ones((4, N_IN)), jnp.zeros((4, 4))).as_text()
+        )
+
+    written, looped = lowered(kn.SWEEPS_UNROLLED), lowered(96)
+    assert kn.SWEEPS_UNROLLED < 96
+    assert written.count("stablehlo.while") == 0 < looped.count("stablehlo.while")
+    assert len(written.splitlines()) > len(lowered(kn.SWEEPS_UNROLLED // 2).splitlines())
+    assert len(lowered(3072).splitlines()) == len(looped.splitlines())
+
+
 # -------------------------------------------------------------------------------- gradients
 @fewer_examples(0.1)
 @given(

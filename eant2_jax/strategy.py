@@ -255,8 +255,12 @@ def exploit(
 
     Args:
       brood: from `init` or `ask`.
-      task: the task; config: the run's configuration.
-      on_chunk, on_compile, mesh, solution_test: as for `eant2_jax.tuning.tune`.
+      task: the task.
+      config: the run's configuration.
+      on_chunk: progress after each chunk of iterations (`eant2_jax.tuning.tune`).
+      on_compile: called before a program is first compiled.
+      mesh: split the batch over these devices.
+      solution_test: a success test of a network (`eant2_jax.run`).
     """
     return exploit_together(
         [brood], task, config, brood.bucket, on_chunk=on_chunk, on_compile=on_compile,

@@ -103,8 +103,10 @@ def check(path: Path, write: bool = False) -> list[tuple[Example, str]]:
                 wrong.append((ex, got))
             pieces += [page[last : ex.span[0]], got]
             last = ex.span[1]
-    if write:
-        path.write_text("".join(pieces) + page[last:])
+    if write:  # whole, never through a link (the applications' one way to write a file)
+        from eant2_jax.app.outputs import write_text
+
+        write_text(path, "".join(pieces) + page[last:])
         return []
     return wrong
 

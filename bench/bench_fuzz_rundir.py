@@ -1,4 +1,5 @@
-"""Fuzz of run directories and genome texts (issue 16): corrupt, then check as eant2 does.
+"""Fuzz of what eant2 reads (issues 16 and 40): run directories, genome texts, reproduction
+manifests, genome headers, program-store entries and environment task options.
 
 One small real run directory is made once (``eant2 run xor --generations 2 --population 2``
 through the Python API). Each case copies it and applies one random mutation drawn from a
@@ -17,14 +18,30 @@ show`` does (then its statistics and its compiled layout). Every case is classif
 
 A sample of accepted directories is really resumed for one more generation and compared
 with the uninterrupted run of as many generations.
+
+Run directories also get hostile tasks: ``config.json`` naming ``os:system`` with a shell
+command, a task file or module shipped in the directory (``task.py:make_task``, resolved
+from the directory as ``cd DIR; eant2 resume .`` would), with the checkpoint's checksum of
+``config.json`` recomputed as an attacker would; each is resumed with no task given
+(`eant2_jax.resume`), which must refuse it without running anything. ``json_field_forged``
+edits ``config.json`` with its checksum recomputed too, so that the edit reaches the
+checks behind the checksum. A sixth class, ``executed``, counts cases after which the
+marker file every hostile payload creates exists.
+
+The other targets are modules of `bench.fuzz` (manifests, headers, store, options), each
+with its own mutations and case count (``--manifests``, ``--headers``, ``--store``,
+``--options``; 0 skips one).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import hashlib
 import json
 import os
 import shutil
+import sys
 import tempfile
 import time
 import traceback
@@ -37,6 +54,8 @@ import numpy as np
 import eant2_jax
 from bench import harness
 from bench.common import Column, environment, markdown_table
+from bench.fuzz import headers, manifests, options, store
+from bench.fuzz.common import CLASSES, Marker, classify, hostile_tasks
 from eant2_jax import EANT2Config, ExploitConfig, Genome, tasks
 from eant2_jax.rundir import BEST, CHECKPOINT, CONFIG, GENERATIONS, PRUNING
 
@@ -44,7 +63,6 @@ FILES = (CONFIG, GENERATIONS, PRUNING, BEST, CHECKPOINT)
 CONFIG_ = EANT2Config(population=2, exploit=ExploitConfig(max_iters=40, pruner="covariance"))
 GENERATIONS_ = 2
 META = {"task": "xor", "task_options": {}, "seed": 0}
-CLASSES = ("error", "accepted", "traceback", "silent_wrong", "lost")
 RANDOM_VALUES = [None, True, False, 0, -1, 1, 2, 2**40, 1.5, -0.0, 1e308, "", "x", "inf",
                  "nan", [], [0], [0, 0], {}, {"a": 1}, [[[]]], 10**30]  # fmt: skip
 
@@ -53,12 +71,17 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cases", type=int, default=10_000, help="corrupted run directories")
     p.add_argument("--genomes", type=int, default=5_000, help="corrupted genome texts")
     p.add_argument("--resumes", type=int, default=3, help="accepted cases really resumed")
+    p.add_argument("--manifests", type=int, default=2_000, help="mutated reproduce.json")
+    p.add_argument("--headers", type=int, default=2_000, help="mutated genome-file headers")
+    p.add_argument("--store", type=int, default=200, help="mutated program-store entries")
+    p.add_argument("--options", type=int, default=1_000, help="random task option sets")
     harness.run_options(p, seed=0, helps={"seed": "seed of the mutations' PRNG key"})
 
 
 def _prepare(args: argparse.Namespace) -> None:
     if args.quick:
         args.cases, args.genomes, args.resumes = 200, 100, 1
+        args.manifests, args.headers, args.store, args.options = 100, 100, 16, 40
 
 
 def _records(d: Path) -> tuple[list, list, dict]:
@@ -108,6 +131,7 @@ def mutate(rng: np.random.Generator, d: Path, outside: Path) -> str:
             "dir",
             "genome",
             "offset",
+            "json_field_forged",
         ]  # fmt: skip
     )
     name = FILES[rng.integers(len(FILES))]
@@ -165,9 +189,39 @@ def mutate(rng: np.random.Generator, d: Path, outside: Path) -> str:
         p.mkdir()
     elif kind == "genome":
         (d / BEST).write_text(mutate_text(rng, (d / BEST).read_text()))
+    elif kind == "json_field_forged":
+        obj = json.loads((d / CONFIG).read_text())
+        paths = list(_json_paths(obj))[1:]
+        value = RANDOM_VALUES[rng.integers(len(RANDOM_VALUES))]
+        forge_config(d, _set(obj, paths[rng.integers(len(paths))], value))
+        name = CONFIG
     else:
         return "none"
     return f"{kind}:{name}"
+
+
+def forge_config(d: Path, config: dict) -> None:
+    """Write ``config.json`` and recompute its checksum in the checkpoint, as an attacker
+    who edits a directory would (the checksums detect accidents, they do not authenticate)."""
+    data = json.dumps(config).encode()
+    (d / CONFIG).write_bytes(data)
+    ckpt = json.loads((d / CHECKPOINT).read_text())
+    ckpt["sha256"][CONFIG] = hashlib.sha256(data).hexdigest()
+    (d / CHECKPOINT).write_text(json.dumps(ckpt) + "\n")
+
+
+def check_hostile(d: Path, spec: str, task_options: dict) -> str | tuple[str, str]:
+    """Resume a directory whose config.json names ``spec`` with no task given, from inside
+    it (its folder on sys.path, as ``cd DIR; python -m ...`` has): it must be refused."""
+    config = json.loads((d / CONFIG).read_text())
+    forge_config(d, {**config, "task": spec, "task_options": task_options})
+    with contextlib.chdir(d):
+        sys.path.insert(0, str(d))
+        try:
+            eant2_jax.resume(str(d), generations=GENERATIONS_ + 1)
+        finally:
+            sys.path.remove(str(d))
+    return "silent_wrong", f"resumed a directory naming {spec!r}"
 
 
 def mutate_text(rng: np.random.Generator, text: str) -> str:
@@ -234,6 +288,7 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     )
     with tempfile.TemporaryDirectory(prefix="fuzz-rundir-") as tmp:
         tmp = Path(tmp)
+        tmp.chmod(0o700)  # the program store refuses a folder others may write
         base = tmp / "base"
         eant2_jax.run(task, key=jax.random.key(0), config=CONFIG_, generations=GENERATIONS_,
                       out=str(base), meta=META)  # fmt: skip
@@ -262,6 +317,18 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
                 shutil.rmtree(d, ignore_errors=True)
             if i % 1000 == 999:
                 harness.log(f"{i + 1} directories: {counts}")
+        marker = Marker(tmp)
+        for i, (spec, opts) in enumerate(hostile_tasks(marker, tmp)):  # each one, in turn
+            for j in range(max(1, args.cases // 500)):
+                d = tmp / f"hostile{i}-{j}"
+                shutil.copytree(base, d, symlinks=True)
+                hostile_tasks(marker, d)  # the task files, shipped in the directory
+                verdict, msg = classify(lambda: check_hostile(d, spec, opts), marker)  # noqa: B023
+                counts[verdict] += 1
+                by_kind.setdefault("hostile", dict.fromkeys(CLASSES, 0))[verdict] += 1
+                if verdict not in ("error", "accepted"):
+                    bugs.append({"hostile": spec, "class": verdict, "detail": msg[:300]})
+                shutil.rmtree(d, ignore_errors=True)
         genome_counts = {c: 0 for c in CLASSES}
         texts = [str(Genome.parse(r["best_genome"])) for r in reference[0]]
         for i in range(args.genomes):
@@ -286,16 +353,29 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
             resumed.append({"dir": d.name, "equal_to_uninterrupted": got == want, "kept": kept})
             if got != want or not kept:
                 bugs.append({"resume": d.name, "class": "silent_wrong" if kept else "lost"})
-    rows = [{"what": f"run directories ({k})", **v} for k, v in sorted(by_kind.items())]
-    rows.append({"what": "run directories (all)", **counts})
-    rows.append({"what": "genome texts", **genome_counts})
+        rows = [{"what": f"run directories ({k})", **v} for k, v in sorted(by_kind.items())]
+        rows.append({"what": "run directories (all)", **counts})
+        rows.append({"what": "genome texts", **genome_counts})
+        n_bugs = len(bugs)
+        targets = [(manifests, args.manifests), (headers, args.headers), (store, args.store),
+                   (options, args.options)]  # fmt: skip
+        for module, n in targets:
+            if n:
+                tally = module.run(rng, n, tmp)
+                rows += tally.rows()
+                bugs += tally.bugs
+                n_bugs += tally.n_bugs
+                harness.log(f"{rows[-1]['what']}: {rows[-1]}")
+    totals = {c: sum(r[c] for r in rows if r["what"].endswith("(all)") or "(" not in r["what"])
+              for c in CLASSES}  # fmt: skip
+    rows.append({"what": "all targets", **totals})
     return {
         "environment": environment(),
         "config": harness.settings(args),
         "rows": rows,
         "resumed": resumed,
-        "bugs": bugs[:50],
-        "n_bugs": len(bugs),
+        "bugs": bugs[:100],
+        "n_bugs": n_bugs,
         "seconds": time.perf_counter() - t0,
     }
 
@@ -316,7 +396,7 @@ def render(payload: dict) -> str:
 
 SUITE = harness.Suite(
     name="fuzz_rundir",
-    title="Run-directory fuzz",
+    title="Fuzz of what eant2 reads",
     description=__doc__,
     options=_options,
     run=run,

@@ -5,6 +5,7 @@ it (issue 39 item 4, issue 40)."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sys
@@ -14,6 +15,9 @@ import pytest
 from eant2_jax import EANT2Config, ExploitConfig
 from eant2_jax.app.cli import main
 from eant2_jax.app.parser import build_parser, config_from
+from eant2_jax.rundir import CHECKPOINT, CONFIG, RunDir
+
+TINY = ["--population", "3", "--max-iters", "20", "--generations", "0", "--no-prune"]
 
 
 def _main(argv, capsys, monkeypatch):
@@ -110,6 +114,42 @@ def test_config_lists_every_field_from_the_specs(capsys, monkeypatch):
     assert '\nexploit.pruner = "covariance"  (str)\n' in out
     rc, out, _ = _main(["config", "--json"], capsys, monkeypatch)
     assert EANT2Config.from_dict(json.loads(out), complete=True) == EANT2Config()
+
+
+def _retask(out, task, options):
+    """Point a complete run directory at another task, its checksum recomputed (checksums
+    detect accidents, they do not authenticate)."""
+    meta = json.loads((out / CONFIG).read_text())
+    meta.update(task=task, task_options=options)
+    data = (json.dumps(meta, indent=2) + "\n").encode()
+    (out / CONFIG).write_bytes(data)
+    ckpt = json.loads((out / CHECKPOINT).read_text())
+    ckpt["sha256"][CONFIG] = hashlib.sha256(data).hexdigest()
+    (out / CHECKPOINT).write_text(json.dumps(ckpt) + "\n")
+
+
+def test_resume_of_a_directory_naming_os_system_runs_nothing(tmp_path, capsys, monkeypatch):
+    """``eant2 resume DIR`` of a directory whose task is ``os:system`` with a command: exit
+    code 2, one line asking for --task, the command never ran (a stub directory and a
+    complete one with recomputed checksums alike); a task named that is not the recorded
+    one is refused too (here by the options recorded with the command)."""
+    marker = tmp_path / "pwned"
+    options = {"command": f"touch {marker}"}
+    stub = tmp_path / "stub"
+    meta = {"task": "os:system", "task_options": options, "generations": 1, "key": [0, 0]}
+    RunDir.create(stub, {**meta, "config": EANT2Config().to_dict()}).close()
+    run = tmp_path / "run"
+    rc, _, err = _main(["run", "xor", *TINY, "--out", run], capsys, monkeypatch)
+    assert rc == 0, err
+    _retask(run, "os:system", options)
+    for d in (stub, run):
+        rc, stdout, err = _main(["resume", d], capsys, monkeypatch)
+        assert rc == 2 and len(err) == 1 and "'os:system' is user code" in err[0], err
+        assert "--task SPEC" in err[0] and stdout == ""
+        # Another task named: built with the recorded options (xor takes no "command").
+        rc, _, err = _main(["resume", d, "--task", "xor"], capsys, monkeypatch)
+        assert rc == 2 and len(err) == 1 and "bad options for task 'xor'" in err[0], err
+    assert not marker.exists()
 
 
 def test_show_writes_its_png_whole_and_never_through_a_link(tmp_path, capsys, monkeypatch):

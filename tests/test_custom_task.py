@@ -185,13 +185,17 @@ def test_a_factory_that_returns_no_task(tmp_path):
         tasks.make(str(f))
 
 
-def test_python_run_of_a_made_task_resumes_without_the_task(user_dir, tmp_path):
+def test_python_run_of_a_made_task_resumes_with_the_task_named_again(user_dir, tmp_path):
+    """A user's task is code: resume rebuilds it only when the caller names it again
+    (docs/reliability.md, "Trust"), and then it must be the recorded one."""
     f = user_dir / "reach_cli.py"
     out = tmp_path / "run"
     task = tasks.make(f"{f}:reach_task")
     eant2_jax.run(task, key=jax.random.key(0), config=TINY, generations=0, out=str(out))
     assert json.loads((out / "config.json").read_text())["task"] == f"{f}:reach_task"
-    res = eant2_jax.resume(str(out), generations=1)
+    with pytest.raises(RunDirError, match="is user code"):
+        eant2_jax.resume(str(out), generations=1)
+    res = eant2_jax.resume(str(out), tasks.make(f"{f}:reach_task"), generations=1)
     assert [g.generation for g in res.generations] == [0, 1]
     # A task built by hand is recorded by its type; resume then says what to do.
     other = tmp_path / "by-hand"
@@ -242,7 +246,12 @@ def test_cli_runs_a_task_from_a_user_file_and_resumes(
     assert (meta["task"], meta["task_options"]) == (want, {"target": 0.25})
     if form != "module":
         monkeypatch.chdir(tmp_path)  # a file spec resumes from anywhere
-    rc, stdout, err = _main(["resume", str(out), "--generations", "2"], capsys, monkeypatch)
+    # The task is the user's code: named again to resume (a file by its path, from anywhere).
+    rc, _, err = _main(["resume", str(out), "--generations", "2"], capsys, monkeypatch)
+    assert rc == 2 and "is user code" in err and "--task SPEC" in err
+    named = "reach_cli:reach_task" if form == "module" else f"{f}:reach_task"
+    argv = ["resume", str(out), "--generations", "2", "--task", named]
+    rc, stdout, err = _main(argv, capsys, monkeypatch)
     assert rc == 0, err
     lines = (out / GENERATIONS).read_text().splitlines()
     assert [json.loads(x)["generation"] for x in lines] == [0, 1, 2]
@@ -308,14 +317,14 @@ def test_default_rescoring_averages_fresh_draws_of_both_points(monkeypatch, ahea
     at once here) is the one called, with the same result."""
     made = []
 
-    class Spy(eant2_jax.tuning._Rescorer):
+    class Spy(eant2_jax.rescoring.Rescorer):
         def __init__(self, *a, **k):
             super().__init__(*a, **k)
             if self.ahead is not None:  # no two programs at once on a CPU
                 self.ahead.get()
             made.append(self)
 
-    monkeypatch.setattr(eant2_jax.tuning, "_Rescorer", Spy)
+    monkeypatch.setattr(eant2_jax.rescoring, "Rescorer", Spy)
     monkeypatch.setattr(eant2_jax.programs, "ahead_enabled", lambda: ahead)
     monkeypatch.setattr(eant2_jax.programs.REGISTRY, "ahead", {})
     key = jax.random.key(3)
@@ -338,10 +347,10 @@ def test_default_rescoring_averages_fresh_draws_of_both_points(monkeypatch, ahea
 
 
 def test_rescoring_keeps_the_point_of_lower_fresh_cost():
-    """`_rescore`: per structure the candidate of lower fresh cost (a tie keeps the best
+    """`rescore`: per structure the candidate of lower fresh cost (a tie keeps the best
     point); "mean" scores only the mean; a structure with no finite cost, and the network
     that passed a solution test, keep their best point."""
-    from eant2_jax.tuning import _rescore
+    from eant2_jax.rescoring import rescore
 
     g = eant2_jax.Genome.parse(XOR_GENOME)
     n = g.n_params
@@ -359,7 +368,7 @@ def test_rescoring_keeps_the_point_of_lower_fresh_cost():
 
     costs = [1.0, 1.0, float("inf"), 1.0]
     # candidates, "both": 0 best, 0 mean, 1 best, 1 mean, 2 best (inf), 3 best (solution)
-    out, new, evals, picked = _rescore(
+    out, new, evals, picked = rescore(
         [g] * 4, tuned, costs, [10] * 4, mean, mask, 3, ExploitConfig(rescore=3),
         rescorer([0.5, 0.4, 0.3, 0.3, 0.1, 0.2]),
     )  # fmt: skip
@@ -367,7 +376,7 @@ def test_rescoring_keeps_the_point_of_lower_fresh_cost():
     assert new == [pytest.approx(0.4), pytest.approx(0.3), float("inf"), pytest.approx(0.2)]
     assert evals == [16, 16, 13, 13]
     assert np.allclose([gene.weight for gene in out[0].genes], 0.25) and out[1] is g and out[3] is g
-    out, new, evals, picked = _rescore(
+    out, new, evals, picked = rescore(
         [g] * 4, tuned, costs, [10] * 4, mean, mask, 3, ExploitConfig(recommend="mean"),
         rescorer([0.9, 0.3, 0.1, 0.2]),
     )  # fmt: skip

@@ -397,14 +397,14 @@ def test_a_ctrl_c_swallowed_by_a_callback_still_stops_the_command(monkeypatch):
     handler back."""
     import threading
 
-    from eant2_jax.app import cli
+    from eant2_jax.app import cli, process
 
     before = signal.getsignal(signal.SIGINT)
     seen = []
-    checked = cli._interruptible(seen.append)
+    checked = process.interruptible(seen.append)
     checked({"event": "exploit"})
     assert seen == [{"event": "exploit"}]
-    cli._SIGINT.set()
+    process.SIGINT.set()
     try:
         with pytest.raises(KeyboardInterrupt):
             checked({"event": "exploit"})
@@ -413,24 +413,24 @@ def test_a_ctrl_c_swallowed_by_a_callback_still_stops_the_command(monkeypatch):
         worker.join()
         assert seen[-1] == {"event": "generation"}  # a worker thread reports, never raises
     finally:
-        cli._SIGINT.clear()
+        process.SIGINT.clear()
     # What Python would print as "Exception ignored ... Traceback": a Ctrl-C's is dropped
     # once the command has remembered it; any other goes to the hook before.
     import types
 
-    hook = cli._quiet_interrupts(seen.append)
+    hook = process.quiet_interrupts(seen.append)
     interrupt = types.SimpleNamespace(exc_value=KeyboardInterrupt())
     other = types.SimpleNamespace(exc_value=ValueError("x"))
     hook(interrupt)
     assert seen[-1] is interrupt  # no Ctrl-C remembered: not the command's
-    cli._SIGINT.set()
+    process.SIGINT.set()
     try:
         hook(interrupt)
         assert seen[-1] is interrupt and len([s for s in seen if s is interrupt]) == 1
         hook(other)
         assert seen[-1] is other
     finally:
-        cli._SIGINT.clear()
+        process.SIGINT.clear()
     monkeypatch.setenv("EANT2_CACHE_DIR", "")  # leave the JAX configuration alone
     unraisable = sys.unraisablehook
     assert cli.main(["tasks"]) == 0
@@ -653,29 +653,29 @@ def test_cli_errors_in_a_real_process(tmp_path):
 
 
 def test_cli_asks_for_deterministic_gpu_programs_unless_told_otherwise():
-    from eant2_jax.app.cli import DETERMINISTIC_FLAG, _deterministic_gpu
+    from eant2_jax.app.process import DETERMINISTIC_FLAG, deterministic_gpu
 
     env = {}
-    assert _deterministic_gpu(env) and env["XLA_FLAGS"] == DETERMINISTIC_FLAG
+    assert deterministic_gpu(env) and env["XLA_FLAGS"] == DETERMINISTIC_FLAG
     env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=8"}
-    assert _deterministic_gpu(env)
+    assert deterministic_gpu(env)
     assert env["XLA_FLAGS"].split() == [
         "--xla_force_host_platform_device_count=8",
         DETERMINISTIC_FLAG,
     ]
     # The user's own setting wins, either way; EANT2_GPU_DETERMINISTIC=0 opts out.
     env = {"XLA_FLAGS": "--xla_gpu_deterministic_ops=false"}
-    assert not _deterministic_gpu(env) and env["XLA_FLAGS"] == "--xla_gpu_deterministic_ops=false"
+    assert not deterministic_gpu(env) and env["XLA_FLAGS"] == "--xla_gpu_deterministic_ops=false"
     env = {"EANT2_GPU_DETERMINISTIC": "0"}
-    assert not _deterministic_gpu(env) and "XLA_FLAGS" not in env
+    assert not deterministic_gpu(env) and "XLA_FLAGS" not in env
 
 
 def test_cli_process_defaults_yield_to_the_environment():
-    from eant2_jax.app.cli import _process_defaults
+    from eant2_jax.app.process import process_defaults
 
     env = {}
     assert (
-        _process_defaults(env)
+        process_defaults(env)
         == env
         == {
             "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
@@ -686,7 +686,7 @@ def test_cli_process_defaults_yield_to_the_environment():
     for var in ("XLA_PYTHON_CLIENT_PREALLOCATE", "XLA_PYTHON_CLIENT_MEM_FRACTION",
                 "XLA_PYTHON_CLIENT_ALLOCATOR"):  # fmt: skip
         env = {var: "0.5", "MUJOCO_GL": "egl"}
-        assert _process_defaults(env) == {} and env == {var: "0.5", "MUJOCO_GL": "egl"}
+        assert process_defaults(env) == {} and env == {var: "0.5", "MUJOCO_GL": "egl"}
 
 
 def test_cli_sets_process_defaults_before_mujoco_and_the_backend(tmp_path):
@@ -755,7 +755,7 @@ def test_min_bucket_compiles_once_and_is_a_checked_option(tmp_path):
     in generation 0 only (the default grows into new buckets, each compiled), repeats with
     the same key, and writes the floor into its run directory; bad floors are one clear
     error, and configurations written before the option read as no floor."""
-    from eant2_jax.app.cli import _parser
+    from eant2_jax.app.parser import build_parser
 
     config = EANT2Config(
         population=4, min_bucket=(8, 40, 4), exploit=ExploitConfig(max_iters=60, pruner="none")
@@ -785,8 +785,9 @@ def test_min_bucket_compiles_once_and_is_a_checked_option(tmp_path):
     for bad in ((8, 40), (8, 0, 4), (8, 40, 4.0), (8, 40, True), "8,40,4", (8, 40, 10**6)):
         with pytest.raises(ValueError, match="min_bucket must be None or three integers"):
             EANT2Config(min_bucket=bad)
-    assert _parser().parse_args(["run", "xor", "--min-bucket", "8,40,4"]).min_bucket == (8, 40, 4)
-    assert _parser().parse_args(["run", "xor"]).min_bucket is None
+    parse = build_parser().parse_args
+    assert parse(["run", "xor", "--min-bucket", "8,40,4"]).min_bucket == (8, 40, 4)
+    assert parse(["run", "xor"]).min_bucket is None
 
 
 # --------------------------------------------------------------------- the solution test
@@ -901,10 +902,10 @@ def test_recurrent_start_option():
 
     genomes, _ = initialise(jax.random.key(0), tasks.make("xor"), config)
     assert [str(g).split()[-1] for g in genomes] == ["R0*0.0"]
-    from eant2_jax.app.cli import _parser
+    from eant2_jax.app.parser import build_parser
 
-    args = _parser().parse_args(["run", "xor", "--recurrent-start"])
-    assert args.recurrent_start and not _parser().parse_args(["run", "xor"]).recurrent_start
+    args = build_parser().parse_args(["run", "xor", "--recurrent-start"])
+    assert args.recurrent_start and not build_parser().parse_args(["run", "xor"]).recurrent_start
 
 
 def test_diverse_start_option():
@@ -912,7 +913,7 @@ def test_diverse_start_option():
     K structural mutations that compute its function (new genes join at weight 0), new neuron
     ids unique across the population; 0 keeps the paper's start, and the same key gives the
     same genomes."""
-    from eant2_jax.app.cli import _parser
+    from eant2_jax.app.parser import build_parser
     from eant2_jax.reference import interpret
     from eant2_jax.strategy import initialise
 
@@ -947,7 +948,7 @@ def test_diverse_start_option():
     assert EANT2Config.from_dict(old, complete=True) == CONFIG
     with pytest.raises(ValueError, match="init_mutations must be in"):
         EANT2Config(init_mutations=-1)
-    assert _parser().parse_args(["run", "xor", "--init-mutations", "2"]).init_mutations == 2
+    assert build_parser().parse_args(["run", "xor", "--init-mutations", "2"]).init_mutations == 2
 
 
 def test_compile_statistics_count_this_process_compilations():

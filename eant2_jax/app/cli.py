@@ -85,15 +85,5 @@ def entry() -> None:
     sys.exit(rc)
 
 
-# The names tests/test_loop.py used before the split (until it uses the public ones in
-# `eant2_jax.app.parser` and `eant2_jax.app.process`).
-_parser = build_parser
-_SIGINT = process.SIGINT
-_interruptible = process.interruptible
-_quiet_interrupts = process.quiet_interrupts
-_deterministic_gpu = process.deterministic_gpu
-_process_defaults = process.process_defaults
-DETERMINISTIC_FLAG = process.DETERMINISTIC_FLAG
-
 if __name__ == "__main__":  # pragma: no cover
     entry()

@@ -24,12 +24,11 @@ from typing import TYPE_CHECKING
 import jax
 import numpy as np
 
-from .. import exploitation, tuning
+from .. import exploitation, programs, tuning
 from ..compiler import GENE_FLOOR, NEURON_FLOOR, Bucket, bucket_size
 from ..exploration import initial_genome, offspring
 from ..genome import Genome
 from ..tasks.base import Task
-from .ahead import ahead_enabled, join_at_exit
 
 if TYPE_CHECKING:
     from ..config import EANT2Config
@@ -131,7 +130,7 @@ def compile_next_bucket(
     (`next_bucket_guesses`) for batches of ``min_rows`` rows in a background thread while
     generation ``gen`` runs (``exp_key``: its first run's exploitation key). Returns the
     thread, or None where nothing is compiled ahead (a CPU)."""
-    if not ahead_enabled():
+    if not programs.ahead_enabled():
         return None
 
     def work():
@@ -147,7 +146,7 @@ def compile_next_bucket(
 
     thread = threading.Thread(target=work, name="eant2-next-bucket", daemon=True)
     thread.start()
-    join_at_exit(thread)
+    programs.join_at_exit(thread)
     return thread
 
 
@@ -165,7 +164,7 @@ def compile_first_ahead(task: Task, key: jax.Array, config: EANT2Config, runs: i
     lock-step group's, `eant2_jax.run_lockstep`). Returns whether a compilation was
     started; one that fails to start returns False (generation 0 then compiles its
     program as usual)."""
-    if not ahead_enabled():
+    if not programs.ahead_enabled():
         return False
     if config.init_mutations or config.init_connectivity < 1:
         return False

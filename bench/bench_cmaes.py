@@ -93,7 +93,7 @@ def batched_engine(
 ) -> Callable[[], jax.Array]:
     """One iteration (or ``chunk`` in a scan) of S structures padded into ``size``; with
     ``lazy`` > 0 the lazy eigendecomposition of the exploitation engine."""
-    from eant2_jax.exploitation import _lazy_decompose  # the engine's own lazy step
+    from eant2_jax.exploitation import lazy_decompose  # the engine's own lazy step
 
     s_count = len(dims)
     data = [ellipsoid_data(n, cond, seed + s) for s, n in enumerate(dims)]
@@ -119,7 +119,7 @@ def batched_engine(
         states = jax.vmap(tell)(states, xs, costs, params)
         if lazy:
             every = jnp.ones(s_count, bool)
-            states, age = _lazy_decompose(states, params, age, every, it, lazy)
+            states, age = lazy_decompose(states, params, age, every, it, lazy)
         return states, age
 
     @jax.jit

@@ -67,17 +67,17 @@ _CHILD = textwrap.dedent(
         st, layout, tables, task_d = call
         key, n = jax.random.key(1), spec["chunk"]
         t0 = time.perf_counter()
-        res = ex._run_chunk(st, layout, tables, task_d, key, conf, n)
+        res = ex.run_chunk(st, layout, tables, task_d, key, conf, n)
         jax.block_until_ready(res)
         first = time.perf_counter() - t0
         times = []
         for _ in range(spec["repeats"]):
             t0 = time.perf_counter()
-            jax.block_until_ready(ex._run_chunk(st, layout, tables, task_d, key, conf, n)[0])
+            jax.block_until_ready(ex.run_chunk(st, layout, tables, task_d, key, conf, n)[0])
             times.append(time.perf_counter() - t0)
         out[pruner] = {"first_s": first, "iteration_ms": 1e3 * float(np.median(times)) / n,
                        "best": float(np.min(np.asarray(res[0].cma.best_cost))),
-                       "popsize": ex._popsize(res[0]),
+                       "popsize": ex.popsize_of(res[0]),
                        "genes": int(prep.batch.bucket.genes)}
     print(json.dumps(out))
     """

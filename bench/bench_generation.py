@@ -117,11 +117,11 @@ def _pruning_case(args, task, n_genes: int) -> dict:
     _, batch, st, tables = _batch(args.seed, args.population, n_genes, task, config)
     plain = config.replace(pruner="none")
     key = jax.random.key(0)
-    step = jax.jit(lambda s: ex._step(s, batch.layout, tables, task, key, plain)[0])
+    step = jax.jit(lambda s: ex.step(s, batch.layout, tables, task, key, plain)[0])
     trigger = jnp.ones(st.stop.shape, bool)
     # A whole attempt (the shifted means' evaluation and the re-fit, max_iters = 1
     # iteration of it), through the engine's own iterations.
-    attempt = jax.jit(lambda s: ex._attempt(s, trigger, batch.layout, tables, task, key, config)[0])
+    attempt = jax.jit(lambda s: ex.attempt(s, trigger, batch.layout, tables, task, key, config)[0])
     t_step = time_call(lambda: step(st.replace(attempt=None)), repeats=args.repeats).median_s
     t_prune = time_call(lambda: attempt(st), repeats=args.repeats).median_s
     return {

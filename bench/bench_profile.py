@@ -11,7 +11,7 @@ Three parts (``--parts``), each optional:
   host-device copies (count, seconds), and over the whole run the device ops that take the
   most time and the ``eant2_jax`` Python functions that take the most host time. The trace
   file itself is kept (``--trace-dir``) for Perfetto / TensorBoard.
-* ``compile``: the exploitation program (``exploitation._run_chunk``) of one bucket,
+* ``compile``: the exploitation program (``exploitation.run_chunk``) of one bucket,
   lowered and compiled without a pruner and with the covariance pruner, for minimal servo
   networks and for random ones of ``--compile-genes`` genes, with the compiler options the
   library uses (XLA's defaults, "shipped") and with ``--compiler-options`` alternatives,
@@ -240,7 +240,7 @@ def _compile_case(args, networks: str, pruner: str, option: str) -> dict:
     call = (st, batch.layout, tables, task, jax.random.key(1), config)
     jax.block_until_ready(call)
     t0 = time.perf_counter()
-    lowered = ex._run_chunk.lower(*call, 10)
+    lowered = ex.run_chunk.lower(*call, 10)
     t1 = time.perf_counter()
     compiled = lowered.compile(compiler_options=options or None)
     t2 = time.perf_counter()

@@ -44,7 +44,7 @@ def enable_compilation_cache(
     cache, with XLA's GPU autotuning results): a second run of the same programs loads
     them instead of compiling (on a GPU, a servo run's first generation went from 22.9 s
     to 12.4 s: docs/benchmarks.md). With it, the engine's traced programs are kept too
-    (`eant2_jax.programstore`, in the folder's ``eant2-programs``), so that a later process
+    (`eant2_jax.programs.store`, in the folder's ``eant2-programs``), so that a later process
     neither traces nor compiles them. The ``eant2`` command line calls it; the library
     itself never changes global JAX settings, so Python users call it once, first.
 
@@ -60,6 +60,8 @@ def enable_compilation_cache(
     """
     import jax
 
+    from .programs import store as programs_store
+
     if path is None:
         path = os.environ.get("EANT2_CACHE_DIR", str(Path.home() / ".cache" / "eant2_jax" / "xla"))
     if not str(path):
@@ -67,6 +69,8 @@ def enable_compilation_cache(
     path = Path(path).expanduser()
     if not (min_compile_secs >= 0 and math.isfinite(min_compile_secs)):
         raise ValueError(f"min_compile_secs must be >= 0 and finite, got {min_compile_secs!r}")
+    if not programs_store.trusted_folder(path, "compilation cache"):  # as ssh: others' or shared
+        return None
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_secs))
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

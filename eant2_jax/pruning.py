@@ -8,7 +8,8 @@
   re-fit, `conclude`. The stages never call the task: the engine evaluates the points
   they ask for with the same cost call as its CMA-ES iterations. The maths lives in
   `eant2_jax.kernels.pruning`.
-* Host: `tables_for`, the genome structure the device pruner reads; a removed
+* Host (`eant2_jax.genomepruning`, its names also here): `tables_for`, the genome
+  structure the device pruner reads; a removed
   connection is switched off in the CMA-ES mask, so the gene slots of a structure never move
   during a run. After the run, `prune_genome` drops the removed genes from the genome and
   fixes the neurons' input counts, and `attempt_records` turns the device records into
@@ -17,20 +18,22 @@
 
 from __future__ import annotations
 
-import dataclasses
 import functools
-from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
 
-from .genome import Gene, GeneKind, Genome
+# The host side (`eant2_jax.genomepruning`), named here too so that the stage is one import.
+from .genomepruning import PruneAttempt as PruneAttempt
+from .genomepruning import attempt_records as attempt_records
+from .genomepruning import kept_genes as kept_genes
+from .genomepruning import prune_genome as prune_genome
+from .genomepruning import tables_for as tables_for
 from .kernels import cmaes
 from .kernels import pruning as kp
 from .kernels.pruning import PRUNERS, Tables
-from .rundir import typed_fields
+from .rows import where_rows
 
 __all__ = [
     "NORMAL",
@@ -59,16 +62,6 @@ __all__ = [
 # What an attempt's cost is compared with: the current mean's cost (the paper) or the best
 # cost seen before the attempt.
 REFERENCES = ("mean", "best")
-
-
-def where_rows(pred: jax.Array, new, old):
-    """``where(pred, new, old)`` leaf by leaf, ``pred`` ``[S]`` broadcast over trailing dims."""
-
-    def pick(a, b):
-        p = pred.reshape(pred.shape + (1,) * (a.ndim - pred.ndim))
-        return jnp.where(p, a, b)
-
-    return jax.tree.map(pick, new, old)
 
 
 # ---------------------------------------------------------------------------------- device
@@ -281,8 +274,6 @@ def judge(
     mean = att.trial[s_idx, pick]
     e_new = e_trial[s_idx, pick]
     pruned, new_params = reduce(cma, params, remove, mean, e_new)
-    keep = pruned.mask
-    n = pruned.n
     nan = jnp.nan
     gene = att.gene[s_idx, pick]
     record = AttemptRecord(
@@ -301,20 +292,8 @@ def judge(
     )
     record = _cast_record(record)
     if refit:
-        n_keep = jnp.maximum(n, 1).astype(cma.sigma.dtype)
-        step = jnp.linalg.norm(jnp.where(keep, mean - cma.mean, 0), axis=-1)
-        sigma = jnp.maximum(cma.sigma, refit_scale * step / jnp.sqrt(n_keep))
-        pruned = pruned.replace(sigma=sigma.astype(cma.sigma.dtype))
-        started = att.replace(
-            phase=jnp.full_like(att.phase, REFIT),
-            record=record,
-            picked_scored=att.scored[s_idx, pick],
-            saved_cma=cma,
-            saved_params=params,
-            refit_left=jnp.broadcast_to(
-                jnp.maximum(jnp.minimum(refit, refit_limit), 1), att.refit_left.shape
-            ).astype(jnp.int32),
-            refit_done=jnp.zeros_like(att.refit_done),
+        started, pruned = _start_refit(
+            att, cma, params, pruned, record, mean, (s_idx, pick), refit, refit_scale, refit_limit
         )
         return (
             where_rows(active, started, att),
@@ -336,6 +315,28 @@ def judge(
         record,
         active,
     )
+
+
+def _start_refit(att, cma, params, pruned, record, mean, picked, refit, refit_scale, refit_limit):
+    """``(attempt, pruned)`` entering the ``REFIT`` phase with the picked candidate: the
+    reduced structure's step size ``max(sigma, refit_scale * |shift| / sqrt(n))`` and the
+    state before the attempt saved (`judge`; ``picked``: the rows' and candidates' indices)."""
+    n_keep = jnp.maximum(pruned.n, 1).astype(cma.sigma.dtype)
+    step = jnp.linalg.norm(jnp.where(pruned.mask, mean - cma.mean, 0), axis=-1)
+    sigma = jnp.maximum(cma.sigma, refit_scale * step / jnp.sqrt(n_keep))
+    pruned = pruned.replace(sigma=sigma.astype(cma.sigma.dtype))
+    started = att.replace(
+        phase=jnp.full_like(att.phase, REFIT),
+        record=record,
+        picked_scored=att.scored[picked],
+        saved_cma=cma,
+        saved_params=params,
+        refit_left=jnp.broadcast_to(
+            jnp.maximum(jnp.minimum(refit, refit_limit), 1), att.refit_left.shape
+        ).astype(jnp.int32),
+        refit_done=jnp.zeros_like(att.refit_done),
+    )
+    return started, pruned
 
 
 def reduce(
@@ -424,181 +425,3 @@ def inert_tables(rows: int, genes: int) -> Tables:
         reads=jnp.full((rows, genes), -1, jnp.int32),
         is_neuron=jnp.zeros((rows, genes), bool),
     )
-
-
-def tables_for(genomes: Sequence[Genome], genes: int, rows: int | None = None) -> Tables:
-    """Pruner tables for a batch, ``[rows, genes]`` (padding rows and slots are inert).
-
-    Args:
-      genomes: the structures.
-      genes: padded number of gene slots ``P``.
-      rows: padded number of structures (default ``len(genomes)``).
-    """
-    rows = len(genomes) if rows is None else rows
-    idx = np.arange(genes, dtype=np.int32)
-    parent = np.full((rows, genes), -1, np.int32)
-    subtree_end = np.tile(idx + 1, (rows, 1)).astype(np.int32)
-    reads = np.full((rows, genes), -1, np.int32)
-    is_neuron = np.zeros((rows, genes), bool)
-    for r, g in enumerate(genomes):
-        n = len(g)
-        parent[r, :n] = g.parent
-        pos = g.neuron_position
-        for i, gene in enumerate(g.genes):
-            if gene.kind == GeneKind.NEURON:
-                is_neuron[r, i] = True
-                subtree_end[r, i] = g.subtree_end(i)
-            elif gene.kind in (GeneKind.FORWARD, GeneKind.RECURRENT):
-                reads[r, i] = pos[gene.ref]
-    return Tables(  # device_put: no per-shape program to compile (see compile_genomes)
-        parent=jax.device_put(parent),
-        subtree_end=jax.device_put(subtree_end),
-        reads=jax.device_put(reads),
-        is_neuron=jax.device_put(is_neuron),
-    )
-
-
-def kept_genes(original: Genome, pruned: Genome) -> list[int]:
-    """Indices of ``original``'s genes that ``pruned`` kept, matched in order (the pruner
-    removes whole sub-genomes and keeps the order of the rest). If ``pruned`` is not such a
-    sub-sequence, fewer than ``len(pruned)`` indices come back."""
-    kept, j = [], 0
-    for i, g in enumerate(original.genes):
-        if j < len(pruned) and (pruned[j].kind, pruned[j].ref) == (g.kind, g.ref):
-            kept.append(i)
-            j += 1
-    return kept
-
-
-def prune_genome(genome: Genome, keep: np.ndarray, weights: np.ndarray | None = None) -> Genome:
-    """The genome without the genes where ``keep`` is False, with neuron arities fixed.
-
-    Args:
-      genome: the original genome.
-      keep: ``bool[len(genome)]``; removed genes must form whole sub-genomes (as the pruner
-        removes them), and no kept jumper may read a removed neuron.
-      weights: optional ``[len(genome)]`` weights for the kept genes (others ignored).
-
-    Returns:
-      The pruned, validated genome (evaluating it equals evaluating the original with the
-      removed weights set to 0).
-    """
-    keep = np.asarray(keep, bool)
-    if keep.shape != (len(genome),):
-        raise ValueError(f"keep must have shape ({len(genome)},), got {keep.shape}")
-    w = genome.weights if weights is None else np.asarray(weights, np.float64)
-    parent = genome.parent
-    kept_inputs = np.zeros(len(genome), np.int64)
-    for i in range(len(genome)):
-        if keep[i] and parent[i] >= 0:
-            kept_inputs[parent[i]] += 1
-    genes = []
-    for i, gene in enumerate(genome.genes):
-        if not keep[i]:
-            continue
-        if parent[i] >= 0 and not keep[parent[i]]:
-            raise ValueError(
-                f"gene {i} is kept but the neuron reading it (gene {parent[i]}) is not"
-            )
-        arity = int(kept_inputs[i]) if gene.kind == GeneKind.NEURON else 0
-        genes.append(Gene(gene.kind, gene.ref, float(w[i]), arity))
-    return Genome(genes)
-
-
-_KIND_NAME = {k: k.name.lower() for k in GeneKind}
-
-
-@dataclasses.dataclass(frozen=True)
-class PruneAttempt:
-    """One pruning attempt, as the run directory's ``pruning.jsonl`` holds it.
-
-    Attributes:
-      structure: the structure's index in its batch (or the label the caller gave it).
-      iteration: the CMA-ES iteration of the attempt (1-based).
-      pruner: the pruner's name.
-      gene: the candidate gene; kind: its kind (``input``, ``bias``, ``neuron``, ...).
-      axis: the covariance pruner's principal axis j* (-1 for the other pruners).
-      s: its scaling factor s_{i*j*} (eq. 7), None for the other pruners.
-      e, e_shifted: the cost of the mean before the shift, and of the shifted mean.
-      e_refit: the best cost of the re-fit of the reduced structure (None without one).
-      e_reference: the cost the acceptance compared with.
-      accepted: the removal was kept.
-      cond_before, cond_after: cond(C) before and after.
-      generation: the EANT2 generation (None outside the loop).
-    """
-
-    structure: int
-    iteration: int
-    pruner: str
-    gene: int
-    kind: str
-    axis: int
-    s: float | None
-    e: float
-    e_shifted: float
-    e_refit: float | None
-    e_reference: float
-    accepted: bool
-    cond_before: float
-    cond_after: float
-    generation: int | None = None
-
-    def to_json(self) -> dict:
-        d = dataclasses.asdict(self)
-        if self.generation is None:
-            del d["generation"]
-        return d
-
-    @classmethod
-    def from_json(cls, d: dict) -> PruneAttempt:
-        # Records written before the tentative attempt existed have neither field.
-        if isinstance(d, dict):
-            d = {"e_refit": None, "e_reference": d.get("e"), **d}
-        return cls(**typed_fields(cls, d, "a pruning record"))
-
-
-def attempt_records(
-    history: AttemptRecord | None,
-    genomes: Sequence[Genome],
-    pruner: str,
-    structure_ids: Sequence[int] | None = None,
-) -> list[PruneAttempt]:
-    """One record per pruning attempt from an exploitation history.
-
-    Args:
-      history: the engine history's pruning part, `AttemptRecord` of
-        ``[iterations, S]`` arrays (None without a pruner).
-      genomes: the structures, in batch order (to name the kind of the gene).
-      pruner: the pruner's name.
-      structure_ids: label of each structure in the records (default its batch index).
-
-    Returns:
-      The attempts, sorted by iteration then structure.
-    """
-    if history is None:
-        return []
-    out = []
-    for it, s in zip(*np.nonzero(history.attempted), strict=True):
-        if s >= len(genomes):
-            continue
-        gene = int(history.gene[it, s])
-        factor = float(history.factor[it, s])
-        out.append(
-            PruneAttempt(
-                structure=int(s if structure_ids is None else structure_ids[s]),
-                iteration=int(history.iteration[it, s]),
-                pruner=pruner,
-                gene=gene,
-                kind=_KIND_NAME[genomes[s][gene].kind],
-                axis=int(history.axis[it, s]),
-                s=None if np.isnan(factor) else factor,
-                e=float(history.e[it, s]),
-                e_shifted=float(history.e_shifted[it, s]),
-                e_refit=None if np.isnan(history.e_refit[it, s]) else float(history.e_refit[it, s]),
-                e_reference=float(history.e_reference[it, s]),
-                accepted=bool(history.accepted[it, s]),
-                cond_before=float(history.cond_before[it, s]),
-                cond_after=float(history.cond_after[it, s]),
-            )
-        )
-    return out

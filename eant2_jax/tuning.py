@@ -21,7 +21,6 @@ tests — goes through `tune`, which does the whole round trip once:
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import functools
 import math
 from collections.abc import Callable, Sequence
@@ -31,13 +30,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import distributed, programs
+from . import distributed, programs, rescoring
 from . import exploitation as ex
-from .compiler import Bucket, CompiledBatch, compile_genomes, network_batch
+from .compiler import Bucket, CompiledBatch, compile_genomes
 from .evaluate import as_genomes
 from .genome import Genome
 from .pruning import PruneAttempt, attempt_records, prune_genome, tables_for
-from .tasks.base import Task, check_costs, check_task
+from .tasks.base import Task, check_task
+from .warmstart import Search as Search
+from .warmstart import align as align
+from .warmstart import inherited as inherited
 
 __all__ = [
     "OptimizeResult",
@@ -50,91 +52,6 @@ __all__ = [
     "prepare",
     "tune",
 ]
-
-
-class Search(NamedTuple):
-    """A CMA-ES search distribution of one structure, in its genome's parameter order: a
-    warm start for `tune` and what `tune` hands back (``Tuned.searches``).
-
-    Attributes:
-      sigma: the step size.
-      cov: ``[n, n]`` covariance matrix C (symmetric, positive definite), ``n`` the genome's
-        number of parameters; the search is ``N(weights, sigma^2 C)``.
-    """
-
-    sigma: float
-    cov: np.ndarray
-
-    def check(self, n: int, what: str) -> None:
-        """Raise one ValueError naming ``what`` unless this is a search of ``n`` parameters."""
-        cov = np.asarray(self.cov)
-        if not (isinstance(self.sigma, int | float) and math.isfinite(self.sigma)
-                and self.sigma > 0):  # fmt: skip
-            raise ValueError(f"{what}: sigma must be a finite number > 0, got {self.sigma!r:.40}")
-        if cov.shape != (n, n) or not np.all(np.isfinite(cov)):
-            raise ValueError(
-                f"{what}: cov must be a finite {n} x {n} matrix (one row per parameter of its "
-                f"genome), got shape {cov.shape}"
-            )
-        if not np.allclose(cov, cov.T, rtol=1e-5, atol=1e-12 * max(1.0, np.abs(cov).max())):
-            raise ValueError(f"{what}: cov is not symmetric")
-
-    def to_json(self) -> dict:
-        return {"sigma": float(self.sigma), "cov": np.asarray(self.cov, np.float64).tolist()}
-
-    @classmethod
-    def from_json(cls, d: Any, n: int, what: str) -> Search:
-        """`to_json`'s dict of a search of ``n`` parameters; one ValueError if it is not."""
-        if not isinstance(d, dict) or set(d) != {"sigma", "cov"}:
-            raise ValueError(f"{what}: a search is an object with sigma and cov")
-        try:
-            cov = np.asarray(d["cov"], np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"{what}: cov is not a matrix of numbers") from None
-        sigma = d["sigma"]
-        out = cls(float(sigma) if isinstance(sigma, int | float) else sigma, cov)
-        out.check(n, what)
-        return out
-
-
-def inherited(parent: Genome, search: Search, child: Genome, sigma0: float) -> Search:
-    """A child's warm start from its parent's final search: the parent's covariance on the
-    genes the child kept, the identity on its new genes, step size ``sigma0``.
-
-    The parent's C is scaled to a mean eigenvalue of 1 (trace n): its shape, the
-    correlations and relative scales the parent learned, is inherited, not the scale at which
-    the parent's search converged (``sigma`` carries that, and a converged ``sigma`` would
-    leave the new genes, which join at weight 0, no room to move). Genes are matched by
-    aligning the two gene lists (`align`)."""
-    match = align(parent, child)
-    cov = np.asarray(search.cov, np.float64)
-    n_p, trace = cov.shape[0], np.trace(cov)
-    scale = n_p / trace if n_p and trace > 0 else 1.0
-    n = child.n_params
-    out = np.eye(n)
-    kept = [j for j in range(n) if match[j] is not None]
-    src = [match[j] for j in kept]
-    out[np.ix_(kept, kept)] = cov[np.ix_(src, src)] * scale
-    return Search(float(sigma0), out)
-
-
-def align(parent: Genome, child: Genome) -> list[int | None]:
-    """For each gene of ``child``, the index of the same gene in ``parent`` (None: new).
-
-    Structural mutation inserts and deletes genes but never reorders them, and copies the
-    genes it keeps with their weights; so the genes that two genomes share are the longest
-    common subsequence of their ``(kind, ref, weight)`` lists (a neuron gene's arity may
-    differ: a connection was added to or removed from it)."""
-
-    def sig(g: Genome):
-        return [(gene.kind, gene.ref, float(gene.weight)) for gene in g.genes]
-
-    out: list[int | None] = [None] * len(child.genes)
-    sm = difflib.SequenceMatcher(None, sig(parent), sig(child), autojunk=False)
-    for block in sm.get_matching_blocks():
-        for k in range(block.size):
-            out[block.b + k] = block.a + k
-    return out
 
 
 def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch) -> int:
@@ -385,7 +302,7 @@ def tune(
     watch = None if solution_test is None else _Watch(genomes, solution_test)
     rescorer = None
     if getattr(task, "noisy", False):
-        rescorer = _Rescorer(
+        rescorer = rescoring.Rescorer(
             genomes, task, key, config,
             rows=prep.batch.layout.slot.shape[0], bucket=prep.batch.bucket, pad_count=pad_count,
         )  # fmt: skip
@@ -401,31 +318,19 @@ def tune(
         on_compile=on_compile,
         halt=watch,
     )
+    return _handed_back(genomes, st, hist, config, watch, rescorer, keep_search)
+
+
+def _handed_back(genomes, st, hist, config, watch, rescorer, keep_search) -> Tuned:
+    """`tune`'s steps 6 and 7: the engine's final state gathered to the host and turned
+    back into genomes (the network that passed ``solution_test`` in its place), rescored
+    on a noisy task."""
     best_x, best_cost, mask, spent, stop = distributed.gather(
         (st.cma.best_x, st.cma.best_cost, st.cma.mask, st.evals, st.stop)
     )
     best_x, best_cost = np.asarray(best_x, np.float64), np.asarray(best_cost, np.float64)
-    tuned, costs = [], []
-    for i, g in enumerate(genomes):
-        n = g.n_params
-        if np.isfinite(best_cost[i]):
-            tuned.append(prune_genome(g, mask[i, :n], best_x[i, :n]))
-            costs.append(float(best_cost[i]))
-        else:  # never saw a finite cost: keep the structure, rank it last
-            tuned.append(g)
-            costs.append(float("inf"))
-    searches = None
-    if keep_search:
-        cov, sigma = distributed.gather((st.cma.C, st.cma.sigma))
-        cov, sigma = np.asarray(cov, np.float64), np.asarray(sigma, np.float64)
-        searches = []
-        for i, g in enumerate(genomes):
-            keep = np.flatnonzero(np.asarray(mask[i, : g.n_params]))
-            ok = np.isfinite(best_cost[i]) and np.isfinite(sigma[i]) and sigma[i] > 0
-            c = cov[i][np.ix_(keep, keep)]
-            c = 0.5 * (c + c.T)
-            ok = ok and bool(np.all(np.isfinite(c)))
-            searches.append(Search(float(sigma[i]), c) if ok else None)
+    tuned, costs = _tuned_genomes(genomes, best_x, best_cost, mask)
+    searches = _final_searches(genomes, st, best_cost, mask) if keep_search else None
     solution = None
     if watch is not None and watch.found is not None:
         # The network that passed: a structure halted in a pruning re-fit is otherwise
@@ -442,7 +347,7 @@ def tune(
         mean = None
         if config.recommend != "best":
             mean = np.asarray(distributed.gather(st.cma.mean), np.float64)
-        tuned, costs, evaluations, picked = _rescore(
+        tuned, costs, evaluations, picked = rescoring.rescore(
             genomes, tuned, costs, evaluations, mean, mask, solution, config, rescorer
         )
     return Tuned(
@@ -460,83 +365,34 @@ def tune(
     )
 
 
-def _rescore(genomes, tuned, costs, evaluations, mean, mask, solution, config, rescorer):
-    """`tune`'s step 7 on a noisy task: each structure's candidates (its best point, and
-    with ``config.recommend`` != "best" its distribution mean) scored on ``config.rescore``
-    fresh draws of the task's cost, and the one to keep: ``(tuned, costs, evaluations,
-    picked)``. The network that passed a solution test stays as it is (only re-scored)."""
-    cands: list[tuple[int, str, Genome]] = []
+def _tuned_genomes(genomes, best_x, best_cost, mask) -> tuple[list[Genome], list[float]]:
+    """`tune`'s step 6: each structure's best network, its pruned genes dropped, and its
+    cost; a structure that never saw a finite cost comes back as it was, at cost inf."""
+    tuned, costs = [], []
     for i, g in enumerate(genomes):
-        has_mean = mean is not None and i != solution and np.isfinite(costs[i])
-        if config.recommend != "mean" or not has_mean:
-            cands.append((i, "best", tuned[i]))
-        if has_mean:
-            n = g.n_params
-            cands.append((i, "mean", prune_genome(g, mask[i, :n], mean[i, :n])))
-    fresh = rescorer([c[2] for c in cands])
-    tuned, evaluations = list(tuned), list(evaluations)
-    new_costs = [float("inf")] * len(genomes)
-    picked = ["best"] * len(genomes)
-    seen: set[int] = set()
-    for (i, which, g), f in zip(cands, fresh, strict=True):
-        evaluations[i] += config.rescore
-        f = float(f) if np.isfinite(costs[i]) and np.isfinite(f) else float("inf")
-        if i not in seen or f < new_costs[i]:  # the lower fresh cost; a tie keeps the best
-            tuned[i], new_costs[i], picked[i] = g, f, which
-        seen.add(i)
-    return tuned, new_costs, evaluations, picked
+        n = g.n_params
+        if np.isfinite(best_cost[i]):
+            tuned.append(prune_genome(g, mask[i, :n], best_x[i, :n]))
+            costs.append(float(best_cost[i]))
+        else:  # never saw a finite cost: keep the structure, rank it last
+            tuned.append(g)
+            costs.append(float("inf"))
+    return tuned, costs
 
 
-class _Rescorer:
-    """The program that scores tuned networks on fresh episodes (`tune`'s step 7).
-
-    Its inputs' shapes are known before the engine runs: the engine's bucket, and a row
-    count fixed by the engine's (twice it when the mean is scored too), so the program is
-    compiled once per bucket, not per generation. On an accelerator it is compiled in a
-    background thread while the engine runs, off the critical path (a brax episode program
-    takes seconds to compile): `eant2_jax.programs.ahead`. Calling it waits for that
-    compilation and scores a list of genomes: ``float64[len(genomes)]``.
-    """
-
-    def __init__(self, genomes, task, key, config, *, rows, bucket, pad_count):
-        self._task, self._key = task, key
-        self._rescore = config.rescore
-        per_row = 1 if config.recommend == "best" else 2
-        self._compile_args = dict(bucket=bucket, min_rows=rows * per_row, pad_count=pad_count)
-        self.ahead = None  # the program compiled ahead (`eant2_jax.programs.Program`)
-        self.used_ahead = False  # whether the program compiled ahead was the one called
-        if programs.ahead_enabled():
-            self.ahead = programs.ahead(*self._inputs(genomes))
-
-    def _inputs(self, genomes):
-        """The program and its arguments for ``genomes``."""
-        batch = compile_genomes(genomes, self._task.n_inputs, **self._compile_args)
-        # A key no CMA-ES iteration used (those fold the iteration number into run_key).
-        fresh_key = jax.random.split(self._key, 3)[2]
-        if self._rescore == 1:  # one draw: the key itself, as runs before `rescore` drew it
-            fn, keys = _cost_batch, fresh_key
-        else:
-            fn, keys = _cost_draws, jax.random.split(fresh_key, self._rescore)
-        return fn, (batch.layout, batch.weights, self._task, keys)
-
-    def __call__(self, genomes) -> np.ndarray:
-        fn, args = self._inputs(genomes)
-        if self.ahead is None:
-            costs = fn(*args)
-        else:  # falls back to jit's own path for other shapes than foreseen
-            fallbacks = self.ahead.fallbacks
-            costs = self.ahead(*args)
-            self.used_ahead = self.ahead.fallbacks == fallbacks
-        return np.asarray(costs, np.float64)[: len(genomes)]
-
-
-@jax.jit
-def _cost_draws(layout, weights, task, keys):
-    """The mean cost over ``keys`` (one draw of the task's episodes each), all in one
-    batch."""
-    nets = network_batch(layout, weights)
-    costs = jax.vmap(lambda k: task.cost(k, nets))(keys)
-    return check_costs(task, jnp.mean(costs, axis=0), weights.shape[:1])
+def _final_searches(genomes, st, best_cost, mask) -> list[Search | None]:
+    """Each structure's final search on the genes it kept (None where it is not finite)."""
+    cov, sigma = distributed.gather((st.cma.C, st.cma.sigma))
+    cov, sigma = np.asarray(cov, np.float64), np.asarray(sigma, np.float64)
+    searches = []
+    for i, g in enumerate(genomes):
+        keep = np.flatnonzero(np.asarray(mask[i, : g.n_params]))
+        ok = np.isfinite(best_cost[i]) and np.isfinite(sigma[i]) and sigma[i] > 0
+        c = cov[i][np.ix_(keep, keep)]
+        c = 0.5 * (c + c.T)
+        ok = ok and bool(np.all(np.isfinite(c)))
+        searches.append(Search(float(sigma[i]), c) if ok else None)
+    return searches
 
 
 class OptimizeResult(NamedTuple):
@@ -581,18 +437,28 @@ def optimize(genome: Genome | str, task: Task, *, key: jax.Array, **options: Any
     # One structure starts from the start key itself (not fold_in(start, 0)): the seeded
     # results of optimize() predate the batch rule and are kept.
     res = tune([genome], task, key=key, config=config, keys=init_key[None], pad_count=False)
+    best, best_cost = res.genomes[0], res.costs[0]
+    # The start point is a candidate too (CMA-ES never evaluates its mean): a search that
+    # found nothing better, or no finite cost (a large sigma0), returns where it started.
+    start_cost = _start_cost(genome, task, key, config)
+    if not best_cost <= start_cost:
+        best, best_cost = genome, start_cost
     return OptimizeResult(
-        res.genomes[0],
-        res.costs[0],
+        best,
+        best_cost,
         res.history.structure(0),
         res.stop_reasons[0],
         res.pruning,
     )
 
 
-@jax.jit
-def _cost_batch(layout, weights, task, key):
-    return check_costs(task, task.cost(key, network_batch(layout, weights)), weights.shape[:1])
+def _start_cost(genome: Genome, task: Task, key: jax.Array, config: ex.ExploitConfig) -> float:
+    """The start point's cost as `optimize` compares it with the search's result: on a
+    noisy task on the fresh draws that `tune` scores its result on, else the task's cost."""
+    draws = config.rescore if getattr(task, "noisy", False) else 1
+    fn, args = rescoring.fresh_cost_call([genome], task, key, draws)
+    cost = float(np.asarray(fn(*args), np.float64)[0])
+    return cost if math.isfinite(cost) else math.inf
 
 
 def cost(
@@ -602,4 +468,4 @@ def cost(
     genomes = as_genomes(genomes)
     check_task(task, genomes)
     batch = compile_genomes(genomes, task.n_inputs)
-    return np.asarray(_cost_batch(batch.layout, batch.weights, task, key))[: batch.count]
+    return np.asarray(rescoring.cost_batch(batch.layout, batch.weights, task, key))[: batch.count]

@@ -121,7 +121,7 @@ def force_compile_ahead(monkeypatch, *, fallback: bool = False) -> list:
     empty registry as in a fresh process. Returns the list of the programs compiled ahead
     that the engine then called: strictly (a mismatch of the arguments raises) unless
     ``fallback``, where the program's own fallback to jit stays as the library has it."""
-    from eant2_jax import exploitation, programs
+    from eant2_jax import programs
 
     used = []
     program = programs.program
@@ -134,8 +134,6 @@ def force_compile_ahead(monkeypatch, *, fallback: bool = False) -> list:
         return out
 
     monkeypatch.setattr(programs, "ahead_enabled", lambda: True)
-    # The loop's name for it until it calls `programs.ahead_enabled` itself.
-    monkeypatch.setattr(exploitation, "compile_ahead_enabled", lambda: True, raising=False)
     monkeypatch.setattr(programs, "program", spy)
     monkeypatch.setattr(programs.REGISTRY, "ahead", {})
     monkeypatch.setattr(programs.REGISTRY, "ran", set())

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from eant2_jax import ExploitConfig
-from eant2_jax.app.experiments import _from_evolved
+from eant2_jax.app.condition import _from_evolved
 from eant2_jax.exploitation import run as run_engine
 from eant2_jax.genome import Genome
 from eant2_jax.tasks import regression

@@ -1,11 +1,15 @@
-"""The store of traced engine programs (`eant2_jax.programstore`): a run computes the same
+"""The store of traced engine programs (`eant2_jax.programs.store`): a run computes the same
 with the store off, cold and warm; a warm store skips tracing; anything that shapes the
-program keys it; bad files and unwritable folders cost nothing but the saving."""
+program keys it; bad, planted or foreign entries are never used, a folder others may write
+is refused, and unwritable folders cost nothing but the saving (issue 40: data, not code)."""
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
+import os
+import pickle
 import sys
 from pathlib import Path
 
@@ -63,13 +67,13 @@ def test_off_cold_and_warm_store_give_the_same_run(store, monkeypatch, task):
     off = _run(task, config, generations)
     monkeypatch.setattr(programstore, "directory", lambda: store)
     cold = _run(task, config, generations)
-    files = sorted(store.glob("*.pkl"))
+    files = sorted(store.glob("*.program"))
     assert files, "nothing stored"
     _forget(monkeypatch)
     _no_tracing(monkeypatch)
     warm = _run(task, config, generations)
     assert off == cold == warm
-    assert sorted(store.glob("*.pkl")) == files  # read, not written again
+    assert sorted(store.glob("*.program")) == files  # read, not written again
 
 
 def _chunk_args(task_name: str, config: ExploitConfig):
@@ -81,7 +85,7 @@ def _chunk_args(task_name: str, config: ExploitConfig):
     genome = initial_genome(np.random.default_rng(1), task.n_inputs, task.n_outputs)
     init_key, run_key = jax.random.split(jax.random.key(2))
     prep = tuning.prepare([genome], task, key=init_key, config=config, min_rows=4)
-    args = (*exploitation._placed(prep.state, prep.batch.layout, prep.tables, task, None),
+    args = (*exploitation.placed(prep.state, prep.batch.layout, prep.tables, task, None),
             run_key, config)  # fmt: skip
     return task, args
 
@@ -89,9 +93,9 @@ def _chunk_args(task_name: str, config: ExploitConfig):
 def test_the_engine_state_is_equal_to_the_last_bit(store):
     """One chunk of the engine: the stored program's outputs equal jit's, every leaf."""
     task, args = _chunk_args("servo", ExploitConfig(max_iters=30, pruner="covariance"))
-    stored = programstore.lookup(exploitation._run_chunk, args, {"length": 5}, task=task)
+    stored = programstore.lookup(exploitation.run_chunk, args, {"length": 5}, task=task)
     assert stored is not None
-    plain = exploitation._run_chunk(*args, length=5)
+    plain = exploitation.run_chunk(*args, length=5)
     for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(stored(*args)), strict=True):
         if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
             a, b = jax.random.key_data(a), jax.random.key_data(b)
@@ -99,13 +103,13 @@ def test_the_engine_state_is_equal_to_the_last_bit(store):
 
 
 def _keys(folder) -> set[str]:
-    return {p.name for p in folder.glob("*.pkl")}
+    return {p.name for p in folder.glob("*.program")}
 
 
 def _store_chunk(config: ExploitConfig) -> None:
     """Store (trace, not compile) the engine's chunk for one XOR structure under ``config``."""
     task, args = _chunk_args("xor", config)
-    assert programstore.lookup(exploitation._run_chunk, args, {"length": 5}, task=task)
+    assert programstore.lookup(exploitation.run_chunk, args, {"length": 5}, task=task)
 
 
 def test_what_shapes_the_program_keys_it(store, monkeypatch):
@@ -152,18 +156,165 @@ def test_the_code_digest_covers_every_module_of_the_package(monkeypatch, tmp_pat
         programstore._code_digest.cache_clear()
 
 
-def test_a_bad_file_is_traced_again_and_replaced(store, monkeypatch):
+def _entry(path: Path) -> tuple[dict, bytes]:
+    head, _, payload = path.read_bytes().partition(b"\n")
+    return json.loads(head), payload
+
+
+def _whole(path: Path) -> bool:
+    """An entry of its own key whose bytes match its manifest (what a writer leaves)."""
+    manifest, payload = _entry(path)
+    return (
+        manifest["key"] == path.stem and manifest["sha256"] == hashlib.sha256(payload).hexdigest()
+    )
+
+
+def _stored_leaves():
+    """The entry's key and the arguments' leaves of `_run`'s generation 0 program."""
+    task, args = _chunk_args("xor", CONFIG.exploit)
+    return jax.tree.leaves(args)
+
+
+def test_an_entry_is_a_manifest_and_bytes(store):
+    """One line of strict JSON naming the key, versions and the bytes' hash, then the
+    bytes `jax.export` wrote; no pickle anywhere in the entry."""
+    _store_chunk(CONFIG.exploit)
+    (path,) = store.glob("*.program")
+    manifest, payload = _entry(path)
+    assert manifest["key"] == path.stem and manifest["format"] == programstore.FORMAT
+    assert manifest["jax"] == jax.__version__ and manifest["bytes"] == len(payload)
+    assert manifest["sha256"] == hashlib.sha256(payload).hexdigest()
+    assert len(manifest["out_avals"]) > 0 and manifest["out_tree"].startswith("PyTreeDef")
+    assert "import pickle" not in Path(programstore.__file__).read_text()
+
+
+def _damaged(good: bytes) -> list[tuple[str, bytes]]:
+    head, _, payload = good.partition(b"\n")
+    manifest = json.loads(head)
+    flipped = bytearray(good)
+    flipped[len(head) + 1 + len(payload) // 2] ^= 0x01  # one bit of the program's bytes
+    other = dict(manifest, jax="0.0.1")
+    return [
+        ("empty", b""),
+        ("not an entry", b"not an entry"),
+        ("a flipped bit", bytes(flipped)),
+        ("a partial write", good[: len(good) // 2]),
+        ("another version", json.dumps(other).encode() + b"\n" + payload),
+        ("non-strict JSON", head.replace(b'"bytes"', b'"nan": NaN, "bytes"') + b"\n" + payload),
+    ]
+
+
+def _new_entry(store, before: set) -> Path:
+    (path,) = set(store.glob("*.program")) - before
+    return path
+
+
+def test_a_damaged_entry_is_traced_again_and_replaced(store, monkeypatch):
+    """Each damage is detected before the bytes are deserialized; a whole run over a flipped
+    bit computes the same and leaves a good entry."""
+    _store_chunk(CONFIG.exploit)
+    (path,) = store.glob("*.program")
+    good, leaves = path.read_bytes(), _stored_leaves()
+    assert programstore._read(path, path.stem, leaves) is not None
+    for what, bad in _damaged(good):
+        path.write_bytes(bad)
+        assert programstore._read(path, path.stem, leaves) is None, what
     first = _run(generations=0)
-    (path,) = store.glob("*.pkl")
+    path = _new_entry(store, {path})
     good = path.read_bytes()
-    junks = (b"", b"not a pickle", __import__("pickle").dumps(("a", "b")), good[: len(good) // 2])
-    for junk in junks:  # empty, not a pickle, a foreign pickle, a partial write
-        path.write_bytes(junk)
-        assert programstore._read(path) is None
-    # A whole run over the last of them (each run compiles its program afresh: one is enough).
+    flipped = dict(_damaged(good))["a flipped bit"]
+    path.write_bytes(flipped)
     _forget(monkeypatch)
     assert _run(generations=0) == first
-    assert path.read_bytes() != junks[-1] and programstore._read(path) is not None
+    assert path.read_bytes() != flipped and _whole(path)  # traced again, written anew
+
+
+def test_a_planted_pickle_runs_nothing(store, monkeypatch, tmp_path):
+    """A pickle planted under the key (as the entry, or as the older store's ``.pkl``) is
+    never unpickled: the run computes the same and the pickle's code never ran."""
+    first = _run(generations=0)
+    (path,) = store.glob("*.program")
+    marker = tmp_path / "the pickle ran"
+    planted = pickle.dumps(_Plant(str(marker)))
+    path.write_bytes(planted)
+    path.with_suffix(".pkl").write_bytes(planted)
+    _forget(monkeypatch)
+    assert _run(generations=0) == first
+    assert not marker.exists()
+    assert _whole(path)  # replaced by a good entry
+
+
+class _Plant:
+    """A pickle that creates a file when it is unpickled."""
+
+    def __init__(self, marker: str):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_a_foreign_entry_is_not_used(store, monkeypatch):
+    """Another program's valid entry under this key (another engine setting) is refused by
+    its manifest; with the manifest's key forged too, by its input shapes. A run over a
+    foreign entry computes the same and the entry is replaced by its own."""
+    _store_chunk(CONFIG.exploit)
+    (path,) = store.glob("*.program")
+    leaves = _stored_leaves()
+    _store_chunk(CONFIG.exploit.replace(popsize=9))  # another program, its own entry
+    other = _new_entry(store, {path})
+    path.write_bytes(other.read_bytes())
+    assert programstore._read(path, path.stem, leaves) is None
+    manifest, payload = _entry(other)
+    path.write_bytes(json.dumps(dict(manifest, key=path.stem)).encode() + b"\n" + payload)
+    assert programstore._read(path, path.stem, leaves) is None
+    first = _run(generations=0)
+    mine = _new_entry(store, {path, other})
+    mine.write_bytes(other.read_bytes())
+    _forget(monkeypatch)
+    assert _run(generations=0) == first
+    assert mine.read_bytes() != other.read_bytes() and _whole(mine)
+
+
+@pytest.mark.parametrize("how", ["world-writable", "group-writable", "another user's"])
+def test_a_folder_others_can_write_is_refused_with_one_warning(store, monkeypatch, how):
+    """A store folder another user owns or may write is refused (as ssh refuses such an
+    authorized_keys), with ONE warning however often it is asked: no program is read or
+    written there, and the engine runs jit's own program. The compilation cache's folder
+    is refused the same way (`eant2_jax.enable_compilation_cache` then turns nothing on)."""
+    cache = store.parent / "xla"
+    for folder in (store, cache):
+        folder.mkdir(mode=0o700)
+        if how != "another user's":
+            folder.chmod(0o777 if how == "world-writable" else 0o770)
+    if how == "another user's":
+        uid = os.getuid()
+        monkeypatch.setattr(os, "getuid", lambda: uid + 1)
+    with pytest.warns(programstore.UntrustedFolderWarning) as caught:
+        task, args = _chunk_args("xor", CONFIG.exploit)
+        for _ in range(2):
+            stored = programstore.lookup(exploitation.run_chunk, args, {"length": 5}, task=task)
+            assert stored is None
+    assert len(caught) == 1 and str(store) in str(caught[0].message)
+    assert not list(store.iterdir())
+    old = jax.config.jax_compilation_cache_dir
+    try:
+        with pytest.warns(programstore.UntrustedFolderWarning) as caught:
+            assert eant2_jax.enable_compilation_cache(cache) is None
+        assert len(caught) == 1 and str(cache) in str(caught[0].message)
+        assert jax.config.jax_compilation_cache_dir == old
+    finally:
+        jax.config.update("jax_compilation_cache_dir", old)
+
+
+def test_a_file_not_owned_alone_is_not_read(store):
+    """An entry another user could have written (group- or world-writable) is not read."""
+    _store_chunk(CONFIG.exploit)
+    (path,) = store.glob("*.program")
+    leaves = _stored_leaves()
+    assert programstore._read(path, path.stem, leaves) is not None
+    path.chmod(0o666)
+    assert programstore._read(path, path.stem, leaves) is None
 
 
 def test_an_unwritable_store_still_runs(tmp_path, monkeypatch):
@@ -184,7 +335,7 @@ def test_when_the_store_holds_nothing(store, monkeypatch):
 
     Outside.__module__ = "user_tasks"
     outside = Outside(**{f: getattr(task, f) for f in task.__dataclass_fields__})
-    assert programstore.lookup(exploitation._run_chunk, (outside,), {}, task=outside) is None
+    assert programstore.lookup(exploitation.run_chunk, (outside,), {}, task=outside) is None
     # Off with the compilation cache, or alone by EANT2_PROGRAM_STORE=0.
     monkeypatch.undo()
     old = jax.config.jax_compilation_cache_dir
@@ -220,14 +371,14 @@ def test_the_store_holds_a_gpu_engine_program_with_its_triton_kernel(monkeypatch
     from eant2_jax.kernels import network as kn
 
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    monkeypatch.setattr(kn, "_FUSED_NEURONS", (1, kn._UNROLL_MAX))  # XOR's networks are small
+    monkeypatch.setattr(kn, "FUSED_NEURONS", (1, kn.UNROLL_MAX))  # XOR's networks are small
     task, config = tasks.make("xor"), ExploitConfig(pruner="covariance")
     genomes = [eant2_jax.Genome.parse("N0/3*0.5 I0*1.0 I1*-1.0 B*0.1")] * 2
     keys = jax.random.split(jax.random.key(0), 2)
     prep = tuning.prepare(genomes, task, key=jax.random.key(1), config=config, keys=keys)
 
     def step(state):
-        return exploitation._step(
+        return exploitation.step(
             state, prep.batch.layout, prep.tables, task, jax.random.key(2), config
         )[0].cma.mean
 

@@ -292,10 +292,10 @@ def _attempt_state(weights, mask, covariances):
 @jax.jit
 def _attempt(st, layout, tables, task, config):
     """A whole pruning attempt of every structure, through the engine's own iterations
-    (exploitation._attempt drives exploitation._step until each is decided)."""
+    (exploitation.attempt drives exploitation.step until each is decided)."""
     trigger = jnp.ones(st.stop.shape, bool)
     st = st.replace(attempt=pruning.Attempt.idle(st.cma, st.params, config.prune_candidates))
-    return ex._attempt(st, trigger, layout, tables, task, jax.random.key(0), config)
+    return ex.attempt(st, trigger, layout, tables, task, jax.random.key(0), config)
 
 
 @functools.partial(jax.jit, static_argnames="pruner")

@@ -10,9 +10,9 @@ The counts are those of the whole process: in a process that runs several EANT2 
 
 ::
 
-    before = compilestats.snapshot()
+    before = stats.snapshot()
     ...  # anything that may compile
-    spent = compilestats.snapshot() - before
+    spent = stats.snapshot() - before
 """
 
 from __future__ import annotations

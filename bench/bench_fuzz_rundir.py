@@ -68,20 +68,33 @@ RANDOM_VALUES = [None, True, False, 0, -1, 1, 2, 2**40, 1.5, -0.0, 1e308, "", "x
 
 
 def _options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--cases", type=int, default=10_000, help="corrupted run directories")
-    p.add_argument("--genomes", type=int, default=5_000, help="corrupted genome texts")
-    p.add_argument("--resumes", type=int, default=3, help="accepted cases really resumed")
-    p.add_argument("--manifests", type=int, default=2_000, help="mutated reproduce.json")
-    p.add_argument("--headers", type=int, default=2_000, help="mutated genome-file headers")
-    p.add_argument("--store", type=int, default=200, help="mutated program-store entries")
-    p.add_argument("--options", type=int, default=1_000, help="random task option sets")
+    helps = {
+        "cases": "corrupted run directories",
+        "genomes": "corrupted genome texts",
+        "resumes": "accepted cases really resumed",
+        "manifests": "mutated reproduce.json",
+        "headers": "mutated genome-file headers",
+        "store": "mutated program-store entries",
+        "options": "random task option sets",
+    }
+    for name, text in helps.items():
+        p.add_argument(f"--{name}", type=int, default=DEFAULTS[name], help=text)
     harness.run_options(p, seed=0, helps={"seed": "seed of the mutations' PRNG key"})
 
 
+DEFAULTS = {"cases": 10_000, "genomes": 5_000, "resumes": 3, "manifests": 2_000,
+            "headers": 2_000, "store": 200, "options": 1_000}  # fmt: skip
+QUICK = {"cases": 200, "genomes": 100, "resumes": 1, "manifests": 100, "headers": 100,
+         "store": 16, "options": 40}  # fmt: skip
+
+
 def _prepare(args: argparse.Namespace) -> None:
+    """--quick sizes for the counts left at their defaults (``--quick --store 0`` skips the
+    store)."""
     if args.quick:
-        args.cases, args.genomes, args.resumes = 200, 100, 1
-        args.manifests, args.headers, args.store, args.options = 100, 100, 16, 40
+        for name, n in QUICK.items():
+            if getattr(args, name) == DEFAULTS[name]:
+                setattr(args, name, n)
 
 
 def _records(d: Path) -> tuple[list, list, dict]:

@@ -113,8 +113,10 @@ def _read(folder: Path, marker: Marker, first: int, last: int, wait: float) -> t
     cmd = [sys.executable, "-m", "bench.fuzz.store_child", "read", str(folder),
            str(marker.path), str(first), str(last)]  # fmt: skip
     rows, why = [], ""
-    child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
-    with selectors.DefaultSelector() as sel:
+    with (
+        subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL) as child,
+        selectors.DefaultSelector() as sel,
+    ):
         sel.register(child.stdout, selectors.EVENT_READ)
         limit = wait + 60  # the first case also imports JAX
         while True:
@@ -128,7 +130,7 @@ def _read(folder: Path, marker: Marker, first: int, last: int, wait: float) -> t
             if line.startswith(b"{"):
                 rows.append(json.loads(line))
             limit = wait
-    rc = child.wait()
+    rc = child.returncode
     return rows, why or (f"exit status {rc}" if rc else "")
 
 

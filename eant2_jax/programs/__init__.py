@@ -3,7 +3,9 @@
 * `eant2_jax.programs.ahead`: a jitted function's program compiled in a background thread
   (`ahead`) and the one way to call a program (`program`: compiled ahead, else stored,
   else jit's own path; each falls back by itself);
-* `eant2_jax.programs.store`: traced programs kept on disk between processes;
+* `eant2_jax.programs.guesses`: which programs the driver starts ahead (generation 0's,
+  the likely next buckets);
+* `eant2_jax.programs.store`: traced programs kept on disk between processes, as data;
 * `eant2_jax.programs.stats`: the process's XLA compilation counts.
 """
 

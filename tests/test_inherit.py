@@ -21,7 +21,7 @@ from bench.common import random_genome
 from eant2_jax import EANT2Config, ExploitConfig, tasks
 from eant2_jax import exploitation as ex
 from eant2_jax.exploration import OPERATORS, mutate
-from eant2_jax.loop import Individual
+from eant2_jax.records import Individual
 from eant2_jax.rundir import CHECKPOINT
 from eant2_jax.tuning import Search, align, inherited, prepare, tune
 

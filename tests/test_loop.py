@@ -47,7 +47,7 @@ RECORD_FIELDS = (
     "prune_accepted",
 )
 # The only fields that may differ between runs: wall times and compilation statistics.
-WALL_FIELDS = eant2_jax.loop.RUN_DEPENDENT
+WALL_FIELDS = eant2_jax.records.RUN_DEPENDENT
 XOR_IN = np.array([[[0.0, 0.0], [0.0, 1.0], [1.0, 0.0], [1.0, 1.0]]])
 XOR_OUT = np.array([False, True, True, False])
 
@@ -730,7 +730,7 @@ def test_cli_x64_run_records_float64_and_resumes(cli_cache, tmp_path):
 
 def test_bucket_grows_with_headroom_and_is_kept_while_it_fits():
     from eant2_jax.compiler import Bucket
-    from eant2_jax.loop import grow_bucket
+    from eant2_jax.programs.guesses import grow_bucket
 
     small = Genome.parse("N0/2*1 I0*1 I1*1")  # 1 neuron, 3 genes, depth 1
     first = grow_bucket([small], None)
@@ -957,7 +957,7 @@ def test_compile_statistics_count_this_process_compilations():
     import jax.numpy as jnp
 
     from eant2_jax import compilestats
-    from eant2_jax.loop import GenerationRecord
+    from eant2_jax.records import GenerationRecord
 
     f = jax.jit(lambda x: jnp.cos(x) * 3.0 - 0.25)  # a program no other test compiles
     x = jnp.asarray(np.arange(7.0, dtype=np.float32))  # made before: arange compiles too

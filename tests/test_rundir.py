@@ -25,8 +25,9 @@ import pytest
 
 from eant2_jax import EANT2Config, ExploitConfig, Genome, GenomeError
 from eant2_jax.app.cli import main
-from eant2_jax.loop import GenerationRecord, validate
+from eant2_jax.checkpoint import validate
 from eant2_jax.pruning import PruneAttempt
+from eant2_jax.records import GenerationRecord
 from eant2_jax.rundir import (
     CHECKPOINT,
     CONFIG,

@@ -112,6 +112,9 @@ class ExploitConfig(Configured):
 
     The defaults prune tentatively (re-fit, acceptance against the best cost, an attempt at
     every stop); `literal` gives the paper's rule as written. docs/pruning.md says why.
+
+    Fields: one spec each (`eant2_jax.configspec.option`), listed from the specs by
+    ``help(ExploitConfig)``, ``eant2 config`` and docs/quickstart.md.
     """
 
     popsize: int | None = option(
@@ -364,7 +367,11 @@ def _exploit(v) -> ExploitConfig:
 @document
 @dataclasses.dataclass(frozen=True)
 class EANT2Config(Configured):
-    """Configuration of an EANT2 run (JSON round-trips through ``to_dict``/``from_dict``)."""
+    """Configuration of an EANT2 run (JSON round-trips through ``to_dict``/``from_dict``).
+
+    Fields: one spec each (`eant2_jax.configspec.option`), listed from the specs by
+    ``help(EANT2Config)``, ``eant2 config`` and docs/quickstart.md.
+    """
 
     population: int = option(
         20, "Number of individuals kept by selection.", check=between(1, MAX_POPULATION)

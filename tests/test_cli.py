@@ -172,3 +172,28 @@ def test_show_writes_its_png_whole_and_never_through_a_link(tmp_path, capsys, mo
     os.mkfifo(fifo)
     rc, _, err = _main(["show", fifo, "--out", tmp_path / "f.png"], capsys, monkeypatch)
     assert rc == 2 and len(err) == 1 and "not a regular file" in err[0], err
+
+
+def test_resume_of_a_reproduction_builds_the_named_task_with_the_manifest_options(
+    tmp_path, capsys, monkeypatch
+):
+    """``eant2 resume REP --task SPEC`` of a reproduction: the task is built from the spec
+    named with the options reproduce.json records, before anything runs (here those of
+    ``os:system``, which xor does not take: one line, nothing created)."""
+    from eant2_jax.app.experiments import MANIFEST
+
+    marker = tmp_path / "pwned"
+    rep = tmp_path / "rep"
+    rep.mkdir()
+    manifest = {
+        "version": 1,
+        "task_meta": {"task": "os:system", "task_options": {"command": f"touch {marker}"}},
+        "runs": 1, "generations": 1, "pruners": ["covariance"],
+        "config": EANT2Config(population=3).to_dict(), "seed": 0, "devices": 1,
+        "workers_per_device": 1, "lockstep": True, "condition": False,
+        "condition_iters": 10, "condition_inits": 1, "condition_dtype": "float64",
+    }  # fmt: skip
+    (rep / MANIFEST).write_text(json.dumps(manifest))
+    rc, _, err = _main(["resume", rep, "--task", "xor"], capsys, monkeypatch)
+    assert rc == 2 and len(err) == 1 and "bad options for task 'xor'" in err[0], err
+    assert sorted(p.name for p in rep.iterdir()) == [MANIFEST] and not marker.exists()

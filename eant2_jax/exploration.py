@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .genome import Gene, GeneKind, Genome
+from .genome import MAX_ID, Gene, GeneKind, Genome
 
 if TYPE_CHECKING:  # config.py imports this module (OPERATORS)
     from .config import EANT2Config
@@ -280,6 +280,10 @@ def offspring(
         if child is None or child.structure_key() in seen:
             continue
         if op == "add_subnetwork":
+            if next_id >= MAX_ID:  # ids index int32 tables: a later resume would refuse it
+                raise ValueError(
+                    f"neuron ids are exhausted: no id is left below {MAX_ID} for a new neuron"
+                )
             next_id += 1
         seen.add(child.structure_key())
         children.append(child)

@@ -14,7 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .genome import Genome
+from .config import MAX_BUCKET
+from .genome import MAX_ID, Genome
 from .jsonio import as_float, typed_fields
 from .pruning import PruneAttempt
 from .tuning import Search
@@ -94,10 +95,14 @@ class RunState:
         unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
         if unknown:
             raise ValueError(f"the state has unknown field(s) {unknown}")
-        for name in ("generation", "next_id", "evaluations"):
+        # The limits of the configs and genomes: a checkpoint edited past them would build
+        # programs or write ids that no later resume accepts (docs/reliability.md).
+        for name, top in (("generation", MAX_ID), ("next_id", MAX_ID), ("evaluations", 2**63 - 1)):
             v = d.get(name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                raise ValueError(f"the state's {name} must be an integer >= 0, got {v!r:.40}")
+            if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= top:
+                raise ValueError(
+                    f"the state's {name} must be an integer in [0, {top}], got {v!r:.40}"
+                )
         pop = d.get("population")
         if not isinstance(pop, list) or not pop:
             raise ValueError("the state's population must be a non-empty list")
@@ -194,16 +199,19 @@ def key_data(key: jax.Array) -> tuple[int, ...]:
 
 
 def _check_bucket(data) -> tuple[int, int, int] | None:
-    """A checkpoint's bucket: absent (None), or three integers >= 1."""
+    """A checkpoint's bucket: absent (None), or three integers in [1, MAX_BUCKET]."""
     if data is None:
         return None
     if not (
         isinstance(data, list)
         and len(data) == 3
-        and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in data)
+        and all(
+            isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_BUCKET for v in data
+        )
     ):
         raise ValueError(
-            f"the state's bucket must be [neurons, genes, sweeps] integers >= 1, got {data!r:.60}"
+            f"the state's bucket must be [neurons, genes, sweeps] integers in [1, {MAX_BUCKET}], "
+            f"got {data!r:.60}"
         )
     return tuple(data)
 

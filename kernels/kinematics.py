@@ -3,7 +3,7 @@
 ``mjx.kinematics`` walks a general body tree (`mujoco.mjx._src.scan.body_tree`): for a
 3-link arm it traces about 1,700 small jitted helpers (half of tracing the servo task's
 program), gathers and scatters every level's bodies into the model-wide arrays, and brings
-in MJX's import (2-3 s on a GPU host, with trimesh and scipy). When a task needs only the
+in MJX's import (with trimesh and scipy). When a task needs only the
 pose of one site on a chain of hinges, the same arithmetic written straight along the chain
 is a handful of elementwise operations that XLA fuses whole.
 
@@ -12,9 +12,8 @@ The formulas are MJX's, in MJX's order (``smooth.kinematics`` with ``math.rotate
 components: a vector is a tuple of its 3 components, a quaternion ``(w, x, y, z)`` of 4, a
 matrix a tuple of rows. Batched with ``jax.vmap``, every component is one array of the batch
 and the whole walk is elementwise, with no stacking, slicing or small products in between,
-so XLA fuses it into a few kernels: the servo task's move (kinematics, projection and cost
-of 300 x 1023 arm poses) ran in 40 us against 187 us as arrays on an H100, and a servo
-engine iteration in half the time on a CPU (docs/benchmarks.md). MJX's two dot products
+so XLA fuses it into a few kernels (``python -m bench servo`` measures the task's moves
+against ``mjx.kinematics``). MJX's two dot products
 per rotation are written as sums, so a pose equals ``mjx.kinematics``'s to float32 rounding
 (tests/test_kinematics.py: within 6e-7 + 2e-6 relative on random joint angles and random
 chains, and against MuJoCo C in float64), not always to the last bit on a CPU, where XLA's

@@ -101,7 +101,7 @@ def next_bucket_guesses(
     real parents): on the XOR runs of tests/test_loop.py the first named 4 of 6 new
     buckets. The second was added for `eant2 reproduce`: with the first alone, its
     covariance arm (a lock-step group of 200 structures) still waited for a new bucket's
-    program in two generations on an H100."""
+    program in two generations on a GPU."""
     grown: dict[Bucket, list[Genome]] = {}
     votes: dict[Bucket, int] = {}
     for t in range(GUESS_TRIES):

@@ -39,7 +39,7 @@ Every constant is documented here and in ``docs/tasks.md``:
   `stripped_model` (``arm.xml`` without its visual-only parts). Its joint limit
   *constraints* are off: targets are clamped to the ranges and the servos are critically
   damped, so a joint passes a limit by at most about 1 mrad (0.7 seen, < 2 tested), while
-  the constraint solver would make a step 3x slower (H200).
+  the constraint solver would make a step several times slower.
 * ``moves_per_start > 1``: closed-loop servoing; the network is applied again to the new
   measurements, carrying its recurrent state (and the arm its velocity), and the start's cost
   is the mean over its moves. Default 1, as in the paper.
@@ -138,7 +138,7 @@ class Servo:
 
     Attributes:
       model: the MJX arm, `stripped_model` (no geoms, no limit constraints), in dynamic mode;
-        ``None`` in kinematic mode, which never imports MJX (2-3 s of a GPU process's start).
+        ``None`` in kinematic mode, which never imports MJX (a cost of a process's start).
       chain: the arm's chain of hinges from the world to the camera site
         (`eant2_jax.kernels.kinematics.Chain` of `stripped_model`).
       q_start: ``[N, 3]`` start joint angles (rad).
@@ -404,8 +404,8 @@ def _network_costs(task: Servo, nets: kn.Network, q0: jax.Array, x0: jax.Array) 
     ``vmap`` over networks of ``vmap`` over starts of one whole episode (network, arm, cost).
     The first move's inputs are data shared by every network, so the forward pass is one
     matrix product per network over all starts. The arm as one flat batch of ``N * S``
-    instead (``bench/bench_servo.py``, ``task_flat``) gave the same numbers, was within 12 %
-    either way on an H200 and 3x slower on a CPU.
+    instead (``bench/bench_servo.py``, ``task_flat``) gives the same numbers and was no
+    faster on a GPU and slower on a CPU.
     """
     flat, batch = _flatten(nets)
 

@@ -25,7 +25,7 @@ if TYPE_CHECKING:
 
 # MJX itself is imported only where its physics runs (`_mjx_model`, the dynamic mode): the
 # kinematic mode computes the arm's pose with eant2_jax.kernels.kinematics, and MJX's import
-# (trimesh, scipy, its warp probe) took 2-3 s of a process's start on a GPU host.
+# (trimesh, scipy, its warp probe) is a cost of every process's start.
 
 ARM_XML = Path(__file__).with_name("arm.xml")
 
@@ -112,8 +112,8 @@ def outside_image(u, v):
 # MJX writes ``jnp.insert(axis * s, 0, c)``, which JAX lowers to a scatter. Batched over the
 # millions of arm poses of a servo iteration, XLA's deterministic GPU mode
 # (``--xla_gpu_deterministic_ops``, on by default in the ``eant2`` command line) expands each
-# such scatter into a sort: that made one iteration of 200 structures 3.6x slower on an H100
-# (26.7 ms against 7.4 ms; docs/benchmarks.md, "Reproducibility on GPU"). A concatenation of
+# such scatter into a sort, which made a servo iteration several times slower. A
+# concatenation of
 # the same numbers is no scatter, and deterministic by construction.
 _axis_angle_to_quat = kin.axis_angle_to_quat
 

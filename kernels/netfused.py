@@ -19,6 +19,8 @@ keeps the plain path. This module imports nothing from the rest of eant2_jax.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import jax
 import jax.numpy as jnp
 from jax.experimental import pallas as pl
@@ -96,18 +98,11 @@ def step_batch(
     e = x.shape[1]
     hp, ip, op = _pow2(h), _pow2(n_in), _pow2(n_out)
     act_h, act_o = activations.get(hidden).jax, activations.get(output).jax
-    (r_in, nf_in), (r_rec, nf_rec), (r_ff, nf_ff), (r_out, nf_out) = reads
-
-    def matrices(w, read, w_nf, rows, cols):
-        # [B, 3, rows', cols']: the weights, which entries a gene sets, the non-finite
-        # weights; padded with zeros (entries no gene reads) to Triton's powers of two.
-        m = jnp.stack([w, read.astype(w.dtype), w_nf], axis=1)
-        return jnp.pad(m, ((0, 0), (0, 0), (0, rows - m.shape[2]), (0, cols - m.shape[3])))
-
-    m_in = matrices(w_in, r_in, nf_in, hp, ip)
-    m_rec = matrices(w_rec, r_rec, nf_rec, hp, hp)
-    m_ff = matrices(w_ff, r_ff, nf_ff, hp, hp)
-    m_out = matrices(w_out, r_out, nf_out, op, hp)
+    r_in, r_rec, r_ff, r_out = reads
+    m_in = _matrices(w_in, r_in, hp, ip)
+    m_rec = _matrices(w_rec, r_rec, hp, hp)
+    m_ff = _matrices(w_ff, r_ff, hp, hp)
+    m_out = _matrices(w_out, r_out, op, hp)
     per_neuron = jnp.stack([bias, is_root.astype(bias.dtype), neuron_mask.astype(bias.dtype)], 1)
     per_neuron = jnp.pad(per_neuron, ((0, 0), (0, 0), (0, hp - h)))
 
@@ -120,6 +115,62 @@ def step_batch(
         return jnp.pad(a, ((0, 0), (0, rows - a.shape[1]), (0, padded - e)))
 
     xt, ht = columns(x, ip), columns(h_prev, hp)
+
+    networks = (m_in, m_rec, m_ff, m_out, per_neuron)
+    batched = (x.shape[0] > 1, h_prev.shape[0] > 1)
+    kernel = _kernel(sweeps, act_h, act_o)
+    call = _call(kernel, networks, batched, (ip, hp, op), blk, padded, warps or _WARPS, interpret)
+    yt, h_t = call(*networks, xt, ht)
+    return jnp.swapaxes(yt[:, :n_out, :e], 1, 2), jnp.swapaxes(h_t[:, :h, :e], 1, 2)
+
+
+def _call(
+    kernel: Callable, networks, batched, rows, blk: int, padded: int, warps: int, interpret: bool
+) -> Callable:
+    """The ``pallas_call`` of ``kernel`` over the grid (networks, blocks of ``blk``
+    examples): each program gets its network's arrays whole (``networks``, each ``[B,
+    ...]``) and its block of the inputs and states (``[B or 1, rows, padded]``, shared by
+    every network where ``batched`` says not), and writes its block of the outputs."""
+    ip, hp, op = rows
+    b = networks[0].shape[0]
+
+    def whole(a):
+        return pl.BlockSpec((1, *a.shape[1:]), lambda i, j: (i,) + (0,) * (a.ndim - 1))
+
+    def examples(rows, batched):
+        if batched:
+            return pl.BlockSpec((1, rows, blk), lambda i, j: (i, 0, j))
+        return pl.BlockSpec((1, rows, blk), lambda i, j: (0, 0, j))
+
+    return pl.pallas_call(
+        kernel,
+        out_shape=(
+            jax.ShapeDtypeStruct((b, op, padded), jnp.float32),
+            jax.ShapeDtypeStruct((b, hp, padded), jnp.float32),
+        ),
+        grid=(b, padded // blk),
+        in_specs=[
+            *(whole(a) for a in networks),
+            examples(ip, batched[0]),
+            examples(hp, batched[1]),
+        ],
+        out_specs=(examples(op, True), examples(hp, True)),
+        compiler_params=pl_triton.CompilerParams(num_warps=warps, num_stages=1),
+        interpret=interpret,
+        name="eant2_network_step",
+    )
+
+
+def _matrices(w, reads, rows, cols):
+    """``[B, 3, rows, cols]``: the weights, which entries a gene sets, the non-finite
+    weights; padded with zeros (entries no gene reads) to Triton's powers of two."""
+    read, w_nf = reads
+    m = jnp.stack([w, read.astype(w.dtype), w_nf], axis=1)
+    return jnp.pad(m, ((0, 0), (0, 0), (0, rows - m.shape[2]), (0, cols - m.shape[3])))
+
+
+def _kernel(sweeps: int, act_h: Callable, act_o: Callable) -> Callable:
+    """The program of one block of examples of one network (`step_batch`'s grid cell)."""
 
     def kernel(in_ref, rec_ref, ff_ref, out_ref, neuron_ref, x_ref, h_ref, y_ref, h_out_ref):
         def is_finite(v):
@@ -172,29 +223,4 @@ def step_batch(
         y_ref[0] = y
         h_out_ref[0] = hs
 
-    def whole(a):
-        return pl.BlockSpec((1, *a.shape[1:]), lambda i, j: (i,) + (0,) * (a.ndim - 1))
-
-    def examples(rows, batched):
-        if batched:
-            return pl.BlockSpec((1, rows, blk), lambda i, j: (i, 0, j))
-        return pl.BlockSpec((1, rows, blk), lambda i, j: (0, 0, j))
-
-    yt, h_t = pl.pallas_call(
-        kernel,
-        out_shape=(
-            jax.ShapeDtypeStruct((b, op, padded), jnp.float32),
-            jax.ShapeDtypeStruct((b, hp, padded), jnp.float32),
-        ),
-        grid=(b, padded // blk),
-        in_specs=[
-            *(whole(a) for a in (m_in, m_rec, m_ff, m_out, per_neuron)),
-            examples(ip, x.shape[0] > 1),
-            examples(hp, h_prev.shape[0] > 1),
-        ],
-        out_specs=(examples(op, True), examples(hp, True)),
-        compiler_params=pl_triton.CompilerParams(num_warps=warps or _WARPS, num_stages=1),
-        interpret=interpret,
-        name="eant2_network_step",
-    )(m_in, m_rec, m_ff, m_out, per_neuron, xt, ht)
-    return jnp.swapaxes(yt[:, :n_out, :e], 1, 2), jnp.swapaxes(h_t[:, :h, :e], 1, 2)
+    return kernel

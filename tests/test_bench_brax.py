@@ -1,16 +1,12 @@
-"""The brax benchmark suite: a --quick run (a tiny run, its resume, new episodes) end to end;
-skipped when brax is not installed."""
+"""The brax benchmark suite: a --quick run (a tiny run, its resume, new episodes) end to end
+(the test extra installs brax)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 
 import jax
 import pytest
-
-if importlib.util.find_spec("brax") is None:
-    pytest.skip("brax is not installed", allow_module_level=True)
 
 
 @pytest.mark.slow

@@ -1,4 +1,4 @@
-"""The brax adapter on real brax environments (skipped when brax is not installed).
+"""The brax adapter on real brax environments (the test extra installs brax: these run in CI).
 
 * episode returns and lengths equal those of a plain Python loop over brax's own
   ``env.reset`` / ``env.step`` driven by the NumPy genome interpreter (a recurrent
@@ -17,7 +17,6 @@ the plain loop as well, in the slow lane (its compilation takes longer).
 
 from __future__ import annotations
 
-import importlib.util
 import json
 
 import jax
@@ -25,13 +24,10 @@ import numpy as np
 import pytest
 from episodes import batch_costs, episode_batch, plain_returns
 
-if importlib.util.find_spec("brax") is None:  # not imported here: the adapter imports it
-    pytest.skip("brax is not installed", allow_module_level=True)
-
-import eant2_jax  # noqa: E402
-from eant2_jax import tasks  # noqa: E402
-from eant2_jax.compiler import networks  # noqa: E402
-from eant2_jax.tasks.brax_task import returns  # noqa: E402
+import eant2_jax
+from eant2_jax import tasks
+from eant2_jax.compiler import networks
+from eant2_jax.tasks.brax_task import returns
 
 # inverted_pendulum: inputs cart position, pole angle, cart velocity, pole angular velocity;
 # the one output pushes the cart. Push towards the side the pole leans to (a PD law), with a

@@ -1,4 +1,4 @@
-"""The gymnax adapter on real gymnax environments (skipped when gymnax is not installed).
+"""The gymnax adapter on real gymnax environments (the test extra installs gymnax: these run in CI).
 
 * a hand-made linear controller balances CartPole-v1 for the full 500 steps on every new
   episode, and a constant action falls within a few dozen steps (the adapter's inputs,
@@ -18,12 +18,10 @@ import numpy as np
 import pytest
 from episodes import batch_costs
 
-pytest.importorskip("gymnax")
-
-import eant2_jax  # noqa: E402
-from eant2_jax import tasks  # noqa: E402
-from eant2_jax.compiler import networks  # noqa: E402
-from eant2_jax.tasks.gymnax_task import returns  # noqa: E402
+import eant2_jax
+from eant2_jax import tasks
+from eant2_jax.compiler import networks
+from eant2_jax.tasks.gymnax_task import returns
 
 # Output 1 (push right) = theta + theta_dot (normalised): the textbook linear controller.
 BALANCE = "N0/1*1 I0*0 N1/2*1 I2*1 I3*1"

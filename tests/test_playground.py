@@ -1,5 +1,5 @@
-"""The MuJoCo Playground adapter on a real Playground environment (skipped when the
-``playground`` package is not installed):
+"""The MuJoCo Playground adapter on a real Playground environment (the test extra installs
+``playground``: these run in CI):
 
 * episode returns and lengths equal those of a plain Python loop over Playground's own
   ``env.reset`` / ``env.step`` driven by the NumPy genome interpreter (a recurrent
@@ -10,7 +10,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 
 import jax
@@ -18,13 +17,10 @@ import numpy as np
 import pytest
 from episodes import batch_costs, episode_batch, plain_returns
 
-if importlib.util.find_spec("mujoco_playground") is None:
-    pytest.skip("playground is not installed", allow_module_level=True)
-
-import eant2_jax  # noqa: E402
-from eant2_jax import tasks  # noqa: E402
-from eant2_jax.compiler import networks  # noqa: E402
-from eant2_jax.tasks.episodic import returns  # noqa: E402
+import eant2_jax
+from eant2_jax import tasks
+from eant2_jax.compiler import networks
+from eant2_jax.tasks.episodic import returns
 
 # CartpoleBalance: inputs cart position, cos and sin of the pole angle, cart and pole
 # velocities; the one output pushes the cart.

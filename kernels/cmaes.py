@@ -423,6 +423,16 @@ def tell(
         B, D, valid_axes = state.B, state.D, state.valid_axes
         cond, bounded = state.cond, state.cond_bounded
 
+    return _told(
+        state, x, cost, finite, mean, sigma, p_sigma, p_c, (C, B, D, valid_axes, cond, bounded)
+    )
+
+
+def _told(state, x, cost, finite, mean, sigma, p_sigma, p_c, decomposed) -> State:
+    """`tell`'s new state: the updated distribution, the best so far over finite costs; the
+    distribution unchanged if no cost is finite."""
+    C, B, D, valid_axes, cond, bounded = decomposed
+    mask = state.mask
     # Best-so-far over finite costs.
     masked_cost = jnp.where(finite, cost, jnp.inf)
     i_best = jnp.argmin(masked_cost)

@@ -52,13 +52,6 @@ def test_quick_fuzz_finds_no_bug(tmp_path, capsys):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="programs/store.py _read: a FIFO at an entry blocks os.open (no O_NONBLOCK); a "
-    "folder there raises IsADirectoryError from os.fdopen; a forged entry (bytes damaged, "
-    "manifest recomputed) deserializes lazily and raises at its first call. Remove this "
-    "mark with the fix",
-)
 def test_quick_store_fuzz_finds_no_bug(tmp_path, capsys):
     """Program-store entries, each read by a fresh process (a crash or hang is a bug)."""
     payload = _quick(tmp_path, *"--cases 0 --genomes 0 --manifests 0 --headers 0".split(),

@@ -263,15 +263,21 @@ def _in_avals(leaves) -> list:
 def _read(path: Path, key: str, leaves) -> export.Exported | None:
     """The program of the entry at ``path`` if every check passes (module docstring), else
     None: missing, damaged, foreign, of other versions, not this user's regular file."""
-    try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+    try:  # non-blocking: a FIFO planted as an entry must not hang the run
+        fd = os.open(path, flags)
     except OSError:
         return None
-    with os.fdopen(fd, "rb") as f:
-        st = os.fstat(f.fileno())
-        if not (stat.S_ISREG(st.st_mode) and _own(st)):
+    try:
+        st = os.fstat(fd)
+        if not (stat.S_ISREG(st.st_mode) and _own(st)):  # a folder, FIFO, device...
             return None
-        data = f.read(MAX_BYTES + 1)
+        with os.fdopen(os.dup(fd), "rb") as f:
+            data = f.read(MAX_BYTES + 1)
+    except OSError:
+        return None
+    finally:
+        os.close(fd)
     head, sep, payload = data.partition(b"\n")
     try:
         manifest = _strict_json(head)
@@ -286,6 +292,7 @@ def _read(path: Path, key: str, leaves) -> export.Exported | None:
         ):
             return None
         exported = export.deserialize(bytearray(payload))
+        exported.mlir_module()  # deserialize parses lazily: damaged StableHLO fails here
     except Exception:  # noqa: BLE001 - traced again and replaced
         return None
     if not (

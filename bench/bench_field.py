@@ -380,7 +380,7 @@ def _worker_tensorneat(env: Env, args: argparse.Namespace, log: _Log) -> None:
             best = float(fitness[i])
             champion = (np.asarray(population[0][i]), np.asarray(population[1][i]))
             champions.append(champion)
-        size = _tensorneat_size(champion, env.n_inputs)
+        size = tensorneat_size(champion, env.n_inputs)
         log.point(evaluations=(g + 1) * pop, train_return=best, size=size,
                   champion=len(champions) - 1)  # fmt: skip
         if log.wall() > args.deadline_s:
@@ -400,7 +400,7 @@ def _worker_tensorneat(env: Env, args: argparse.Namespace, log: _Log) -> None:
         p["test_return"] = scores[p["champion"]]
 
 
-def _tensorneat_size(genome: tuple[np.ndarray, np.ndarray], n_inputs: int) -> int:
+def tensorneat_size(genome: tuple[np.ndarray, np.ndarray], n_inputs: int) -> int:
     """Weights of a TensorNEAT genome: its connections plus the biases of its non-input
     nodes (unused rows of the padded node and connection arrays are NaN)."""
     nodes, conns = genome

@@ -55,7 +55,7 @@ import eant2_jax
 from bench import harness
 from bench.common import Column, environment, markdown_table
 from bench.fuzz import headers, manifests, options, store
-from bench.fuzz.common import CLASSES, Marker, classify, hostile_tasks
+from bench.fuzz.common import CLASSES, Marker, classify, hostile_tasks, json_paths, set_path
 from eant2_jax import EANT2Config, ExploitConfig, Genome, tasks
 from eant2_jax.rundir import BEST, CHECKPOINT, CONFIG, GENERATIONS, PRUNING
 
@@ -108,24 +108,6 @@ def _records(d: Path) -> tuple[list, list, dict]:
 
 
 # ------------------------------------------------------------------------------ mutations
-def _json_paths(obj, prefix=()):
-    yield prefix
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            yield from _json_paths(v, (*prefix, k))
-    elif isinstance(obj, list):
-        for i, v in enumerate(obj):
-            yield from _json_paths(v, (*prefix, i))
-
-
-def _set(obj, path, value):
-    if not path:
-        return value
-    target = obj
-    for p in path[:-1]:
-        target = target[p]
-    target[path[-1]] = value
-    return obj
 
 
 def mutate(rng: np.random.Generator, d: Path, outside: Path) -> str:
@@ -164,21 +146,21 @@ def mutate(rng: np.random.Generator, d: Path, outside: Path) -> str:
             f.write(junk[rng.integers(len(junk))])
     elif kind in ("json_field", "offset") and name in (CONFIG, CHECKPOINT):
         obj = json.loads(p.read_text())
-        paths = list(_json_paths(obj))
+        paths = list(json_paths(obj))
         if kind == "offset" and name == CHECKPOINT:
             path = ("offsets", [GENERATIONS, PRUNING][rng.integers(2)])
             value = int(obj["offsets"][path[1]]) + int(rng.integers(-300, 300))
         else:
             path = paths[rng.integers(len(paths))]
             value = RANDOM_VALUES[rng.integers(len(RANDOM_VALUES))]
-        obj = _set(obj, path, value)
+        obj = set_path(obj, path, value)
         p.write_text(json.dumps(obj))
     elif kind == "json_line_field" and name in (GENERATIONS, PRUNING) and p.stat().st_size:
         lines = p.read_text().splitlines()
         i = rng.integers(len(lines))
         obj = json.loads(lines[i])
-        paths = list(_json_paths(obj))
-        obj = _set(
+        paths = list(json_paths(obj))
+        obj = set_path(
             obj, paths[rng.integers(len(paths))], RANDOM_VALUES[rng.integers(len(RANDOM_VALUES))]
         )
         lines[i] = json.dumps(obj)
@@ -204,9 +186,9 @@ def mutate(rng: np.random.Generator, d: Path, outside: Path) -> str:
         (d / BEST).write_text(mutate_text(rng, (d / BEST).read_text()))
     elif kind == "json_field_forged":
         obj = json.loads((d / CONFIG).read_text())
-        paths = list(_json_paths(obj))[1:]
+        paths = list(json_paths(obj))[1:]
         value = RANDOM_VALUES[rng.integers(len(RANDOM_VALUES))]
-        forge_config(d, _set(obj, paths[rng.integers(len(paths))], value))
+        forge_config(d, set_path(obj, paths[rng.integers(len(paths))], value))
         name = CONFIG
     else:
         return "none"

@@ -39,7 +39,7 @@ _CHILD = textwrap.dedent(
     t_start = time.perf_counter()
     import jax
     import eant2_jax as E
-    from eant2_jax import compilestats
+    from eant2_jax.programs import stats as compilestats
     spec = json.loads(sys.argv[1])
     task = E.tasks.make(spec["task"], **spec["options"])
     exploit = {} if spec["max_iters"] is None else {"max_iters": spec["max_iters"]}

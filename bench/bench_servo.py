@@ -6,7 +6,7 @@ moves; the batch (population x moves) is swept from 1e3 to 4e6 by ``N``.
 
 Measured, each on the same device in the same run:
 
-* ``task``: ``Servo.cost`` end to end (the public jit-compiled entry, ``servo._jit_cost``):
+* ``task``: ``Servo.cost`` end to end (the public jit-compiled entry, ``servo.jit_cost``):
   network forward pass, increments, arm, projection, cost, mean over starts. Networks are
   random EANT2 genomes compiled by ``eant2_jax.compiler``: ``minimal`` (33 genes, every
   output reads every input: EANT2's start network; bucket H/P/sweeps 4/48/1) and ``paper``
@@ -149,10 +149,10 @@ def flat_costs(task, nets: kn.Network) -> jax.Array:
     inputs are shared data: one matrix product per network over all starts); the arm, the
     projection and the move cost run on ONE flat batch of ``N * S`` arms.
     """
-    from eant2_jax.tasks.servo import _flatten
+    from eant2_jax.tasks.servo import flatten_networks
 
     q0, x0 = task.q_start, task.x_start
-    flat, batch = _flatten(nets)
+    flat, batch = flatten_networks(nets)
     n, s = flat.bias.shape[0], q0.shape[0]
 
     def step(net, x, h):
@@ -294,7 +294,7 @@ def run(args: argparse.Namespace, save_payload: harness.Save) -> dict[str, Any]:
 
     kin = tasks.make("servo", n_starts=n_starts)
     dyn = tasks.make("servo", mode="dynamic", n_starts=n_starts)
-    cost = sv._jit_cost
+    cost = sv.jit_cost
     flat = flat_costs
     bare = jax.jit(bare_kinematics)
     bare_nested = jax.jit(lambda task, q: jax.vmap(functools.partial(bare_kinematics, task))(q))

@@ -22,8 +22,8 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-from eant2_jax import compilestats
 from eant2_jax.genome import Gene, GeneKind, Genome
+from eant2_jax.programs import stats as compilestats
 
 __all__ = [
     "RESULTS_DIR",
@@ -130,7 +130,7 @@ def child_env(pythonpath: str | None = None, **extra: str) -> dict[str, str]:
 # ------------------------------------------------------------------------------ compiling
 class CompileClock:
     """Counts XLA compilations and sums the seconds JAX spends tracing, lowering and compiling
-    them (all programs, any caller) since it was made (the library's `eant2_jax.compilestats`
+    them (all programs, any caller) since it was made (the library's `eant2_jax.programs.stats`
     counters, read relative to that moment)."""
 
     def __init__(self):

@@ -247,20 +247,14 @@ def read_text(path: str | os.PathLike, *, limit: int = MAX_BYTES) -> str:
     try:
         if not stat.S_ISREG(os.fstat(fd).st_mode):
             raise GenomeFileError(f"{p}: not a regular file (a genome file must be one)")
-        chunks, size = [], 0
-        while size <= limit:
-            chunk = os.read(fd, min(2**20, limit + 1 - size))
-            if not chunk:
-                break
-            chunks.append(chunk)
-            size += len(chunk)
+        data = jsonio.read_upto(fd, limit)
     except OSError as e:
         raise GenomeFileError(f"cannot read {p}: {e.strerror or e}") from None
     finally:
         os.close(fd)
-    if size > limit:
+    if len(data) > limit:
         raise GenomeFileError(f"{p}: more than {limit:,} bytes, more than a genome file may hold")
     try:
-        return b"".join(chunks).decode("utf-8")
+        return data.decode("utf-8")
     except UnicodeDecodeError as e:
         raise GenomeFileError(f"{p}: not UTF-8 text (byte {e.start})") from None

@@ -146,6 +146,20 @@ def loads(
         raise error(f"{where} is corrupt: {str(e).splitlines()[0]}") from None
 
 
+def read_upto(fd: int, limit: int) -> bytes:
+    """At most ``limit + 1`` bytes of an open file, counted as they are read (what ``stat``
+    says is not trusted: ``/proc`` files claim size 0, a file may grow while read), so a
+    caller refuses a file over ``limit`` bytes by the length of what it got."""
+    chunks, size = [], 0
+    while size <= limit:
+        chunk = os.read(fd, min(1 << 20, limit + 1 - size))
+        if not chunk:
+            break
+        chunks.append(chunk)
+        size += len(chunk)
+    return b"".join(chunks)
+
+
 def fsync_dir(path: Path) -> None:
     """Flush a directory's entries (a rename or creation in it) to disk."""
     fd = os.open(path, os.O_RDONLY)

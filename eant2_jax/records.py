@@ -136,7 +136,7 @@ class GenerationRecord:
       compiles, compile_s, cache_hits, cache_misses: this generation's XLA programs
         compiled (or loaded from the persistent cache), the seconds spent tracing, lowering
         and compiling them, and the persistent cache's hits and misses
-        (`eant2_jax.compilestats`; 0 in records written before they existed). Like the wall
+        (`eant2_jax.programs.stats`; 0 in records written before they existed). Like the wall
         times they depend on the process, not on the run: ``RUN_DEPENDENT`` names them.
     """
 

@@ -337,7 +337,7 @@ def ask(key: jax.Array, state: State, params: Params) -> tuple[jax.Array, State]
     return jnp.where(state.mask[None, :], x, 0), state
 
 
-def _rank_weights(cost: jax.Array, weights: jax.Array) -> tuple[jax.Array, jax.Array]:
+def rank_weights(cost: jax.Array, weights: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Weight of each candidate by its rank; non-finite costs rank last, never positive."""
     popsize = cost.shape[0]
     finite = jnp.isfinite(cost)
@@ -374,7 +374,7 @@ def tell(
     mask = state.mask
     x = x.astype(dtype)
     cost = cost.astype(dtype)
-    w, finite = _rank_weights(cost, p.weights)
+    w, finite = rank_weights(cost, p.weights)
 
     # Mean, Eq. (41)-(42); y_k ~ N(0, C).
     y_k = jnp.where(mask[None, :], (x - state.mean[None, :]) / state.sigma, 0)

@@ -605,7 +605,7 @@ def test_nonfinite_count_and_all_failed_generation():
     # Non-finite candidates rank last and never get a positive weight, even when fewer than mu
     # costs are finite (here 2 of 8, mu = 4).
     cost2 = jnp.full((popsize,), jnp.nan).at[1].set(1.0).at[2].set(2.0)
-    w, _ = cmaes._rank_weights(cost2, params.weights)
+    w, _ = cmaes.rank_weights(cost2, params.weights)
     assert float(w[1]) == float(params.weights[0]) and float(w[2]) == float(params.weights[1])
     assert float(w[0]) == 0 and np.all(np.asarray(w[3:]) <= 0)
     # A generation with no finite cost leaves the distribution as it was.

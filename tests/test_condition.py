@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from eant2_jax import ExploitConfig
-from eant2_jax.app.condition import _from_evolved
+from eant2_jax.app.condition import from_evolved
 from eant2_jax.exploitation import run as run_engine
 from eant2_jax.genome import Genome
 from eant2_jax.tasks import regression
@@ -23,7 +23,7 @@ def test_evolved_branch_continues_the_original_run_exactly():
     config = ExploitConfig(sigma0=0.5, max_iters=40, chunk=20, patience=40, sigma_tol=0.0,
                            sigma_up=1e30, bound_patience=41)  # fmt: skip
     key = jax.random.key(3)
-    ev = _from_evolved(genome, pruned, task, key, config, inits=2, warmup=30, sigma0=0.1)
+    ev = from_evolved(genome, pruned, task, key, config, inits=2, warmup=30, sigma0=0.1)
     assert np.shape(ev["before"]) == np.shape(ev["after"]) == (2, 40)
     # The original rows go on exactly as one uninterrupted run of warmup + iters iterations
     # (the same batch shape, so the same program).

@@ -50,7 +50,7 @@ def _random_chain_xml(rng: np.random.Generator, links: int) -> str:
 
 def _models(seed: int):
     rng = np.random.default_rng(seed)
-    mj, site, _ = scene._stripped()
+    mj, site, _ = scene.stripped_arm()
     yield "servo arm", mj, site
     for links in (1, 2, 5):
         m = mujoco.MjModel.from_xml_string(_random_chain_xml(rng, links))

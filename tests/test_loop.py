@@ -952,11 +952,11 @@ def test_diverse_start_option():
 
 
 def test_compile_statistics_count_this_process_compilations():
-    """`compilestats`: a new program counts once with its seconds, a second call of it (the
+    """`programs.stats`: a new program counts once with its seconds, a second call of it (the
     in-memory cache) counts nothing; records written before the fields existed load as 0."""
     import jax.numpy as jnp
 
-    from eant2_jax import compilestats
+    from eant2_jax.programs import stats as compilestats
     from eant2_jax.records import GenerationRecord
 
     f = jax.jit(lambda x: jnp.cos(x) * 3.0 - 0.25)  # a program no other test compiles

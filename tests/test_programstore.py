@@ -122,7 +122,7 @@ def test_what_shapes_the_program_keys_it(store, monkeypatch):
     _store_chunk(CONFIG.exploit.replace(pruner="none"))
     assert len(_keys(store)) == 2
     # Changed code of this package (or another JAX): another key, never the old program.
-    monkeypatch.setattr(programstore, "_code_digest", lambda: b"other source")
+    monkeypatch.setattr(programstore, "code_digest", lambda: b"other source")
     _forget(monkeypatch)
     _store_chunk(CONFIG.exploit)
     assert len(_keys(store)) == 3
@@ -138,22 +138,22 @@ def test_the_code_digest_covers_every_module_of_the_package(monkeypatch, tmp_pat
     gives another digest."""
     from eant2_jax import kernels
 
-    programstore._code_digest.cache_clear()  # the tree may have changed since it was cached
-    digest = programstore._code_digest()
+    programstore.code_digest.cache_clear()  # the tree may have changed since it was cached
+    digest = programstore.code_digest()
     assert isinstance(digest, bytes) and len(digest) == 32
     copy = tmp_path / "kernels"
     copy.mkdir()
     for f in Path(kernels.__path__[0]).glob("*.py"):
         (copy / f.name).write_bytes(f.read_bytes())
     monkeypatch.setattr(kernels, "__path__", [str(copy)])
-    programstore._code_digest.cache_clear()
+    programstore.code_digest.cache_clear()
     try:
-        assert programstore._code_digest() == digest
+        assert programstore.code_digest() == digest
         (copy / "cmaes.py").write_text((copy / "cmaes.py").read_text() + "\n# edited\n")
-        programstore._code_digest.cache_clear()
-        assert programstore._code_digest() != digest
+        programstore.code_digest.cache_clear()
+        assert programstore.code_digest() != digest
     finally:
-        programstore._code_digest.cache_clear()
+        programstore.code_digest.cache_clear()
 
 
 def _entry(path: Path) -> tuple[dict, bytes]:
@@ -215,10 +215,10 @@ def test_a_damaged_entry_is_traced_again_and_replaced(store, monkeypatch):
     _store_chunk(CONFIG.exploit)
     (path,) = store.glob("*.program")
     good, leaves = path.read_bytes(), _stored_leaves()
-    assert programstore._read(path, path.stem, leaves) is not None
+    assert programstore.read_entry(path, path.stem, leaves) is not None
     for what, bad in _damaged(good):
         path.write_bytes(bad)
-        assert programstore._read(path, path.stem, leaves) is None, what
+        assert programstore.read_entry(path, path.stem, leaves) is None, what
     first = _run(generations=0)
     path = _new_entry(store, {path})
     good = path.read_bytes()
@@ -264,10 +264,10 @@ def test_a_foreign_entry_is_not_used(store, monkeypatch):
     _store_chunk(CONFIG.exploit.replace(popsize=9))  # another program, its own entry
     other = _new_entry(store, {path})
     path.write_bytes(other.read_bytes())
-    assert programstore._read(path, path.stem, leaves) is None
+    assert programstore.read_entry(path, path.stem, leaves) is None
     manifest, payload = _entry(other)
     path.write_bytes(json.dumps(dict(manifest, key=path.stem)).encode() + b"\n" + payload)
-    assert programstore._read(path, path.stem, leaves) is None
+    assert programstore.read_entry(path, path.stem, leaves) is None
     first = _run(generations=0)
     mine = _new_entry(store, {path, other})
     mine.write_bytes(other.read_bytes())
@@ -312,9 +312,9 @@ def test_a_file_not_owned_alone_is_not_read(store):
     _store_chunk(CONFIG.exploit)
     (path,) = store.glob("*.program")
     leaves = _stored_leaves()
-    assert programstore._read(path, path.stem, leaves) is not None
+    assert programstore.read_entry(path, path.stem, leaves) is not None
     path.chmod(0o666)
-    assert programstore._read(path, path.stem, leaves) is None
+    assert programstore.read_entry(path, path.stem, leaves) is None
 
 
 def test_an_unwritable_store_still_runs(tmp_path, monkeypatch):

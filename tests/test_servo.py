@@ -139,16 +139,16 @@ def test_goal_image_by_hand(task):
     )
     assert px[0].tolist() == [413.75, 240.0]  # marker 0: 93.75 px right of the centre
     by_hand = (px - [320, 240]) / 320
-    np.testing.assert_allclose(sv._arm().goal, by_hand, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(sv.arm_scene().goal, by_hand, atol=1e-5, rtol=0)
     np.testing.assert_allclose(np.asarray(task.goal), by_hand, atol=1e-5, rtol=0)
-    np.testing.assert_allclose(hand_image(sv._arm().q_goal), by_hand, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(hand_image(sv.arm_scene().q_goal), by_hand, atol=1e-5, rtol=0)
 
 
 def test_one_start_pose_by_hand(task):
     q, s = sv.start_poses(1023)
     np.testing.assert_allclose(s[0], hand_image(q[0]), atol=1e-9, rtol=0)
     # The task's inputs: the same image minus the goal image, (u0, v0, ..., u4, v4), float32.
-    x = (hand_image(q[0]) - hand_image(sv._arm().q_goal)).reshape(10)
+    x = (hand_image(q[0]) - hand_image(sv.arm_scene().q_goal)).reshape(10)
     np.testing.assert_allclose(np.asarray(task.x_start[0]), x, atol=1e-6, rtol=0)
 
 
@@ -159,13 +159,13 @@ def test_start_poses(held_out):
     # Every marker strictly inside the 640 x 480 image at every start.
     assert np.all(np.abs(s[..., 0]) < 1.0) and np.all(np.abs(s[..., 1]) < 0.75)
     # Inside the documented box around the goal pose, and spread over it.
-    off = (q - sv._arm().q_goal) / np.asarray(sv.START_HALF_WIDTH)
+    off = (q - sv.arm_scene().q_goal) / np.asarray(sv.START_HALF_WIDTH)
     assert np.all(np.abs(off) <= 1) and np.all(np.abs(off).max(axis=0) > 0.98)
     # Inputs of about [-1, 1].
-    assert np.abs(s - sv._arm().goal).max() < 1.0
+    assert np.abs(s - sv.arm_scene().goal).max() < 1.0
     # Deterministic, and a smaller set is a prefix.
     np.testing.assert_array_equal(sv.start_poses(10, held_out=held_out)[0], q[:10])
-    np.testing.assert_array_equal(sv._start_poses.__wrapped__(5, held_out)[0], q[:5])
+    np.testing.assert_array_equal(sv.draw_start_poses.__wrapped__(5, held_out)[0], q[:5])
 
 
 def test_training_and_held_out_sets_are_disjoint(task):
@@ -203,7 +203,7 @@ def test_zero_controller_cost_is_mean_initial_error(task, sweep):
     gains, costs = sweep
     assert gains[0] == 0.0
     _, s = sv.start_poses(1023)
-    initial = np.linalg.norm(s - sv._arm().goal, axis=-1).mean()
+    initial = np.linalg.norm(s - sv.arm_scene().goal, axis=-1).mean()
     np.testing.assert_allclose(costs[0], initial, rtol=1e-6)
     np.testing.assert_allclose(task.baselines()["zero"], initial, rtol=1e-6)
 
@@ -223,7 +223,7 @@ def test_ibvs_reduces_the_error(task, sweep):
 
 
 def test_image_jacobian_matches_finite_differences(task):
-    arm = sv._arm()
+    arm = sv.arm_scene()
     d = mujoco.MjData(arm.mj)
     q = sv.start_poses(3)[0]
     jac = np.asarray(jax.jit(jax.vmap(task.image_jacobian))(jnp.asarray(q, jnp.float32)))
@@ -233,8 +233,8 @@ def test_image_jacobian_matches_finite_differences(task):
         for j in range(3):
             e = np.zeros(3)
             e[j] = h
-            up = sv._features_host(arm, d, q[i] + e)
-            down = sv._features_host(arm, d, q[i] - e)
+            up = sv.features_host(arm, d, q[i] + e)
+            down = sv.features_host(arm, d, q[i] - e)
             fd[:, j] = (up - down).reshape(10) / (2 * h)
         np.testing.assert_allclose(jac[i], fd, atol=1e-4 * np.abs(fd).max(), rtol=0)
 
@@ -255,17 +255,17 @@ def test_kinematic_and_dynamic_modes_agree_for_ibvs(task):
 def test_stripped_model_moves_like_the_full_model():
     """The task simulates arm.xml without its visual parts (MuJoCo C, float64): the camera
     pose and 60 servo steps from the same state are the same, bit for bit or nearly."""
-    full, stripped = sv._arm().mj, sv.stripped_model()
+    full, stripped = sv.arm_scene().mj, sv.stripped_model()
     assert stripped.ngeom == 0 and stripped.nsite == 1 and stripped.nbody == full.nbody - 1
     df, ds = mujoco.MjData(full), mujoco.MjData(stripped)
-    cam_f = sv._arm().camera_site
+    cam_f = sv.arm_scene().camera_site
     cam_s = mujoco.mj_name2id(stripped, mujoco.mjtObj.mjOBJ_SITE, "camera")
     q, _ = sv.start_poses(4)
     for qi in q:
         for m, d in ((full, df), (stripped, ds)):
             mujoco.mj_resetData(m, d)
             d.qpos[:] = qi
-            d.ctrl[:] = qi[::-1] * 0.1 + sv._arm().q_goal * 0.9
+            d.ctrl[:] = qi[::-1] * 0.1 + sv.arm_scene().q_goal * 0.9
             mujoco.mj_kinematics(m, d)
         np.testing.assert_allclose(ds.site_xpos[cam_s], df.site_xpos[cam_f], atol=1e-12)
         np.testing.assert_allclose(ds.site_xmat[cam_s], df.site_xmat[cam_f], atol=1e-12)
@@ -280,7 +280,7 @@ def test_servos_stay_within_the_joint_ranges():
     """The task's dynamic model has no limit constraints: check, with MuJoCo C on the same
     model, that the largest move the task can command (MAX_STEP, from rest) onto a limit,
     for every combination of directions, ends within 2 mrad of the limits (seen: 0.7)."""
-    arm = sv._arm()
+    arm = sv.arm_scene()
     mj = sv.stripped_model()
     d = mujoco.MjData(mj)
     step = sv.MAX_STEP_FRACTION * (arm.q_hi - arm.q_lo)
@@ -328,7 +328,7 @@ def random_nets(seed: int, batch: tuple[int, ...], hidden: int = 6, sweeps: int 
 
 def reference_cost(arrays: dict, i: int, task: sv.Servo, moves: int) -> float:
     """NumPy float64 cost of network ``i``: dense steps, increments, MuJoCo C kinematics."""
-    arm = sv._arm()
+    arm = sv.arm_scene()
     d = mujoco.MjData(arm.mj)
     w = {k: np.asarray(v[i], np.float64) for k, v in arrays.items()}
     w_f32 = {k: v.astype(np.float32).astype(np.float64) for k, v in w.items()}
@@ -349,7 +349,7 @@ def reference_cost(arrays: dict, i: int, task: sv.Servo, moves: int) -> float:
             command = q + step * np.tanh(y)
             at_limit = (command <= arm.q_lo) | (command >= arm.q_hi)
             q = np.clip(command, arm.q_lo, arm.q_hi)
-            s = sv._features_host(arm, d, q)
+            s = sv.features_host(arm, d, q)
             outside = (np.abs(s[:, 0]) >= 1) | (np.abs(s[:, 1]) >= 0.75)
             start_cost += (
                 np.linalg.norm(s - arm.goal, axis=-1).mean()
@@ -368,11 +368,11 @@ def test_network_costs_under_jit_and_vmap_match_numpy():
     compiled program, and so does the held-out set."""
     task = tasks.make("servo", n_starts=16, moves_per_start=2)
     nets, arrays = random_nets(0, (2, 3))
-    got = np.asarray(sv._jit_cost(task, nets))
+    got = np.asarray(sv.jit_cost(task, nets))
     assert got.shape == (2, 3) and got.dtype == np.float32
     # The zero network: every move costs the initial error.
     _, s = sv.start_poses(16)
-    initial = np.linalg.norm(s - sv._arm().goal, axis=-1).mean()
+    initial = np.linalg.norm(s - sv.arm_scene().goal, axis=-1).mean()
     np.testing.assert_allclose(got[0, 0], initial, rtol=1e-6)
     for i in range(6):
         np.testing.assert_allclose(got.reshape(6)[i], reference_cost(arrays, i, task, 2), atol=2e-5)
@@ -380,7 +380,7 @@ def test_network_costs_under_jit_and_vmap_match_numpy():
     again = tasks.make("servo", n_starts=16, moves_per_start=2)
     other = random_nets(1, (2, 3))[0]
     with count_compiles() as c:
-        assert np.all(np.isfinite(np.asarray(sv._jit_cost(again, other))))
+        assert np.all(np.isfinite(np.asarray(sv.jit_cost(again, other))))
         # The held-out poses: the same program, other poses, other costs.
         held = np.asarray(task.generalisation(nets))
     assert held.shape == (2, 3) and held[0, 0] != got[0, 0]
@@ -397,7 +397,7 @@ def test_kinematics_is_scatter_free_and_mjx_is_left_as_it_was():
 
     from eant2_jax.tasks import servo_scene as scene
 
-    found = scene._mjx_math()
+    found = scene.find_mjx_math()
     assert found is not None
     original = found[1]
     assert mjx_math.axis_angle_to_quat is original
@@ -407,11 +407,11 @@ def test_kinematics_is_scatter_free_and_mjx_is_left_as_it_was():
     rng = np.random.default_rng(7)
     axes = rng.normal(size=(64, 3)).astype(np.float32)
     angles = rng.uniform(-7, 7, size=64).astype(np.float32)
-    ours = jax.jit(jax.vmap(scene._axis_angle_to_quat))(axes, angles)
+    ours = jax.jit(jax.vmap(scene.axis_angle_to_quat))(axes, angles)
     theirs = jax.jit(jax.vmap(original))(axes, angles)
     np.testing.assert_array_equal(np.asarray(ours), np.asarray(theirs))
-    with scene._mjx_numerics():
-        with scene._mjx_numerics():
-            assert mjx_math.axis_angle_to_quat is scene._axis_angle_to_quat
-        assert mjx_math.axis_angle_to_quat is scene._axis_angle_to_quat
+    with scene.mjx_numerics():
+        with scene.mjx_numerics():
+            assert mjx_math.axis_angle_to_quat is scene.axis_angle_to_quat
+        assert mjx_math.axis_angle_to_quat is scene.axis_angle_to_quat
     assert mjx_math.axis_angle_to_quat is original

@@ -120,3 +120,26 @@ class Tally:
 
 def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
+
+
+def json_paths(obj, prefix=()):
+    """Every path into a JSON value (the root's ``()`` first), for mutating one field."""
+    yield prefix
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from json_paths(v, (*prefix, k))
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            yield from json_paths(v, (*prefix, i))
+
+
+def set_path(obj, path, value):
+    """``obj`` with the value at ``path`` replaced (in place; the root path returns
+    ``value``)."""
+    if not path:
+        return value
+    target = obj
+    for p in path[:-1]:
+        target = target[p]
+    target[path[-1]] = value
+    return obj

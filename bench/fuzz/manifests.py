@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.fuzz.common import Marker, Tally, classify, hostile_tasks
+from bench.fuzz.common import Marker, Tally, classify, hostile_tasks, json_paths, set_path
 from eant2_jax import EANT2Config, tasks
 from eant2_jax.app import manifest as mf
 
@@ -51,26 +51,6 @@ def base() -> dict:
     }
 
 
-def _paths(obj, prefix=()):
-    yield prefix
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            yield from _paths(v, (*prefix, k))
-    elif isinstance(obj, list):
-        for i, v in enumerate(obj):
-            yield from _paths(v, (*prefix, i))
-
-
-def _set(obj, path, value):
-    if not path:
-        return value
-    target = obj
-    for p in path[:-1]:
-        target = target[p]
-    target[path[-1]] = value
-    return obj
-
-
 def mutate(rng, d: Path, outside: Path, hostile: list) -> tuple[str, dict | None]:
     """Write a mutated ``d/reproduce.json``; returns the kind and the manifest (None where
     the file is not the JSON of a dict)."""
@@ -78,8 +58,8 @@ def mutate(rng, d: Path, outside: Path, hostile: list) -> tuple[str, dict | None
     p = d / mf.MANIFEST
     m = base()
     if kind == "field":
-        paths = list(_paths(m))[1:]
-        m = _set(
+        paths = list(json_paths(m))[1:]
+        m = set_path(
             m, paths[rng.integers(len(paths))], RANDOM_VALUES[rng.integers(len(RANDOM_VALUES))]
         )
     elif kind == "task_options":

@@ -27,7 +27,7 @@ MARKER_COLOURS = ["#d62728", "#2ca02c", "#1f4fd6", "#e0a800", "#9b30b8"]
 
 def pose(q: np.ndarray) -> dict[str, np.ndarray]:
     """World positions of the arm's joints, the camera and its frame at joint angles ``q``."""
-    arm = sv._arm()
+    arm = sv.arm_scene()
     m, d = arm.mj, mujoco.MjData(arm.mj)
     d.qpos[:] = q
     mujoco.mj_kinematics(m, d)
@@ -97,7 +97,7 @@ def draw_arm(ax, p, *, alpha=1.0, label=None):
 
 
 def figure_arm(q_start: np.ndarray) -> None:
-    arm = sv._arm()
+    arm = sv.arm_scene()
     fig = plt.figure(figsize=(11, 5.2))
     ax = fig.add_subplot(1, 2, 1, projection="3d")
     table = np.array([[0.0, -0.6], [0.9, -0.6], [0.9, 0.6], [0.0, 0.6], [0.0, -0.6]])
@@ -152,7 +152,7 @@ def figure_arm(q_start: np.ndarray) -> None:
 
 
 def figure_camera(task: sv.Servo, idx: list[int]) -> None:
-    arm = sv._arm()
+    arm = sv.arm_scene()
     q, s = sv.start_poses(1023)
     gain = 0.95
     jac = jax.jit(jax.vmap(task.image_jacobian))(jnp.asarray(q[idx], jnp.float32))
@@ -162,7 +162,7 @@ def figure_camera(task: sv.Servo, idx: list[int]) -> None:
     for ax, i, j in zip(np.atleast_1d(axes), idx, np.asarray(jac), strict=True):
         x = (s[i] - arm.goal).reshape(10)
         dq = np.clip(-gain * np.linalg.pinv(j) @ x, -step, step)
-        after = sv._features_host(arm, d, np.clip(q[i] + dq, arm.q_lo, arm.q_hi))
+        after = sv.features_host(arm, d, np.clip(q[i] + dq, arm.q_lo, arm.q_hi))
 
         def px(a):
             return a * sv.NORM_PX + np.asarray(sv.PRINCIPAL_POINT)
@@ -190,7 +190,7 @@ def figure_camera(task: sv.Servo, idx: list[int]) -> None:
 def main() -> None:
     task = sv.servo()
     q, s = sv.start_poses(1023)
-    err = np.linalg.norm(s - sv._arm().goal, axis=-1).mean(axis=-1)
+    err = np.linalg.norm(s - sv.arm_scene().goal, axis=-1).mean(axis=-1)
     order = np.argsort(err)
     # A typical start (median error) and a hard one (95th percentile).
     typical, hard = int(order[len(order) // 2]), int(order[int(0.95 * len(order))])

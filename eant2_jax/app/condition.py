@@ -94,7 +94,7 @@ def condition_experiment(
     before, after = cond[:inits], cond[inits:]
     evolved = None
     if evolved_warmup > 0:
-        evolved = _from_evolved(
+        evolved = from_evolved(
             genome, current, task, jax.random.fold_in(k_run, 1), config, inits, evolved_warmup,
             prune_sigma0,
         )  # fmt: skip
@@ -158,7 +158,7 @@ def _recording_config(sigma0, iters, max_condition, dtype) -> ExploitConfig:
     )
 
 
-def _from_evolved(genome, pruned, task, key, config, inits, warmup, sigma0) -> dict:
+def from_evolved(genome, pruned, task, key, config, inits, warmup, sigma0) -> dict:
     """The condition experiment continuing from an evolved covariance (see
     `condition_experiment`): rows ``[0, inits)`` the original network, rows
     ``[inits, 2 inits)`` the same states with the pruned genes removed."""

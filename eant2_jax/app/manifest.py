@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from ..config import EANT2Config
-from ..jsonio import loads, short
+from ..jsonio import loads, read_upto, short
 from ..kernels.pruning import PRUNERS
 from ..rundir import RunDirError
 
@@ -93,20 +93,14 @@ def read_json(path: str | Path, *, strict: bool = True) -> Any:
     try:
         if not stat.S_ISREG(os.fstat(fd).st_mode):
             raise ManifestError(f"{path}: not a regular file")
-        chunks, size = [], 0
-        while size <= cap:  # bounded by the bytes read, not by what stat says
-            chunk = os.read(fd, min(1 << 20, cap + 1 - size))
-            if not chunk:
-                break
-            chunks.append(chunk)
-            size += len(chunk)
+        data = read_upto(fd, cap)
     except OSError as e:
         raise ManifestError(f"{path}: cannot read it ({e.strerror})") from None
     finally:
         os.close(fd)
-    if size > cap:
+    if len(data) > cap:
         raise ManifestError(f"{path}: more than {cap} bytes")
-    return loads(b"".join(chunks), str(path), strict=strict, error=ManifestError)
+    return loads(data, str(path), strict=strict, error=ManifestError)
 
 
 def _int(m: dict, name: str, where: str) -> int:

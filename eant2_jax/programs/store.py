@@ -76,7 +76,7 @@ def directory() -> Path | None:
 
 
 @functools.cache
-def _code_digest() -> bytes:
+def code_digest() -> bytes:
     """This package's source and the versions of what it runs on (once per process)."""
     from .. import kernels  # a folder of its own in a source checkout (pyproject.toml)
 
@@ -135,7 +135,7 @@ def _tree_key(treedef) -> list:
 
 
 def _key(fn, leaves, treedef, static: dict) -> str:
-    h = hashlib.sha256(_code_digest())
+    h = hashlib.sha256(code_digest())
     h.update(_config_digest())
     h.update(f"{fn.__module__}.{fn.__qualname__}".encode())
     h.update(repr(sorted(static.items())).encode())
@@ -260,7 +260,7 @@ def _in_avals(leaves) -> list:
     return [_aval(a.shape, a.dtype) for a in jax.eval_shape(lambda *a: a, *leaves)]
 
 
-def _read(path: Path, key: str, leaves) -> export.Exported | None:
+def read_entry(path: Path, key: str, leaves) -> export.Exported | None:
     """The program of the entry at ``path`` if every check passes (module docstring), else
     None: missing, damaged, foreign, of other versions, not this user's regular file."""
     flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
@@ -399,7 +399,7 @@ def lookup(fn, args: tuple, static: dict, *, task) -> Callable | None:
         if key in _PROGRAMS:
             return _PROGRAMS[key]
     path = folder / f"{key}{SUFFIX}"
-    exported = _read(path, key, leaves)
+    exported = read_entry(path, key, leaves)
     if exported is None:
 
         def flat(*flat_args):

@@ -87,9 +87,6 @@ __all__ = [
 # The scene (camera, arm, start poses, models) lives in its own module; its public names are
 # part of this module's API too.
 from .servo_scene import (  # noqa: F401
-    _CAMERA_BODY,
-    _CAMERA_SITE,
-    _MARKER_SITES,
     _OPTICAL,
     ARM_XML,
     FOCAL_PX,
@@ -106,18 +103,17 @@ from .servo_scene import (  # noqa: F401
     SEED,
     START_HALF_WIDTH,
     SUBSTEPS,
-    _Arm,
-    _arm,
-    _features_host,
     _mjx_model,
-    _mjx_numerics,
-    _start_poses,
-    _stripped,
+    arm_scene,
+    draw_start_poses,
+    features_host,
+    mjx_numerics,
     outside_image,
     project,
     project_components,
     stack_image,
     start_poses,
+    stripped_arm,
     stripped_model,
 )
 
@@ -229,7 +225,7 @@ class Servo:
         # (no activations, no constraints, hence no solver warm start), and a small carry
         # lets XLA drop every other field of each step.
         def body(carry, _):
-            with _mjx_numerics():
+            with mjx_numerics():
                 d = mjx.step(self.model, d0.replace(qpos=carry[0], qvel=carry[1]))
             return (d.qpos, d.qvel), None
 
@@ -349,7 +345,7 @@ class Servo:
 
     def generalisation(self, nets: kn.Network) -> jax.Array:
         """Costs ``[*batch]`` of ``nets`` on the held-out start poses (jit-compiled)."""
-        return _jit_cost(self.held_out(), nets)
+        return jit_cost(self.held_out(), nets)
 
     def start_costs(self, policy: Callable, state0: Any = None) -> jax.Array:
         """``[N]`` cost of one hand-written controller from each start pose.
@@ -391,7 +387,7 @@ class Servo:
         return gains, np.asarray(costs).mean(axis=1)
 
 
-def _flatten(nets: kn.Network) -> tuple[kn.Network, tuple[int, ...]]:
+def flatten_networks(nets: kn.Network) -> tuple[kn.Network, tuple[int, ...]]:
     batch = nets.bias.shape[:-1]
     n = int(np.prod(batch, dtype=np.int64))
     flat = jax.tree.map(lambda a: a.reshape((n,) + a.shape[len(batch) :]), nets)
@@ -407,7 +403,7 @@ def _network_costs(task: Servo, nets: kn.Network, q0: jax.Array, x0: jax.Array) 
     instead (``bench/bench_servo.py``, ``task_flat``) gives the same numbers and was no
     faster on a GPU and slower on a CPU.
     """
-    flat, batch = _flatten(nets)
+    flat, batch = flatten_networks(nets)
 
     def one_net(net):
         run = functools.partial(task.episode, task.network_policy(net), jnp.zeros_like(net.bias))
@@ -417,7 +413,7 @@ def _network_costs(task: Servo, nets: kn.Network, q0: jax.Array, x0: jax.Array) 
 
 
 @jax.jit
-def _jit_cost(task: Servo, nets: kn.Network) -> jax.Array:
+def jit_cost(task: Servo, nets: kn.Network) -> jax.Array:
     return task.cost(None, nets)
 
 
@@ -468,8 +464,8 @@ def servo(
         if not 1 <= value <= top:
             raise ValueError(f"servo: {name} must be in [1, {top}]; got {value}")
     kn.activation(hidden), kn.activation(output)
-    arm = _arm()
-    mj, camera_site, camera_body = _stripped()
+    arm = arm_scene()
+    mj, camera_site, camera_body = stripped_arm()
     # MJX (and its import) only where its physics runs.
     model = _mjx_model()[0] if mode == "dynamic" else None
     sets = [start_poses(n_starts, held_out=h) for h in (held_out, not held_out)]

@@ -115,12 +115,12 @@ def outside_image(u, v):
 # such scatter into a sort, which made a servo iteration several times slower. A
 # concatenation of
 # the same numbers is no scatter, and deterministic by construction.
-_axis_angle_to_quat = kin.axis_angle_to_quat
+axis_angle_to_quat = kin.axis_angle_to_quat
 
 
 # Why a patch: the scatter sits inside MJX's forward kinematics (``smooth.kinematics`` ->
 # ``math.axis_angle_to_quat``; also ``math.quat_integrate``), which offers no hook. It is
-# applied only while this module's own MJX code is traced (`_mjx_numerics`), reference-
+# applied only while this module's own MJX code is traced (`mjx_numerics`), reference-
 # counted so that concurrent runs in threads nest, and it returns equal values to the last
 # bit (tests/test_servo.py checks both against MJX's own function), so other MJX code traced
 # meanwhile by another thread computes exactly what it would have.
@@ -129,7 +129,7 @@ _PATCH_DEPTH = 0
 
 
 @functools.cache
-def _mjx_math():
+def find_mjx_math():
     """MJX's math module and its own ``axis_angle_to_quat``, or None (read once, at first
     use: importing MJX is left to the code that runs it)."""
     from . import mjx_quiet  # noqa: F401  (drop MJX's lines about an absent warp)
@@ -145,14 +145,14 @@ def _mjx_math():
 @contextlib.contextmanager
 def _scatter_free_mjx():
     global _PATCH_DEPTH
-    found = _mjx_math()
+    found = find_mjx_math()
     if found is None:
         yield
         return
     mjx_math, original = found
     with _PATCH_LOCK:
         _PATCH_DEPTH += 1
-        mjx_math.axis_angle_to_quat = _axis_angle_to_quat
+        mjx_math.axis_angle_to_quat = axis_angle_to_quat
     try:
         yield
     finally:
@@ -163,13 +163,13 @@ def _scatter_free_mjx():
 
 
 @contextlib.contextmanager
-def _mjx_numerics():
+def mjx_numerics():
     """The numerics MJX code runs under here.
 
     MJX relies on implicit rank promotion internally, which this project's tests turn into an
     error for its own code (tests/conftest.py); its small float32 products must not use
     TF32 on GPUs (1e-3 relative error), so that GPU and CPU runs score alike; and its
-    quaternion of a hinge angle is built without a scatter (`_axis_angle_to_quat`).
+    quaternion of a hinge angle is built without a scatter (`axis_angle_to_quat`).
     """
     with (
         jax.numpy_rank_promotion("allow"),
@@ -194,7 +194,7 @@ class _Arm(NamedTuple):
 
 
 @functools.cache
-def _arm() -> _Arm:
+def arm_scene() -> _Arm:
     mj = mujoco.MjModel.from_xml_path(str(ARM_XML))
     site = functools.partial(mujoco.mj_name2id, mj, mujoco.mjtObj.mjOBJ_SITE)
     cam = site(_CAMERA_SITE)
@@ -217,7 +217,7 @@ def _arm() -> _Arm:
     )
 
 
-def _features_host(arm: _Arm, d: mujoco.MjData, q: np.ndarray) -> np.ndarray:
+def features_host(arm: _Arm, d: mujoco.MjData, q: np.ndarray) -> np.ndarray:
     """``[5, 2]`` normalised marker coordinates at joint angles ``q`` (MuJoCo C, float64)."""
     d.qpos[:] = q
     mujoco.mj_kinematics(arm.mj, d)
@@ -226,15 +226,15 @@ def _features_host(arm: _Arm, d: mujoco.MjData, q: np.ndarray) -> np.ndarray:
 
 
 @functools.cache
-def _start_poses(n: int, held_out: bool) -> tuple[np.ndarray, np.ndarray]:
-    arm = _arm()
+def draw_start_poses(n: int, held_out: bool) -> tuple[np.ndarray, np.ndarray]:
+    arm = arm_scene()
     rng = np.random.default_rng([SEED, int(held_out)])
     d = mujoco.MjData(arm.mj)
     half = np.asarray(START_HALF_WIDTH)
     qs, ss = [], []
     while len(qs) < n:
         q = arm.q_goal + rng.uniform(-half, half)
-        s = _features_host(arm, d, q)
+        s = features_host(arm, d, q)
         if not np.any(_outside(s)):
             qs.append(q)
             ss.append(s)
@@ -256,7 +256,7 @@ def start_poses(n_starts: int = 1023, *, held_out: bool = False) -> tuple[np.nda
     Returns:
       ``(q [n_starts, 3] rad, s [n_starts, 5, 2] normalised image coordinates)``.
     """
-    return _start_poses(int(n_starts), bool(held_out))
+    return draw_start_poses(int(n_starts), bool(held_out))
 
 
 # ------------------------------------------------------------------------------ the task
@@ -291,7 +291,7 @@ def stripped_model() -> mujoco.MjModel:
 
 
 @functools.cache
-def _stripped() -> tuple[mujoco.MjModel, int, int]:
+def stripped_arm() -> tuple[mujoco.MjModel, int, int]:
     """`stripped_model`, its camera site id and the id of the body carrying the camera."""
     mj = stripped_model()
     site = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SITE, _CAMERA_SITE)
@@ -304,5 +304,5 @@ def _mjx_model() -> tuple[mjx.Model, int, int]:
     """The task's MJX model, its camera site id and the id of the body carrying the camera."""
     from .mjx_quiet import mjx
 
-    mj, site, body = _stripped()
+    mj, site, body = stripped_arm()
     return mjx.put_model(mj), site, body

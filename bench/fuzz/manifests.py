@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.fuzz.common import Marker, Tally, classify, hostile_tasks, json_paths, set_path
-from eant2_jax import EANT2Config, tasks
+from eant2_jax import EANT2Config, ExploitConfig, tasks
 from eant2_jax.app import manifest as mf
 
 RANDOM_VALUES = [None, True, False, 0, -1, 1, 2, 2**31, 2**32, 2**63, 1.5, -0.0, 1e308, "",
@@ -132,9 +132,22 @@ def _within(read: dict, written: dict, where: str = "config") -> str | None:
             wrong = _within(read[k], v, f"{where}.{k}")
             if wrong:
                 return wrong
-        elif not _equal(read.get(k), v):
+        elif not (_equal(read.get(k), v) or (v is None and read.get(k) == _none_means(where, k))):
             return f"{where}.{k}: wrote {v!r:.40}, read {read.get(k)!r:.40}"
     return None
+
+
+def _none_means(where: str, name: str):
+    """The value a configuration constructed with ``name=None`` holds (a field whose None
+    stands for a default, e.g. ``max_condition``: 1e7 for float32), or a sentinel."""
+    cls = {"config": EANT2Config, "config.exploit": ExploitConfig}.get(where)
+    try:
+        return cls(**{name: None}).to_dict()[name]
+    except (TypeError, ValueError, KeyError):
+        return _NOTHING
+
+
+_NOTHING = object()
 
 
 def check(d: Path, m: dict | None, marker: Marker) -> str:

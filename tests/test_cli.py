@@ -5,17 +5,17 @@ it (issue 39 item 4, issue 40)."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import sys
 
 import pytest
+from rundirs import retask
 
 from eant2_jax import EANT2Config, ExploitConfig
 from eant2_jax.app.cli import main
 from eant2_jax.app.parser import build_parser, config_from
-from eant2_jax.rundir import CHECKPOINT, CONFIG, RunDir
+from eant2_jax.rundir import RunDir
 
 TINY = ["--population", "3", "--max-iters", "20", "--generations", "0", "--no-prune"]
 
@@ -116,18 +116,6 @@ def test_config_lists_every_field_from_the_specs(capsys, monkeypatch):
     assert EANT2Config.from_dict(json.loads(out), complete=True) == EANT2Config()
 
 
-def _retask(out, task, options):
-    """Point a complete run directory at another task, its checksum recomputed (checksums
-    detect accidents, they do not authenticate)."""
-    meta = json.loads((out / CONFIG).read_text())
-    meta.update(task=task, task_options=options)
-    data = (json.dumps(meta, indent=2) + "\n").encode()
-    (out / CONFIG).write_bytes(data)
-    ckpt = json.loads((out / CHECKPOINT).read_text())
-    ckpt["sha256"][CONFIG] = hashlib.sha256(data).hexdigest()
-    (out / CHECKPOINT).write_text(json.dumps(ckpt) + "\n")
-
-
 def test_resume_of_a_directory_naming_os_system_runs_nothing(tmp_path, capsys, monkeypatch):
     """``eant2 resume DIR`` of a directory whose task is ``os:system`` with a command: exit
     code 2, one line asking for --task, the command never ran (a stub directory and a
@@ -141,7 +129,7 @@ def test_resume_of_a_directory_naming_os_system_runs_nothing(tmp_path, capsys, m
     run = tmp_path / "run"
     rc, _, err = _main(["run", "xor", *TINY, "--out", run], capsys, monkeypatch)
     assert rc == 0, err
-    _retask(run, "os:system", options)
+    retask(run, "os:system", options)
     for d in (stub, run):
         rc, stdout, err = _main(["resume", d], capsys, monkeypatch)
         assert rc == 2 and len(err) == 1 and "'os:system' is user code" in err[0], err

@@ -4,16 +4,16 @@ when the caller names it again, and then it must be the recorded one."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 
 import jax
 import pytest
+from rundirs import retask
 
 import eant2_jax
 from eant2_jax import EANT2Config, ExploitConfig, tasks
 from eant2_jax.checkpoint import validate
-from eant2_jax.rundir import CHECKPOINT, CONFIG, RunDir, RunDirError
+from eant2_jax.rundir import CONFIG, RunDir, RunDirError
 
 TINY = EANT2Config(population=3, exploit=ExploitConfig(max_iters=20, pruner="none"))
 TASK_FILE = """\
@@ -26,18 +26,6 @@ def make_task():
 """
 
 
-def _retask(out, task, options):
-    """Point a complete run directory's config.json at another task, its checksum in the
-    checkpoint recomputed (the checksums detect accidents, they do not authenticate)."""
-    meta = json.loads((out / CONFIG).read_text())
-    meta.update(task=task, task_options=options)
-    data = (json.dumps(meta, indent=2) + "\n").encode()
-    (out / CONFIG).write_bytes(data)
-    ckpt = json.loads((out / CHECKPOINT).read_text())
-    ckpt["sha256"][CONFIG] = hashlib.sha256(data).hexdigest()
-    (out / CHECKPOINT).write_text(json.dumps(ckpt) + "\n")
-
-
 def test_resume_runs_no_module_a_directory_names(tmp_path):
     """``os:system`` with a command, in a complete directory with recomputed checksums and in
     a stub: resume refuses in one line and the command never ran."""
@@ -47,7 +35,7 @@ def test_resume_runs_no_module_a_directory_names(tmp_path):
     eant2_jax.run(
         tasks.make("xor"), key=jax.random.key(0), config=TINY, generations=0, out=str(out)
     )
-    _retask(out, "os:system", options)
+    retask(out, "os:system", options)
     validate(str(out))  # the directory itself is consistent
     with pytest.raises(RunDirError, match=r"'os:system' is user code.*--task SPEC") as e:
         eant2_jax.resume(str(out), generations=1)
@@ -70,7 +58,7 @@ def test_resume_imports_no_task_file_shipped_in_the_directory(tmp_path, monkeypa
     )
     marker = tmp_path / "imported"
     (out / "task.py").write_text(TASK_FILE.format(marker=str(marker)))
-    _retask(out, "task.py:make_task", {})
+    retask(out, "task.py:make_task", {})
     monkeypatch.chdir(out)
     with pytest.raises(RunDirError, match="'task.py:make_task' is user code"):
         eant2_jax.resume(".", generations=1)

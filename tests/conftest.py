@@ -13,6 +13,7 @@ otherwise trip hypothesis' per-example deadline.
 from __future__ import annotations
 
 import os
+import tempfile
 import warnings
 
 # Under pytest-xdist every worker is its own JAX process; on a GPU machine the default
@@ -20,8 +21,16 @@ import warnings
 if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
+# The eant2 command keeps compiled programs in a cache folder (EANT2_CACHE_DIR, default under
+# ~/.cache). The suite runs it in-process and in children: give each test process a folder
+# of its own, so that the suite neither writes to the user's cache nor shares one between
+# workers. A test that studies the cache names its own folder.
+os.environ.setdefault("EANT2_CACHE_DIR", tempfile.mkdtemp(prefix="eant2-test-cache-"))
+
 import jax  # noqa: E402
+import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402
+from jax.experimental.compilation_cache import compilation_cache  # noqa: E402
 
 # When a property fails, hypothesis' pytest plugin imports libcst (to write a patch of the
 # failing example); libcst's import emits a DeprecationWarning, which "warnings are errors"
@@ -45,3 +54,15 @@ settings.register_profile(
 settings.load_profile(
     os.environ.get("HYPOTHESIS_PROFILE", "ci" if os.environ.get("CI") else "default")
 )
+
+
+@pytest.fixture(autouse=True)
+def _cache_setting_restored():
+    """The eant2 command turns JAX's persistent compilation cache on for its process (as
+    an application may); run in-process by a test, it would stay on for every later test
+    of this worker, in a folder that test removed. Turn it back as it was."""
+    before = jax.config.jax_compilation_cache_dir
+    yield
+    if jax.config.jax_compilation_cache_dir != before:
+        jax.config.update("jax_compilation_cache_dir", before)
+        compilation_cache.reset_cache()

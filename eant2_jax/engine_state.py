@@ -207,9 +207,9 @@ def init(
     )  # fmt: skip
 
 
-# One program per batch shape: run op by op, the ~40 small operations of ``init`` each
-# compiled a program of their own for every new bucket (about 0.1 s apiece on a GPU) and
-# dispatched one by one in every generation (the profile in docs/benchmarks.md).
+# One program per batch shape: run op by op, the ~40 small operations of ``init`` would each
+# compile a program of their own for every new bucket and dispatch one by one in every
+# generation (docs/design.md, "CMA-ES initialisation is one program").
 @functools.partial(jax.jit, static_argnames=("popsize",))
 def _init(
     keys, mean, mask, active, config: ExploitConfig, popsize: int, cov=None, sigma=None

@@ -296,9 +296,9 @@ def _normals(key: jax.Array, P: int, popsize: int, dtype: DTypeLike) -> jax.Arra
     """``[popsize, P]`` standard normals; column ``i`` from ``fold_in(key, i)`` only.
 
     Drawn as ONE flat vector of ``P * popsize`` scalar draws: with vmap over structures (and
-    seeds), per-coordinate ``normal(k_i, (popsize,))`` becomes a rank-3 threefry whose XLA:CPU
-    compilation costs ~1 s more; the flat form stays rank 2 and draws the same numbers
-    whatever the batching. The draws are `jax.random`'s, written out on a CPU
+    seeds), per-coordinate ``normal(k_i, (popsize,))`` becomes a rank-3 threefry that XLA:CPU
+    compiles more slowly (docs/design.md); the flat form stays rank 2 and draws the same
+    numbers whatever the batching. The draws are `jax.random`'s, written out on a CPU
     (`kernels.threefry`).
     """
     coord_keys = jax.vmap(lambda i: threefry.fold_in(key, i))(jnp.arange(P))

@@ -28,24 +28,16 @@ __all__ = ["BRANCH_MIN", "UNROLL_MAX", "dot"]
 _PRECISION = jax.lax.Precision.HIGHEST
 
 # Products whose contraction is at most this long (inputs or neurons read) are written as an
-# unrolled sum of element-wise products instead of a dot. Batched over networks and
+# unrolled sum of element-wise products instead of a dot: batched over networks and
 # examples, a dot of such tiny matrices is a batched GEMM of its own that XLA does not fuse
-# with what follows: on a 2-core CPU one Eigen call per network, and the XOR cost of 288
-# networks (6 neurons) took 2.2 ms as dots against 0.95 ms unrolled. On an H100 (`python -m
-# bench generation --parts scaling --scaling-pruner covariance`, 20 servo structures,
-# 2026-11-24) an engine iteration at 40 genes (6 neurons, 10 inputs) took 0.95-0.96 ms
-# with this bound against 1.03-1.06 ms with dots; unrolling 16 neurons (80 genes) compiled
-# the program in 14 s instead of 30 s but ran it 27% slower (3.05 against 2.40 ms), so 16
-# stays a dot.
+# with what follows. The bound is measured (docs/design.md, "Products").
 UNROLL_MAX = 12
 
 # A long product's non-finite terms are a pass over [rows, k] per example (the finite part
-# is a dot). Batched over 200 servo structures of 24 neurons (a lock-step `eant2 reproduce`
-# batch) that pass took 24 of an engine iteration's 38 ms on an H100 (2026-11-24). Values
-# are almost always finite, so over a batch this large the pass runs only when some value of
-# the whole batch is not: one branch (on a GPU, one read of its predicate by the host)
-# instead; the iteration took 20 ms, and 1.9 ms against 2.3 ms for 20 structures of 16
-# neurons. Smaller batches, where the read would cost more than the pass, always run it.
+# is a dot). Values are almost always finite, so over a batch of at least this many terms
+# the pass runs only when some value of the whole batch is not: one branch (on a GPU, one
+# read of its predicate by the host). Smaller batches, where the read would cost more than
+# the pass, always run it (docs/design.md, "The non-finite pass").
 BRANCH_MIN = 1 << 24
 
 

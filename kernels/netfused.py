@@ -35,12 +35,8 @@ __all__ = ["ACTIVATIONS", "step_batch"]
 # network that uses one keeps the plain path.
 ACTIVATIONS = activations.BUILTIN
 
-# Examples per program and warps per program. 1023 servo moves make 8 programs of a
-# network. An H100, generation 6's servo batch (24 structures of bucket (64, 8, 4), their
-# candidates and 1023 moves; 2026-11-25, scratch A/B of the engine's chunk), ms per engine
-# iteration with these (block, warps): (128, 4) 0.51-0.54, (64, 4) 0.56, (256, 8) 0.55.
-# Before the plain products came first, (256, 4) spilled registers: 0.77 against 0.58 for
-# (128, 4). The whole generation's figures are in docs/benchmarks.md.
+# Examples per program and warps per program (1023 servo moves make 8 programs of a
+# network), the fastest of the pairs measured (docs/design.md, "One fused kernel").
 _BLOCK = 128
 _WARPS = 4
 

@@ -147,15 +147,13 @@ def step_inline(
     # The first sweep reads h = 0, so it is settle(base): after it the neurons of depth 1 are
     # exact, and after `sweeps` >= depth sweeps every neuron is, from any start (``dot``
     # keeps a value away from the rows that do not read it). Not written as a sweep over a
-    # zero h: batched over networks and examples that zero is a large constant, and XLA's
-    # constant folding spent 21.6 s of a 25.1 s compile (200 servo structures, CPU) on the
-    # finiteness test of ``dot`` over it.
+    # zero h: batched over networks and examples that zero is a large constant, which XLA's
+    # constant folding would test element by element at compile time (docs/design.md, "No
+    # test of a constant zero state").
     if unroll is None:
         unroll = net.sweeps <= SWEEPS_UNROLLED
-    # The same holds for the test of h_prev: a first step passes zeros, whose test XLA folded
-    # element by element (seconds per compile for a regression of 16,384 examples, under
-    # XLA's slow-operation alarm; the one test whose compile did so is the one the suite saw
-    # segfault in XLA's compiler). The barrier hides the constant; the values are the same.
+    # The same holds for the test of h_prev, zeros at a first step: the barrier hides the
+    # constant from XLA's folding; the values are the same.
     finite = None
     if check:
         h_seen = jax.lax.optimization_barrier(h_prev)
@@ -173,18 +171,15 @@ def step_inline(
 
 # The non-finite rule is most of a step's work wherever the step is not launch-bound: per
 # term of every product a finiteness test, two selects and a second product
-# (`netdot.dot`, unrolled). On XLA:CPU, which runs it element by element, the XOR engine
-# iteration (24 structures, 4 neurons, 4 sweeps; 2-core VM, in-process A/B of the compiled
-# chunk) took 0.80 ms with the rule inline, 0.56 ms with plain products alone and 0.59-0.64
-# ms with this branch. So a step runs plain products over the whole batch first, and runs
-# the rule (over the whole batch again) only when some value that entered a product was not
-# finite: with finite values both give the same sums, term by term in the same order.
+# (`netdot.dot`, unrolled). So a step runs plain products over the whole batch first, and
+# runs the rule (over the whole batch again) only when some value that entered a product was
+# not finite: with finite values both give the same sums, term by term in the same order.
 #
 # On a GPU the branch's predicate is read by the host at every step, which a small batch
 # does not pay back: there the branch is taken only for networks of more than `UNROLL_MAX`
 # neurons and from `GPU_BRANCH_MIN` product terms per step over the whole batch; otherwise
-# the rule stays inline (the same program as before the branch existed). See
-# `GPU_BRANCH_MIN` for the measurements.
+# the rule stays inline (the same program as before the branch existed). The measurements:
+# docs/design.md, "The non-finite rule after plain products".
 @functools.cache
 def _finite_first(treedef, hidden: str, output: str, terms: int):
     """``(y, h)`` of `step` from the leaves of ``(net, x, h_prev)``: plain products over the
@@ -198,10 +193,8 @@ def _finite_first(treedef, hidden: str, output: str, terms: int):
             return step_inline(plain, x, h_prev, hidden=hidden, output=output, check=True)
         # "rare" is the branch that runs when some value was not finite. On a CPU it is
         # written with dots (`netdot.dot`'s compact form), compiled in a fraction of the unrolled
-        # rule's time (every engine program compiles it; it almost never runs). On a GPU
-        # every new dot shape is autotuned: the first call of a 16-neuron servo chunk took
-        # 20.3 s with the compact form against 10.1 s unrolled (H100, `python -m bench
-        # generation --parts scaling`).
+        # rule's time (every engine program compiles it; it almost never runs). On a GPU it
+        # stays unrolled: every new dot shape is autotuned there (docs/design.md).
         compact = form == "rare" and jax.default_backend() == "cpu"
         return step_inline(net, x, h_prev, hidden=hidden, output=output, compact=compact)
 
@@ -338,34 +331,15 @@ def _fused_batch(treedef, levels, leaves, rule: Callable, hidden: str, output: s
 
 # Off the CPU the step branches (`_batched`) only for networks of more than `UNROLL_MAX`
 # neurons (their products over neurons are dots) and from this many product terms per step
-# over the batch (`_gpu_terms` times the examples). An H100, 20 random servo structures,
-# 1023 starts, the covariance pruner, ms per engine iteration, the rule inline against this
-# branch (2026-11-24, scratch A/B; the chunk's float32 results were the same bits):
-#
-#   genes  bucket (P, H, sweeps)  terms per step  inline  branch
-#   40     (48, 6, 4)             6.8e7           0.72    0.76
-#   50     (64, 8, 6)             1.5e8           0.67    2.10
-#   56     (64, 12, 6)            3.2e8           1.27    1.06
-#   80     (96, 16, 8)            6.9e8           1.49    1.11
-#
-# With unrolled products (up to 12 neurons) whether XLA fuses the plain sweeps into one
-# another, recomputing them, is its heuristics' call: 8 neurons ran three times slower, 12
-# neurons faster, while the rule's finiteness tests keep each sweep apart; so unrolled
-# products keep the rule inline. A 16-neuron network gains from the branch once the rule
-# costs more than the host's read of its predicate (one per step): ~0.37 ms of rule against
-# ~0.02 ms of read at 6.9e8 terms; 2^26 keeps a margin.
+# over the batch (`_gpu_terms` times the examples): unrolled products keep the rule inline,
+# and a dot-product network gains from the branch once the rule costs more than the host's
+# read of its predicate (docs/design.md, "When a GPU branches").
 GPU_BRANCH_MIN = 1 << 26
 
 
 # On a GPU the rule's inline path runs as one kernel (`netfused`) where it applies: for
-# buckets of 8 to `UNROLL_MAX` neuron slots. An H100 (2026-11-25): generation 6's servo
-# batch (24 structures of bucket (64, 8, 4), scratch A/B of the engine's chunk) took
-# 0.51-0.54 ms per engine iteration with the kernel against 0.74 ms inline; 20 random servo
-# structures of 40 genes (bucket (48, 6, 4), `python -m bench generation --parts scaling`)
-# 0.518 against 0.515 ms: no gain at 6 slots. There the kernel's compile would only join
-# every new engine program's, `eant2 run servo`'s first buckets (4 and 6 slots) included:
-# with the kernel at those sizes its cold start took 12.3 s against 11.4 s (medians of 3,
-# rounds overlapping); without, 13.8 s against 13.7 s (5 rounds, a slower host).
+# buckets of 8 to `UNROLL_MAX` neuron slots. Below 8 slots the kernel gains nothing and its
+# compile only adds to every new engine program's (docs/design.md, "One fused kernel").
 FUSED = True
 FUSED_NEURONS = (8, UNROLL_MAX)
 

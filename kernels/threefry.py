@@ -4,8 +4,7 @@ The same bits as `jax.random` (tested against it on fresh keys), for the draws t
 makes on every iteration. On a CPU JAX lowers threefry's five rounds as a loop (a smaller
 program); XLA:CPU runs that loop's body trip by trip with its state copied on each, so every
 draw site became 5 loop trips and about 65 copies per engine iteration. Written out, a draw
-is one fusion: in an in-process A/B of the compiled XOR chunk (24 structures, 2-core VM)
-an engine iteration took 0.72-0.74 ms against 0.80-0.81 ms with the loops.
+is one fusion (docs/design.md, "Threefry written out on a CPU").
 
 Other backends (JAX's own lowering is unrolled there), other PRNG implementations and
 float64 normals use `jax.random` itself. Everything here is for ONE key; batch with vmap.

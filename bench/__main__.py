@@ -41,6 +41,7 @@ SUITES = {
     "field": "bench.bench_field",
     "runs": "bench.bench_runs",
     "determinism": "bench.bench_determinism",
+    "finetune": "bench.bench_finetune",
 }
 
 

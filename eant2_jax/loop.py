@@ -84,6 +84,7 @@ __all__ = [
     "RunResult",
     "RunState",
     "Validated",
+    "as_key",
     "compile_first_ahead",
     "grow_bucket",
     "resume",
@@ -91,6 +92,26 @@ __all__ = [
     "run_lockstep",
     "validate",
 ]
+
+
+def as_key(key, what: str = "key") -> jax.Array:
+    """A run's PRNG key: a JAX key as given (typed, or raw ``uint32`` data), or an int
+    seed in [0, 2**32) as ``jax.random.key(seed)`` (the key ``eant2 run --seed`` uses).
+
+    Raises:
+      ValueError: one line naming ``what``: a seed out of range, a bool, or neither.
+    """
+    import numbers
+
+    if isinstance(key, bool) or (isinstance(key, numbers.Integral) and not 0 <= key < 2**32):
+        raise ValueError(f"{what}: an int seed must be in [0, 2**32), got {key!r:.40}")
+    if isinstance(key, numbers.Integral):
+        return jax.random.key(int(key))
+    if not hasattr(key, "dtype"):
+        raise ValueError(
+            f"{what} must be a jax.random.key(...) or an int seed, got {type(key).__name__}"
+        )
+    return key
 
 
 class _Member:
@@ -135,7 +156,8 @@ def run(
 
     Args:
       task: the task (see `eant2_jax.tasks`).
-      key: the run's PRNG key; the same key and config give the same run.
+      key: the run's PRNG key (``jax.random.key(seed)``; an int seed is taken as that,
+        `as_key`); the same key and config give the same run.
       config: `EANT2Config` (default: its defaults, covariance pruning on).
       generations: generations after the initial one (generation 0 exploits the minimal
         networks; the result has ``generations + 1`` generation records).
@@ -164,9 +186,10 @@ def run(
     if generations < 0:
         raise ValueError(f"generations must be >= 0, got {generations}")
     check_task(task)  # before anything is written
+    config = strategy.resolved(config, task)  # the target it runs to, recorded
     meta = run_meta(task, meta)
+    key = key_from_data(key_data(as_key(key)))
     mesh = distributed.make_mesh(config.devices)  # every check before anything is created
-    key = key_from_data(key_data(key))
     with contextlib.ExitStack() as stack:
         rundir = None
         if out is not None:
@@ -272,12 +295,13 @@ def run_lockstep(
     if config.devices is not None:
         raise ValueError("run_lockstep places its batches itself: leave config.devices None")
     check_task(task)
+    config = strategy.resolved(config, task)
     base_meta = run_meta(task, meta)
     mesh = distributed.make_mesh(devices)
     with contextlib.ExitStack() as stack:
         members = []
         for i, (key, out) in enumerate(zip(keys, outs, strict=True)):
-            key = key_from_data(key_data(key))
+            key = key_from_data(key_data(as_key(key, f"keys[{i}]")))
             if out is None:
                 members.append(_Member(i, key, generations, None, base_meta))
             elif resume and Path(out).exists():

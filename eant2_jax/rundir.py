@@ -36,12 +36,11 @@ import hashlib
 import os
 import shutil
 import stat
-import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
 from . import jsonio
+from .dircreate import Unlockable, Vanished, locked_temp_dir, remove_dead_creations
 from .jsonio import as_float, dumps, fsync_dir, typed_fields, write_atomic
 from .jsonio import short as _short
 
@@ -57,7 +56,6 @@ FORMAT = 2  # 2: checksums in the checkpoint, strict JSON; 1 is still read (see 
 FORMATS = (1, 2)
 # What the checkpoint's "sha256" holds: the config file, the committed log prefixes, the state.
 SUMS = (CONFIG, GENERATIONS, PRUNING, "state")
-_CREATING = ".creating-"
 
 
 class RunDirError(ValueError):
@@ -127,27 +125,20 @@ class RunDir:
         if p.is_symlink() or (p.exists() and (not p.is_dir() or any(p.iterdir()))):
             raise RunDirError(f"{p} already exists and is not an empty directory; not overwriting")
         text = dumps({"format": FORMAT, **config}, indent=2) + "\n"
-        p.parent.mkdir(parents=True, exist_ok=True)
-        _remove_dead_creations(p)
-        tmp = Path(tempfile.mkdtemp(dir=p.parent, prefix=f".{p.name}{_CREATING}"))
+        try:  # an unwritable place is named as the user named it, not by a hidden name
+            p.parent.mkdir(parents=True, exist_ok=True)
+            remove_dead_creations(p)
+            tmp, fd = locked_temp_dir(p)
+        except Vanished:
+            return cls._create_again(path, config, _attempts)
+        except Unlockable:
+            raise RunDirError(f"{p}: could not lock its new directory") from None
+        except OSError as e:
+            why = e.strerror
+            if e.errno in (errno.EEXIST, errno.ENOTDIR):  # p.parent.mkdir met a file
+                why = "a part of its path is not a folder"
+            raise RunDirError(f"{p}: cannot create the run directory ({why})") from None
         try:
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp, 0o777 & ~umask)
-            fd = os.open(tmp, os.O_RDONLY | os.O_DIRECTORY)
-            # The lock is on the directory's inode: it stays held across the rename. Nobody
-            # else writes a fresh hidden directory, but another creator's clean-up may hold
-            # a shared lock on it for a moment to see whether it is alive: wait that out.
-            for attempt in range(200):
-                try:
-                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                    break
-                except BlockingIOError:
-                    if attempt == 199:
-                        raise RunDirError(f"{p}: could not lock its new directory") from None
-                    time.sleep(0.005)
-            if not _same_inode(tmp, fd):  # removed by another creator's clean-up
-                raise _Vanished
             run = cls(tmp, fd)
             run._write_new(CONFIG, text.encode())
             for name in LOGS:
@@ -161,19 +152,16 @@ class RunDir:
                         f"{p} already exists and is not an empty directory; not overwriting"
                     ) from None
                 raise
-        except (_Vanished, FileNotFoundError):
-            # Removed by another creator's clean-up between mkdtemp and the lock: start again.
-            if "fd" in locals():
-                os.close(fd)
+        except FileNotFoundError:
+            # Removed by another creator's clean-up after the lock was checked: start again.
+            os.close(fd)
             shutil.rmtree(tmp, ignore_errors=True)
-            if _attempts >= 20:
-                raise RunDirError(
-                    f"{p}: could not create it (its new directory kept vanishing)"
-                ) from None
-            return cls.create(path, config, _attempts=_attempts + 1)
+            return cls._create_again(path, config, _attempts)
         except BaseException:
             if "run" in locals():
                 run.close()
+            else:
+                os.close(fd)
             shutil.rmtree(tmp, ignore_errors=True)
             raise
         fsync_dir(p.parent)
@@ -181,6 +169,13 @@ class RunDir:
         run._config_sum = _sha(text.encode())
         run._sums = {name: hashlib.sha256() for name in LOGS}
         return run
+
+    @classmethod
+    def _create_again(cls, path, config: dict, attempts: int) -> RunDir:
+        """`create` once more, after its new directory vanished (at most 20 times)."""
+        if attempts >= 20:
+            raise RunDirError(f"{path}: could not create it (its new directory kept vanishing)")
+        return cls.create(path, config, _attempts=attempts + 1)
 
     @classmethod
     def open(cls, path: str | os.PathLike, *, lock: bool = True) -> RunDir:
@@ -466,35 +461,3 @@ class RunDir:
             self.path / CHECKPOINT,
             dumps({"format": FORMAT, "offsets": offsets, "state": state, "sha256": sums}) + "\n",
         )
-
-
-class _Vanished(Exception):
-    """A creation's new directory was removed under it (see ``_remove_dead_creations``)."""
-
-
-def _same_inode(path: Path, fd: int) -> bool:
-    try:
-        return os.stat(path, follow_symlinks=False).st_ino == os.fstat(fd).st_ino
-    except OSError:
-        return False
-
-
-def _remove_dead_creations(p: Path) -> None:
-    """Remove temporary directories of creations of ``p`` whose process died (unlocked)."""
-    for tmp in p.parent.glob(f".{p.name}{_CREATING}*"):
-        if tmp.is_symlink() or not tmp.is_dir():
-            continue
-        try:
-            fd = os.open(tmp, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
-        except OSError:
-            continue
-        try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                continue  # a live creation
-            # Removed while locked: a creation that has just made it waits for the lock, then
-            # finds it gone and starts again (see RunDir.create).
-            shutil.rmtree(tmp, ignore_errors=True)
-        finally:
-            os.close(fd)

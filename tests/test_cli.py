@@ -153,9 +153,16 @@ def test_show_writes_its_png_whole_and_never_through_a_link(tmp_path, capsys, mo
     png.unlink()
     rc, out, err = _main(["show", src], capsys, monkeypatch)
     assert rc == 0 and png.read_bytes()[:4] == b"\x89PNG" and f"drawing: {png}" in out
-    rc, _, err = _main(["show", src], capsys, monkeypatch)
-    assert rc == 2 and "exists; not overwriting" in err[0]
+    # A second show prints the statistics again and keeps the PNG (issue 43); --force
+    # replaces it.
+    png.write_bytes(b"mine")
+    rc, again, err = _main(["show", src], capsys, monkeypatch)
+    assert rc == 0 and err == [] and png.read_bytes() == b"mine"
+    assert again.splitlines()[:-1] == out.splitlines()[:-1]
+    assert again.splitlines()[-1] == f"drawing: {png} (exists: kept; --force replaces it, " \
+        "--out names another)"  # fmt: skip
     assert _main(["show", src, "--force"], capsys, monkeypatch)[0] == 0
+    assert png.read_bytes()[:4] == b"\x89PNG"
     fifo = tmp_path / "fifo.genome"
     os.mkfifo(fifo)
     rc, _, err = _main(["show", fifo, "--out", tmp_path / "f.png"], capsys, monkeypatch)

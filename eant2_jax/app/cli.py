@@ -21,9 +21,19 @@ _ENGINE_COMMANDS = ("run", "resume", "reproduce")
 
 def main(argv: list[str] | None = None) -> int:
     """Run one ``eant2`` command; return its exit code: 0, 2 for a mistake (one line on
-    stderr), 130 after Ctrl-C. Argument errors exit through argparse (code 2, one line)."""
+    stderr), 130 after Ctrl-C. Argument errors exit through argparse (code 2, one line).
+
+    A reader that stops early (``eant2 tasks | head -1``) ends the command quietly with
+    exit code 0: nothing on stderr, the rest of the output dropped (`process.quiet_stdout`).
+    """
     with process.handle_sigint():
-        return _command(argv)
+        try:
+            rc = _command(argv)
+            sys.stdout.flush()  # a closed pipe shows here, not at the interpreter's exit
+        except BrokenPipeError:
+            process.quiet_stdout()
+            return 0
+        return rc
 
 
 def _command(argv: list[str] | None) -> int:
@@ -54,6 +64,8 @@ def _command(argv: list[str] | None) -> int:
             file=sys.stderr,
         )
         return 130
+    except BrokenPipeError:
+        raise  # the reader has gone: `main` ends quietly
     except (ValueError, OSError) as e:
         print(f"eant2: error: {e}", file=sys.stderr)
         return 2

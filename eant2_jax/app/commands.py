@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     from eant2_jax.progress import ProgressReporter
 
     spec = _task_spec(args)
-    options = task_options(args.task_option)
+    options = task_options(args.task_option, spec)
     config = config_from(args)  # every check before anything is made or created
     if config.exploit.dtype == "float64":  # before any array is made
         eant2_jax.enable_x64()
@@ -233,7 +233,12 @@ def write_report(args: argparse.Namespace) -> int:
                 )
     out = Path(args.out) if args.out else default_folder(args.dirs)
     path = report(
-        args.dirs, out, allow_mixed=args.allow_mixed, reference=args.reference, upto=args.upto
+        args.dirs,
+        out,
+        allow_mixed=args.allow_mixed,
+        reference=args.reference,
+        upto=args.upto,
+        overwrite=args.force,
     )
     print(f"report: {path}")
     return 0
@@ -241,17 +246,20 @@ def write_report(args: argparse.Namespace) -> int:
 
 def show(args: argparse.Namespace) -> int:
     """Print a genome file's header and statistics and draw it. The file is read within
-    bounds (`eant2_jax.genomefile.read_text`); the PNG is written whole and never through
-    a link (`eant2_jax.app.outputs`), an existing one replaced only with ``--force``."""
-    from eant2_jax.app.report import draw_genome, genome_stats
+    bounds (`eant2_jax.genomefile.read_text`); the statistics are printed whatever the
+    drawing: an existing PNG is kept (and said so) unless ``--force`` replaces it, and a
+    link or non-file at its name is refused before anything is printed. The PNG is written
+    whole and never through a link (`eant2_jax.app.outputs`)."""
+    from eant2_jax.app import outputs
+    from eant2_jax.app.netdraw import draw_network as draw_genome  # with weights
+    from eant2_jax.app.report import genome_stats
     from eant2_jax.genomefile import GenomeFile, read_text
 
     src = Path(args.genome_file)
     spec = GenomeFile.parse(read_text(src), source=str(src))
     genome = spec.genome
     out = Path(args.out) if args.out else src.with_suffix(src.suffix + ".png")
-    if (out.exists() or out.is_symlink()) and not args.force:
-        raise ValueError(f"{out} exists; not overwriting (use --out or --force)")
+    keep = outputs.exists(out) and not args.force  # a link or non-file: OutputError
     print(genome)
     if spec.has_header:
         task = spec.task or "?"
@@ -263,6 +271,9 @@ def show(args: argparse.Namespace) -> int:
         print(f"{'activations':>14}: not recorded (a file without a header)")
     for k, v in genome_stats(genome).items():
         print(f"{k:>14}: {v}")
+    if keep:
+        print(f"drawing: {out} (exists: kept; --force replaces it, --out names another)")
+        return 0
     draw_genome(genome, out, title=src.name, n_inputs=spec.n_inputs, overwrite=args.force)
     print(f"drawing: {out}")
     return 0
@@ -318,7 +329,7 @@ def run_reproduction(args: argparse.Namespace) -> int:
     from eant2_jax.config import EANT2Config
 
     options = {"mode": args.mode} if args.task == "servo" else {}
-    options.update(task_options(args.task_option))
+    options.update(task_options(args.task_option, args.task))
     config = config_from(args)
     if args.seed + args.runs > 2**32:
         raise ValueError(f"--seed {args.seed} + --runs {args.runs} goes past 2**32")
@@ -350,6 +361,18 @@ def run_reproduction(args: argparse.Namespace) -> int:
     return 0
 
 
+def render(args: argparse.Namespace) -> int:
+    from eant2_jax.app.render import command
+
+    return command(args)
+
+
+def export(args: argparse.Namespace) -> int:
+    from eant2_jax.app.export_cmd import export as command
+
+    return command(args)
+
+
 # The commands by name (`eant2_jax.app.parser.build_parser`'s ``args.command``).
 COMMANDS = {
     "demo": demo,
@@ -357,6 +380,8 @@ COMMANDS = {
     "reproduce": run_reproduction,
     "report": write_report,
     "show": show,
+    "render": render,
+    "export": export,
     "tasks": list_tasks,
     "config": list_config,
     "resume": resume,

@@ -26,7 +26,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["OutputError", "make_folder", "save_figure", "write_bytes", "write_text", "write_with"]
+__all__ = ["OutputError", "exists", "make_folder", "save_figure", "write_bytes", "write_text"]
+__all__ += ["write_with"]
 
 _FLAGS = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
 _FLAGS |= getattr(os, "O_CLOEXEC", 0)
@@ -43,13 +44,19 @@ def _check_destination(path: Path) -> bool:
     exists. Never follows a link at ``path`` (its parent folders are the caller's)."""
     try:
         st = os.lstat(path)
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):  # absent (its folder too)
         return False
     if stat.S_ISLNK(st.st_mode):
         raise OutputError(f"{path}: is a symbolic link; refusing to write through it")
     if not stat.S_ISREG(st.st_mode):
         raise OutputError(f"{path}: exists and is not a regular file; refusing to write it")
     return True
+
+
+def exists(path: str | os.PathLike) -> bool:
+    """Whether a regular file is at ``path`` (to be replaced, or kept); `OutputError` for a
+    link or anything else there, which no write of this module goes through."""
+    return _check_destination(Path(path))
 
 
 def make_folder(path: str | os.PathLike, *, exist_ok: bool = True) -> Path:
@@ -63,11 +70,15 @@ def make_folder(path: str | os.PathLike, *, exist_ok: bool = True) -> Path:
     try:
         os.mkdir(path, 0o777)  # the umask applies, as for any folder
         return path
-    except FileNotFoundError:
+    except FileNotFoundError as e:
+        if path.parent == path or os.path.lexists(path.parent):  # a folder that refuses it
+            raise OutputError(f"{path}: cannot create the folder ({e.strerror})") from None
         make_folder(path.parent)
         return make_folder(path, exist_ok=exist_ok)
     except FileExistsError:
         pass
+    except OSError as e:
+        raise OutputError(f"{path}: cannot create the folder ({e.strerror})") from None
     st = os.lstat(path)
     if stat.S_ISLNK(st.st_mode):
         raise OutputError(f"{path}: is a symbolic link; refusing to write into it")
@@ -135,7 +146,10 @@ def write_with(
     if _check_destination(path) and not overwrite:
         raise OutputError(f"{path}: already exists; refusing to overwrite it")
     folder = path.parent
-    fd, tmp = _open_temp(folder, path.name)
+    try:
+        fd, tmp = _open_temp(folder, path.name)
+    except OSError as e:  # named as the caller named it, not by the temporary name
+        raise OutputError(f"{path}: cannot write it ({e.strerror})") from None
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)

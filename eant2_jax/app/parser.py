@@ -19,6 +19,7 @@ from typing import Any
 from ..config import EANT2Config
 from ..configspec import INT32_MAX, first_sentence, normal, spec_of
 from ..jsonio import loads
+from .taskoptions import read_value, task_options
 
 __all__ = ["RUN_BASE", "REPRODUCE_BASE", "FieldFlag", "build_parser", "config_from"]
 __all__ += ["read_value", "task_options"]
@@ -83,6 +84,7 @@ RUN_FLAGS = (
     FieldFlag(("--no-prune",), "exploit.pruner", "no_prune", const="none"),
     FieldFlag(("--max-iters",), "exploit.max_iters", "max_iters", metavar="N"),
     FieldFlag(("--target-cost",), "target_cost", "target_cost", metavar="COST"),
+    FieldFlag(("--no-solved-stop",), "stop_when_solved", "no_solved_stop", const=False),
     FieldFlag(("--max-evaluations",), "max_evaluations", "max_evaluations", metavar="N"),
     FieldFlag(("--devices",), "devices", "devices", metavar="all|N"),
     FieldFlag(("--recurrent-start",), "init_recurrent", "recurrent_start", const=True, **_HIDDEN),
@@ -103,15 +105,6 @@ REPRODUCE_FLAGS = (
     FieldFlag(("--reexploit",), "reexploit", "reexploit", const=True),
     FieldFlag(("--inherit-search",), "inherit_search", "inherit_search", const=True),
 )
-
-
-def read_value(text: str) -> Any:
-    """An option's value: strict JSON if it is JSON (``0.3``, ``null``, ``[8, 40, 4]``),
-    else the text itself (``covariance``)."""
-    try:
-        return loads(text, "the value")
-    except ValueError:
-        return text
 
 
 def field_value(path: str, value: Any) -> Any:
@@ -246,17 +239,6 @@ def config_from(args: argparse.Namespace) -> EANT2Config:
     return EANT2Config.from_dict(data)
 
 
-def task_options(pairs: list[str]) -> dict:
-    """``--task-option KEY=VALUE`` pairs as a dict (VALUE: JSON, else the text)."""
-    out = {}
-    for pair in pairs:
-        if "=" not in pair:
-            raise ValueError(f"--task-option expects KEY=VALUE, got {pair!r}")
-        k, v = pair.split("=", 1)
-        out[k] = read_value(v)
-    return out
-
-
 def positive(text: str) -> int:
     value = non_negative(text)
     if value < 1:
@@ -317,6 +299,12 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("genome_file", help="a file holding a genome in text form")
     show.add_argument("--out", default=None, help="PNG to write (default: GENOME_FILE.png)")
     show.add_argument("--force", action="store_true", help="replace an existing PNG")
+    from .render import add_arguments as render_arguments  # eant2 render (its module)
+
+    render_arguments(sub.add_parser("render", help="animate a network on its task (GIF/MP4)"))
+    from .export_cmd import add_parser as export_parser  # eant2 export (its module)
+
+    export_parser(sub)
     sub.add_parser("tasks", help="list the registered tasks and their options")
     config = sub.add_parser(
         "config", help="list the configuration fields --set takes, with defaults and help"
@@ -447,7 +435,14 @@ def _reproduce_parser(rep: argparse.ArgumentParser) -> None:
 
 def _report_parser(report: argparse.ArgumentParser) -> None:
     report.add_argument("dirs", nargs="+", help="run directories")
-    report.add_argument("--out", default=None, help="output folder (default: DIR/../report)")
+    report.add_argument(
+        "--out",
+        default=None,
+        help="output folder, never inside a run directory (default: DIR/../report)",
+    )
+    report.add_argument(
+        "--force", action="store_true", help="replace a report already in the output folder"
+    )
     report.add_argument(
         "--allow-mixed",
         action="store_true",

@@ -19,7 +19,7 @@ import numpy as np
 
 __all__ = ["DETERMINISTIC_FLAG", "SIGINT", "deterministic_gpu", "handle_sigint"]
 __all__ += ["interruptible", "process_defaults", "quiet_interrupts", "start_backend"]
-__all__ += ["user_modules"]
+__all__ += ["quiet_stdout", "user_modules"]
 
 DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 
@@ -133,6 +133,22 @@ def handle_sigint() -> Iterator[None]:
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
             sys.unraisablehook = hook
+
+
+def quiet_stdout() -> None:
+    """After a broken pipe on stdout (its reader has gone, as ``head -1`` goes): point the
+    stdout descriptor at the null device, so that the interpreter's last flush of what is
+    still buffered cannot fail again (Python's documented convention, "Note on SIGPIPE",
+    with exit code 0 chosen: the reader stopped by choice, docs/quickstart.md)."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # not a file (captured by a test)
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, fd)
+    finally:
+        os.close(devnull)
 
 
 def user_modules() -> None:

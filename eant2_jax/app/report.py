@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..genome import Genome
+from ..rundir import CONFIG, LOGS
 from . import outputs, report_runs
 from .report_figures import (
     condition_figure,
@@ -58,6 +59,7 @@ __all__ = [
     "default_folder",
     "draw_genome",
     "escape",
+    "REPORT_FILES",
     "fitness_figure",
     "genome_figure",
     "genome_stats",
@@ -97,8 +99,24 @@ def default_folder(dirs: Sequence[str | Path]) -> Path:
     return Path(dirs[0]).resolve().parent / "report"
 
 
+# The files a report writes (the condition figures only with a condition experiment).
+REPORT_FILES = (
+    "report.md",
+    "summary.json",
+    "fitness_size.png",
+    "condition.png",
+    "best_network.png",
+    "pruned_network.png",
+)
+
+
+def _is_run_directory(path: Path) -> bool:
+    return all((path / name).is_file() for name in (CONFIG, *LOGS))
+
+
 def _refuse_inside(out: Path, dirs: Sequence[str | Path]) -> None:
-    """ValueError if ``out`` is a run directory of ``dirs`` or lies inside one."""
+    """ValueError if ``out`` is a run directory (of ``dirs`` or any other) or lies inside
+    one: a report never writes into a run."""
     where = out.resolve()
     for d in dirs:
         run = Path(d).resolve()
@@ -106,6 +124,22 @@ def _refuse_inside(out: Path, dirs: Sequence[str | Path]) -> None:
             raise ValueError(
                 f"{out}: inside the run directory {d}; a report is never written into a run "
                 "it reads (name another --out)"
+            )
+    for folder in (where, *where.parents):
+        if _is_run_directory(folder):
+            raise ValueError(
+                f"{out}: inside the run directory {folder}; a report is never written into "
+                "a run (name another --out)"
+            )
+
+
+def _refuse_overwrite(out: Path) -> None:
+    """`outputs.OutputError` naming the first of a report's files already in ``out``."""
+    for name in REPORT_FILES:
+        if outputs.exists(out / name):
+            raise outputs.OutputError(
+                f"{out}: holds a report ({name}); not overwriting it (name another --out, "
+                "or --force replaces it)"
             )
 
 
@@ -272,6 +306,7 @@ def report(
     allow_mixed: bool = False,
     reference: str | None = None,
     upto: int | None = None,
+    overwrite: bool = True,
 ) -> Path:
     """Write ``report.md`` and its figures for the given run directories.
 
@@ -280,8 +315,9 @@ def report(
         their ``config.json``).
       out: folder for ``report.md`` and the PNGs (created; existing files of the same names
         are replaced whole, nothing else is touched). Nothing is written when the runs are
-        refused. A link at ``out`` or at one of its files, and an ``out`` inside one of
-        ``dirs``, are refused (`eant2_jax.app.outputs`).
+        refused. A link at ``out`` or at one of its files, and an ``out`` that is or lies
+        inside a run directory (one of ``dirs`` or any other), are refused
+        (`eant2_jax.app.outputs`).
       extra: optional sections: ``baselines`` (dict name -> cost), ``generalisation`` (dict
         arm -> list of held-out costs), ``wall_s``, ``device``, ``notes`` (markdown, written
         as given: the caller escapes what it read from files).
@@ -292,6 +328,8 @@ def report(
       reference: the arm p-values are computed against (default ``none`` if present).
       upto: read every run only up to this generation (arms compared at equal generations
         when some runs were stopped early); a run that has not reached it is refused.
+      overwrite: when false, an ``out`` already holding any of `REPORT_FILES` is refused
+        before anything is written (``eant2 report`` without ``--force``).
 
     Returns:
       The path of ``report.md``.
@@ -307,6 +345,8 @@ def report(
     reference = reference_arm(list(summary), reference)
     extra = extra or {}
     _refuse_inside(out, dirs)
+    if not overwrite:
+        _refuse_overwrite(out)
     outputs.make_folder(out)
     figures = _figures(runs, list(summary), condition, out)
     lines = _header(runs, summary, mixed, upto, extra) + _table(summary)

@@ -1,0 +1,229 @@
+"""Commands without surprises (issue 43 item 2): a report never overwrites one or writes
+into a run directory, a broken pipe ends quietly, no abbreviations, argument errors in one
+line naming the option, an unwritable place named as the user named it, and an int key."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import jax
+import pytest
+from test_report import make_run
+
+import eant2_jax
+from eant2_jax import EANT2Config
+from eant2_jax.app.cli import main
+from eant2_jax.records import RUN_DEPENDENT
+
+TINY = ["--population", "3", "--max-iters", "20", "--no-prune"]
+
+
+def _main(argv, capsys, monkeypatch):
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as e:  # argparse's errors
+        rc = e.code
+    cap = capsys.readouterr()
+    return rc, cap.out, [x for x in cap.err.splitlines() if x.strip()]
+
+
+def test_report_refuses_to_overwrite_a_report_unless_forced(tmp_path, capsys, monkeypatch):
+    dirs = [make_run(tmp_path / f"{p}-0", pruner=p) for p in ("covariance", "none")]
+    out = tmp_path / "rep"
+    rc, stdout, err = _main(["report", *dirs, "--out", out], capsys, monkeypatch)
+    assert rc == 0 and stdout == f"report: {out / 'report.md'}\n", err
+    (out / "report.md").write_text("mine\n")
+    rc, stdout, err = _main(["report", *dirs, "--out", out], capsys, monkeypatch)
+    assert rc == 2 and stdout == "" and len(err) == 1, err
+    assert "holds a report (report.md); not overwriting it" in err[0] and "--force" in err[0]
+    assert (out / "report.md").read_text() == "mine\n"
+    # Any of the report's files counts; an empty or foreign folder is fine.
+    (out / "report.md").unlink()
+    rc, _, err = _main(["report", *dirs, "--out", out], capsys, monkeypatch)
+    assert rc == 2 and "(summary.json)" in err[0], err
+    rc, _, err = _main(["report", *dirs, "--out", out, "--force"], capsys, monkeypatch)
+    assert rc == 0 and (out / "report.md").read_text().startswith("# EANT2 report"), err
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("x")
+    assert _main(["report", *dirs, "--out", other], capsys, monkeypatch)[0] == 0
+    # The default folder (beside the first run) too: a second report is refused.
+    monkeypatch.chdir(tmp_path)
+    default = tmp_path / "report"
+    assert _main(["report", *dirs], capsys, monkeypatch)[0] == 0 and default.is_dir()
+    rc, _, err = _main(["report", *dirs], capsys, monkeypatch)
+    assert rc == 2 and len(err) == 1 and "not overwriting" in err[0], err
+
+
+def test_report_never_writes_into_any_run_directory(tmp_path, capsys, monkeypatch):
+    dirs = [make_run(tmp_path / f"{p}-0", pruner=p) for p in ("covariance", "none")]
+    bystander = Path(make_run(tmp_path / "bystander"))
+    before = sorted(p.name for p in bystander.iterdir())
+    for out in (bystander, bystander / "report", bystander / "a" / "b"):
+        for force in ([], ["--force"]):
+            rc, stdout, err = _main(["report", *dirs, "--out", out, *force], capsys, monkeypatch)
+            assert rc == 2 and stdout == "" and len(err) == 1, err
+            assert f"inside the run directory {bystander}" in err[0], err
+    assert sorted(p.name for p in bystander.iterdir()) == before
+
+
+def test_a_broken_pipe_ends_quietly_with_exit_0(tmp_path):
+    """``eant2 tasks | head -1``: the reader goes after one line; nothing on stderr, exit 0
+    (the rest of the output is dropped)."""
+    env = {**os.environ, "EANT2_CACHE_DIR": ""}
+    for command in (["tasks"], ["config"]):
+        with subprocess.Popen(
+            [sys.executable, "-m", "eant2_jax.app.cli", *command],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            env=env,
+            cwd=tmp_path,
+        ) as proc:
+            first = proc.stdout.readline()
+            proc.stdout.close()  # as head -1 does
+            err = proc.stderr.read()
+            rc = proc.wait(timeout=120)
+        assert first.strip() and err == b"" and rc == 0, (command, err, rc)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["run", "xor", "--gen", "1"],
+        ["run", "xor", "--pop", "3"],
+        ["run", "xor", "--max-eval", "3"],
+        ["resume", "somewhere", "--gen", "3"],
+        ["reproduce", "--gen", "1"],
+        ["report", "a", "--allow"],
+        ["show", "a.genome", "--forc"],
+        ["demo", "--it", "3"],
+        ["config", "--js"],
+    ],
+)
+def test_no_command_takes_an_abbreviated_option(argv, capsys, monkeypatch, tmp_path):
+    monkeypatch.chdir(tmp_path)
+    rc, stdout, err = _main(argv, capsys, monkeypatch)
+    assert rc == 2 and stdout == "" and len(err) == 1, err
+    assert err[0].startswith("eant2: error: unrecognized arguments: --"), err
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    ("argv", "phrase"),
+    [
+        ([], "the following arguments are required: COMMAND"),
+        (["runn"], "invalid choice: 'runn'"),
+        (["show"], "the following arguments are required: genome_file"),
+        (["report"], "the following arguments are required: dirs"),
+        (["run", "xor", "--seed", "x"], "argument --seed: expected an integer"),
+        (["run", "xor", "--generations"], "argument --generations: expected one argument"),
+        (["reproduce", "--mode", "fast"], "argument --mode: invalid choice: 'fast'"),
+        (["run", "xor", "extra"], "unrecognized arguments: extra"),
+        (["resume"], "the following arguments are required: dir"),
+    ],
+)
+def test_every_kind_of_argument_error_is_one_line(argv, phrase, capsys, monkeypatch, tmp_path):
+    monkeypatch.chdir(tmp_path)
+    rc, stdout, err = _main(argv, capsys, monkeypatch)
+    assert rc == 2 and stdout == "" and len(err) == 1, err
+    assert re.match(r"eant2( [a-z]+)?: error: ", err[0]) and phrase in err[0], err
+    assert "usage:" not in err[0]
+
+
+@pytest.mark.parametrize(
+    ("option", "phrase"),
+    [
+        ("max_steps=abc", "--task-option max_steps=abc: expected an integer (the default is"),
+        ("max_steps=1.5", "--task-option max_steps=1.5: expected an integer"),
+        ("theta1=wide", "--task-option theta1=wide: expected a number"),
+        ("hidden=3", '--task-option hidden=3: expected a string (the default is "tanh")'),
+        ("steps=3", "bad options for task 'dpv': dpv() got an unexpected keyword argument"),
+        ("max_steps", "--task-option expects KEY=VALUE, got 'max_steps'"),
+    ],
+)
+def test_a_bad_task_option_is_named(option, phrase, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "run"
+    argv = ["run", "dpv", "--task-option", option, "--generations", "0", "--out", out]
+    rc, stdout, err = _main(argv, capsys, monkeypatch)
+    assert rc == 2 and stdout == "" and len(err) == 1 and phrase in err[0], err
+    assert not out.exists()
+
+
+def test_an_unwritable_place_is_named_as_the_user_named_it(tmp_path, capsys, monkeypatch):
+    """No hidden temporary name (``.run.creating-...``, ``.x.png.....tmp``) in the error:
+    a path under a file, and a folder that refuses new files (made so by refusing the
+    temporary's creation, as a read-only folder does for a user who is not root)."""
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    genome = tmp_path / "g.genome"
+    genome.write_text("N0/2*1 I0*0.5 I1*-0.5\n")
+    runs = [make_run(tmp_path / f"{p}-0", pruner=p) for p in ("covariance", "none")]
+    cases = [
+        (["run", "xor", *TINY, "--generations", "0", "--out", blocker / "r"], blocker / "r"),
+        (["report", *runs, "--out", blocker / "rep"], blocker / "rep"),
+        (["show", genome, "--out", blocker / "x.png"], blocker / "x.png"),
+    ]
+    for argv, named in cases:
+        rc, _, err = _main(argv, capsys, monkeypatch)
+        assert rc == 2 and len(err) == 1 and f"{named}:" in err[0], err
+        assert ".tmp" not in err[0] and "creating" not in err[0], err
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(tmp_path / ".hidden.tmp"))
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    monkeypatch.setattr(tempfile, "mkdtemp", refuse)
+    rc, _, err = _main(["run", "xor", *TINY, "--out", ro / "r"], capsys, monkeypatch)
+    assert rc == 2 and len(err) == 1, err
+    assert (
+        err[0] == f"eant2: error: {ro / 'r'}: cannot create the run directory (Permission denied)"
+    )
+    real_open = os.open
+
+    def no_new_files(path, flags, *args, **kwargs):
+        if flags & os.O_CREAT and Path(path).parent == ro:
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_open(path, flags, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", no_new_files)
+    rc, _, err = _main(["show", genome, "--out", ro / "x.png"], capsys, monkeypatch)
+    assert rc == 2 and len(err) == 1, err
+    assert err[0] == f"eant2: error: {ro / 'x.png'}: cannot write it (Permission denied)"
+
+
+def test_an_int_key_is_the_seed_s_key_and_anything_else_is_one_line(tmp_path):
+    """``run(task, key=0)`` is ``run(task, key=jax.random.key(0))`` (``eant2 run --seed
+    0``'s key); a bool, a negative or too large seed, or another type is one line."""
+    task = eant2_jax.tasks.make("xor")
+    config = EANT2Config(population=3, exploit=eant2_jax.ExploitConfig(max_iters=20))
+    by_int = eant2_jax.run(task, key=0, config=config, generations=0, out=str(tmp_path / "a"))
+    by_key = eant2_jax.run(task, key=jax.random.key(0), config=config, generations=0)
+
+    def same(result):
+        return [{k: v for k, v in g.to_json().items() if k not in RUN_DEPENDENT}
+                for g in result.generations]  # fmt: skip
+
+    assert same(by_int) == same(by_key)
+    key = json.loads((tmp_path / "a" / "config.json").read_text())["key"]
+    assert key == [int(k) for k in jax.random.key_data(jax.random.key(0))]
+    for bad, phrase in [
+        (True, "an int seed must be in [0, 2**32), got True"),
+        (-1, "an int seed must be in [0, 2**32), got -1"),
+        (2**32, "an int seed must be in [0, 2**32), got 4294967296"),
+        ("0", "key must be a jax.random.key(...) or an int seed, got str"),
+    ]:
+        with pytest.raises(ValueError) as e:
+            eant2_jax.run(task, key=bad, config=config, generations=0, out=str(tmp_path / "b"))
+        assert phrase in str(e.value) and "\n" not in str(e.value)
+    with pytest.raises(ValueError, match=r"keys\[1\]: an int seed"):
+        eant2_jax.run_lockstep(task, [0, -3], config=config, generations=0)
+    assert not (tmp_path / "b").exists()

@@ -22,7 +22,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-__all__ = ["AXIS", "gather", "initialize", "make_mesh", "place", "replicate", "shard", "size"]
+__all__ = ["AXIS", "P", "gather", "initialize", "make_mesh", "place", "replicate", "shard", "size"]
 
 AXIS = "s"
 

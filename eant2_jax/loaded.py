@@ -130,6 +130,27 @@ class LoadedNetwork:
     def formula(self, **kw) -> str:
         return export.formula(self.spec, **kw)
 
+    def to_onnx(self, path: str | os.PathLike | None = None):
+        """The ONNX model (`eant2_jax.export_onnx.to_onnx`); with ``path``, also written
+        there as a new file (`eant2_jax.export_onnx.save`: never replaces a file, never
+        follows a link)."""
+        from . import export_onnx
+
+        model = export_onnx.to_onnx(self.spec)
+        if path is not None:
+            export_onnx.save(model, path)
+        return model
+
+    def to_sympy(self):
+        """The network as sympy equations and expressions (`eant2_jax.export_sympy`)."""
+        from .export_sympy import to_sympy
+
+        return to_sympy(self.spec)
+
+    def to_latex(self, **kw) -> str:
+        """LaTeX of `to_sympy` (`SympyNetwork.latex`'s options)."""
+        return self.to_sympy().latex(**kw)
+
 
 def load(
     path: str | os.PathLike, *, hidden: str | None = None, output: str | None = None

@@ -1,0 +1,158 @@
+"""sympy export (eant2_jax.export_sympy) against the library.
+
+The expressions, lambdified with NumPy (float64), must give the library's float32 outputs
+(`LoadedNetwork`) on fresh random inputs, up to float32 rounding propagated through the
+network: |sympy - library| <= 1e-5 + 1e-5 |library| (the maxima measured are in
+docs/export.md). Each activation alone is checked against its float64 NumPy reference
+(kernels/activations.py) to 1e-12.
+"""
+
+from __future__ import annotations
+
+import hypothesis.strategies as st
+import jax
+import numpy as np
+import pytest
+import sympy
+from hypothesis import given
+from strategies import fewer_examples, genomes
+from test_export_onnx import XOR_GENOME
+from test_pole import DPNV_GENOME
+
+from eant2_jax.app.cli import main
+from eant2_jax.exploration import initial_genome, mutate
+from eant2_jax.export import dense
+from eant2_jax.export_sympy import to_sympy
+from eant2_jax.genome import Genome
+from eant2_jax.genomefile import GenomeFile, GenomeFileError
+from eant2_jax.kernels import activations
+from eant2_jax.loaded import LoadedNetwork
+
+RTOL = ATOL = 1e-5
+
+
+def outputs(net, xs: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
+    """The lambdified outputs ``[M, n_out]`` for inputs ``[M, n_in]`` (and state)."""
+    cols = [xs[:, j].astype(np.float64) for j in range(xs.shape[1])]
+    if state is not None:
+        cols += [state[:, j].astype(np.float64) for j in range(state.shape[1])]
+    ys = net.function()(*cols)
+    return np.stack([np.broadcast_to(np.asarray(y, np.float64), xs.shape[:1]) for y in ys], -1)
+
+
+def grown_network(seed: int, n_neurons: int = 20) -> Genome:
+    """A feed-forward network grown from the minimal start (4 inputs, 2 outputs) by the
+    library's own mutations, with random weights."""
+    rng = np.random.default_rng(seed)
+    g, next_id = initial_genome(rng, 4, 2), 2
+    while g.n_neurons < n_neurons:
+        op = str(rng.choice(["add_subnetwork", "add_bias"], p=[0.8, 0.2]))
+        child = mutate(rng, g, op, n_inputs=4, next_id=next_id)
+        if child is not None:
+            g, next_id = child, next_id + 1
+    return g.with_weights(rng.normal(0, 1, g.n_params))
+
+
+def test_twenty_neuron_network_grown_by_mutation():
+    """The fast lane's 20-neuron network (depth > 2): outputs of the inputs alone,
+    lambdified, against the library on 256 fresh random inputs."""
+    genome = grown_network(20)
+    assert genome.n_neurons == 20 and genome.depth() > 2
+    spec = GenomeFile(genome, hidden="tanh", output="identity", n_inputs=4)
+    net = to_sympy(spec)
+    xs = np.random.default_rng(21).normal(size=(256, 4)).astype(np.float32)
+    want = np.asarray(LoadedNetwork(spec)(xs))
+    np.testing.assert_allclose(outputs(net, xs), want, rtol=RTOL, atol=ATOL)
+    assert net.latex(substitute=True).count("\\tanh") == 18  # the hidden neurons, once each
+
+
+@pytest.mark.slow
+@fewer_examples(0.03, least=3)
+@given(
+    genome=genomes(
+        n_inputs=4, n_outputs=2, min_neurons=20, max_neurons=20, recurrent=False, max_id=40
+    ),
+    hidden=st.sampled_from(["tanh", "sigmoid", "relu"]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_twenty_neuron_feed_forward_network(genome, hidden, seed):
+    """A 20-neuron feed-forward network: its output expressions (inputs only, every neuron
+    substituted), lambdified, equal the library's outputs; LaTeX comes from them."""
+    assert genome.n_neurons == 20
+    spec = GenomeFile(genome, hidden=hidden, output="identity", n_inputs=4)
+    net = to_sympy(spec)
+    assert net.state == () and len(net.equations) == 20 + 2
+    assert all(e.free_symbols <= set(net.inputs) for e in net.outputs)
+    xs = np.random.default_rng(seed).normal(size=(128, 4)).astype(np.float32)
+    want = np.asarray(LoadedNetwork(spec)(xs))
+    got = outputs(net, xs)
+    np.testing.assert_allclose(got, want, rtol=RTOL, atol=ATOL)
+    tex = net.latex()
+    assert tex.startswith("\\begin{aligned}") and tex.count("&=") == 22
+    assert net.latex(substitute=True).count("&=") == 2
+
+
+@pytest.mark.parametrize("name", sorted(activations.BUILTIN))
+def test_every_builtin_activation_against_its_numpy_reference(name):
+    spec = GenomeFile(Genome.parse("N0/1*1.0 I0*1.0"), hidden="tanh", output=name)
+    a = np.concatenate([np.linspace(-8, 8, 321), [-100.0, 100.0, 0.0]])
+    got = outputs(to_sympy(spec), a[:, None])[:, 0]
+    want = activations.get(name).numpy(a)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_recurrent_step_with_its_state():
+    """The dpnv controller of test_pole: one step from a random state, the state symbols
+    ``hp<id>`` fed with the library's state slots (slot order of `export.dense`)."""
+    spec = GenomeFile(Genome.parse(DPNV_GENOME), hidden="tanh", output="tanh", n_inputs=3)
+    net = to_sympy(spec)
+    slot = {n: i for i, n in enumerate(dense(spec)["neurons"])}
+    assert sorted(str(s) for s in net.state) == ["hp1", "hp2", "hp3"]
+    loaded = LoadedNetwork(spec)
+    rng = np.random.default_rng(5)
+    xs = rng.normal(0, 0.3, size=(64, 3)).astype(np.float32)
+    state = rng.normal(0, 0.3, size=(64, loaded.initial_state().shape[0])).astype(np.float32)
+    want, _ = loaded.step(xs, state)
+    cols = state[:, [slot[int(str(s)[2:])] for s in net.state]]
+    np.testing.assert_allclose(outputs(net, xs, cols), want, rtol=RTOL, atol=ATOL)
+
+
+def test_xor_latex_and_text():
+    spec = GenomeFile(Genome.parse(XOR_GENOME), hidden="tanh", output="identity", n_inputs=2)
+    net = to_sympy(spec)
+    assert net.text().splitlines()[-1] == "y0 = 1.0*h0"
+    assert "\\tanh" in net.latex() and "20.0 x_{0}" in net.latex()
+    f = net.function()
+    ys = [f(*p)[0] for p in ((0, 0), (0, 1), (1, 0), (1, 1))]
+    assert [y > 0.5 for y in ys] == [False, True, True, False]
+
+
+def test_registered_activation_is_an_undefined_function():
+    name = "hd_export_twice"
+    activations.register(name, lambda a: 2 * a, lambda a: 2 * a, overwrite=True)
+    try:
+        spec = GenomeFile(Genome.parse("N0/1*1.0 I0*0.5"), hidden=name, output=name)
+        net = to_sympy(spec)
+        assert net.outputs[0].atoms(sympy.core.function.AppliedUndef)
+        f = net.function(modules=[{name: lambda a: 2 * a}, "numpy"])
+        assert f(3.0)[0] == 3.0
+    finally:
+        activations.ACTIVATIONS.pop(name)
+        jax.clear_caches()
+    with pytest.raises(GenomeFileError, match="names no activations"):
+        to_sympy(GenomeFile(Genome.parse("N0/1*1.0 I0*0.5")))
+
+
+def test_cli_export_sympy_and_latex(tmp_path, capsys):
+    genome = tmp_path / "xor.genome"
+    GenomeFile(Genome.parse(XOR_GENOME), hidden="tanh", output="identity", n_inputs=2).write(genome)
+    assert main(["export", str(genome), "--format", "latex"]) == 0
+    assert (tmp_path / "xor.genome.tex").read_text().startswith("\\begin{aligned}")
+    assert main(["export", str(genome), "--format", "sympy", "--substitute"]) == 0
+    text = (tmp_path / "xor.genome.sympy.txt").read_text()
+    assert text.startswith("y0 = ") and text.count("\n") == 1
+    capsys.readouterr()
+    assert main(["export", str(genome), "--format", "latex", "--out", "-"]) == 0
+    assert capsys.readouterr().out.startswith("\\begin{aligned}")
+    assert main(["export", str(genome), "--format", "latex"]) == 2  # exists: refused
+    assert "already exists" in capsys.readouterr().err

@@ -59,7 +59,7 @@ def dataclass(**kwargs: Any) -> Callable[[type[_T]], type[_T]]: ...
 
 
 @dataclass_transform(field_specifiers=(field,), frozen_default=True)
-def dataclass(clz=None, **kwargs):
+def dataclass(clz: type | None = None, **kwargs: Any) -> Any:
     """Make a class a frozen dataclass registered as a JAX pytree, with ``.replace(**kw)``.
 
     Fields whose metadata says ``pytree_node=False`` (see `field`; any `dataclasses.field`

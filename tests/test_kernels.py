@@ -865,6 +865,7 @@ def _copy_sources(dest: Path) -> None:
     files += [readme] if isinstance(readme, str) else [readme["file"]] if readme else []
     license_ = project.get("license", {})
     files += [license_["file"]] if isinstance(license_, dict) and "file" in license_ else []
+    files += project.get("license-files", [])
     for f in files:
         shutil.copy2(REPO / f, dest / f)
     package_dir = tool.get("package-dir", {})
@@ -921,7 +922,8 @@ def test_wheel_installs_kernels_inside_the_package(tmp_path):
     for field in (
         f"Version: {eant2_jax.__version__}\n",
         "Requires-Python: >=3.11\n",
-        "Classifier: License :: OSI Approved :: Apache Software License\n",
+        "License-Expression: Apache-2.0\n",
+        "License-File: LICENSE\n",
         "Classifier: Programming Language :: Python :: 3.12\n",
         "Classifier: Typing :: Typed\n",
         "Provides-Extra: test\n",

@@ -251,7 +251,9 @@ def _cartpole(ax: Any, params: Any) -> Callable[[Any], None]:
     """Cart and pole, drawn from a CartPole state (x, theta); returns the frame's update."""
     limit = float(params.x_threshold)
     pole = 2.0 * float(params.length)  # Gymnasium's drawing: the pole is 2 * length long
-    ax.set(xlim=(-limit * 1.1, limit * 1.1), ylim=(-0.4, pole + 0.4), aspect="equal")
+    ax.set(xlim=(-limit * 1.1, limit * 1.1), ylim=(-0.3, pole + 0.3), aspect="equal")
+    ax.set_xlabel("cart position (the dotted lines end the episode)", fontsize=7)
+    ax.tick_params(labelsize=7)
     ax.axhline(0.0, color="0.4", lw=1)
     for side in (-limit, limit):
         ax.axvline(side, color="0.7", lw=1, ls=":")

@@ -123,7 +123,7 @@ def _nodes(ax, genome: Genome, pos: dict, label_roots: bool) -> None:
         ax.scatter([x], [y], s=520, c=face, edgecolors="black", zorder=3)
         ax.text(x, y, label, ha="center", va="center", fontsize=8, zorder=4)
         if kind == "n" and ident in roots and label_roots:
-            ax.text(x, y + 0.28, f"×{roots[ident]:.3g}", ha="center", fontsize=7, zorder=4)
+            ax.text(x + 0.2, y + 0.12, f"×{roots[ident]:.3g}", ha="left", fontsize=7, zorder=4)
 
 
 def _legend(ax, genome: Genome, pos: dict, removed: set[int]) -> None:

@@ -192,7 +192,6 @@ def _tensors(spec: GenomeFile) -> dict:
 def _step(g: _Graph, d: dict, recurrent: bool, hidden: str, output: str) -> tuple[str, str]:
     """The step's nodes; returns the names of ``y`` and ``h``."""
     act_h, act_o = _activation(hidden), _activation(output)
-    is_root = g.tensor("is_root", d["is_root"].astype(bool))
 
     def product(v: str, key: str, always: bool = False) -> str | None:
         return _product(g, v, d[key], *d[key + "_reads"], always=always)
@@ -202,10 +201,14 @@ def _step(g: _Graph, d: dict, recurrent: bool, hidden: str, output: str) -> tupl
     if rec is not None:
         base = g.op("Add", base, rec)
 
+    roots: list[str] = []
+
     def settle(a: str) -> str:
         if hidden == output:
             return act_h(g, a)
-        return g.op("Where", is_root, act_o(g, a), act_h(g, a))
+        if not roots:  # made once, only where the two activations differ
+            roots.append(g.tensor("is_root", d["is_root"].astype(bool)))
+        return g.op("Where", roots[0], act_o(g, a), act_h(g, a))
 
     h = settle(base)  # the first sweep reads h = 0 (kernels/network.py)
     for _ in range(1, d["sweeps"]):

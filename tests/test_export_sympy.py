@@ -14,6 +14,7 @@ import jax
 import numpy as np
 import pytest
 import sympy
+from docs_outputs import ROOT, check
 from hypothesis import given
 from strategies import fewer_examples, genomes
 from test_export_onnx import XOR_GENOME
@@ -156,3 +157,12 @@ def test_cli_export_sympy_and_latex(tmp_path, capsys):
     assert capsys.readouterr().out.startswith("\\begin{aligned}")
     assert main(["export", str(genome), "--format", "latex"]) == 2  # exists: refused
     assert "already exists" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_docs_export_page_prints_what_it_shows():
+    """docs/export.md's agreement table and commands, run again (tests/docs_outputs.py)."""
+    wrong = check(ROOT / "docs" / "export.md")
+    assert not wrong, "\n\n".join(
+        f"--- shown\n{ex.shown}--- printed now\n{got}" for ex, got in wrong
+    )

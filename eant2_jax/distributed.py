@@ -3,9 +3,9 @@
 The batched exploitation is sharded along its STRUCTURE axis on a 1-D mesh (axis ``"s"``):
 each device holds whole structures — their CMA-ES states, layouts, candidates and
 evaluations — so the big tensors (covariances ``[S, P, P]``, candidate networks
-``[S, popsize, ...]``, the task's per-move data) never move between devices. The only
-cross-device traffic in an iteration is the one boolean "does any structure try pruning".
-Results are identical to a single-device run with the same key: a structure's random
+``[S, popsize, ...]``, the task's per-move data) never move between devices, and each
+device runs the engine's loop over its own structures (`eant2_jax.exploitation.split_chunk`):
+nothing crosses devices within a chunk. Results are identical to a single-device run with the same key: a structure's random
 numbers depend on its own key and index only, and no reduction runs across structures.
 
 Several processes (hosts) join with `initialize`; every process then runs the same

@@ -10,6 +10,7 @@ measured are in docs/export.md.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import hypothesis.strategies as st
@@ -195,3 +196,17 @@ def test_cli_export_onnx(tmp_path, capsys):
     assert main(["export", str(genome), "--format", "onnx"]) == 2  # exists: refused
     assert capsys.readouterr().err.strip().count("\n") == 0
     assert main(["export", str(genome), "--format", "onnx", "--force"]) == 0
+
+
+def test_missing_extra_is_one_line(monkeypatch, tmp_path, capsys):
+    """Without onnx installed (made unimportable here) the export names the extra, and the
+    command says so in one line (exit 2)."""
+    monkeypatch.setitem(sys.modules, "onnx", None)
+    spec = GenomeFile(Genome.parse("N0/2*1.0 I0*0.5 I1*-0.5"), hidden="tanh", output="tanh")
+    with pytest.raises(ImportError, match=r"pip install 'eant2-jax\[export\]'"):
+        to_onnx(spec)
+    spec.write(tmp_path / "net.genome")
+    assert main(["export", str(tmp_path / "net.genome"), "--format", "onnx"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "eant2-jax[export]" in err
+    assert not (tmp_path / "net.genome.onnx").exists()

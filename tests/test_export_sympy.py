@@ -9,6 +9,8 @@ docs/export.md). Each activation alone is checked against its float64 NumPy refe
 
 from __future__ import annotations
 
+import sys
+
 import hypothesis.strategies as st
 import jax
 import numpy as np
@@ -142,6 +144,13 @@ def test_registered_activation_is_an_undefined_function():
         jax.clear_caches()
     with pytest.raises(GenomeFileError, match="names no activations"):
         to_sympy(GenomeFile(Genome.parse("N0/1*1.0 I0*0.5")))
+
+
+def test_missing_extra_is_one_line(monkeypatch):
+    monkeypatch.setitem(sys.modules, "sympy", None)
+    spec = GenomeFile(Genome.parse("N0/1*1.0 I0*0.5"), hidden="tanh", output="tanh")
+    with pytest.raises(ImportError, match=r"pip install 'eant2-jax\[export\]'"):
+        to_sympy(spec)
 
 
 def test_cli_export_sympy_and_latex(tmp_path, capsys):

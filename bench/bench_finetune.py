@@ -58,8 +58,8 @@ from bench import harness
 from bench.common import BenchInputError, Column, environment, random_genome
 from eant2_jax import evaluate, tasks, tuning
 from eant2_jax import exploitation as ex
-from eant2_jax import finetune as ft
 from eant2_jax.compiler import Bucket, bucket_for, compile_genomes
+from eant2_jax.finetune import init, run_chunk, score
 from eant2_jax.genome import Gene, GeneKind, Genome
 from eant2_jax.rescoring import cost_batch
 
@@ -144,15 +144,15 @@ def grad_stage(genomes, task, key, budget: float, bucket: Bucket, lr: float):
     seconds; each structure's best point and the steps taken."""
     deadline = time.perf_counter() + budget
     batch = compile_genomes(genomes, task.n_inputs, bucket=bucket)
-    st = ft.init(batch.weights, ADAM)
+    st = init(batch.weights, ADAM)
     hyper = dict(st.opt_state.hyperparams, learning_rate=jnp.full((batch.weights.shape[0],), lr))
     st = st._replace(opt_state=st.opt_state._replace(hyperparams=hyper))
     while True:
-        st, _ = ft.run_chunk(st, batch.layout, task, key, optimizer=ADAM, steps=GRAD_CHUNK)
+        st, _ = run_chunk(st, batch.layout, task, key, optimizer=ADAM, steps=GRAD_CHUNK)
         st.best_cost.block_until_ready()
         if time.perf_counter() >= deadline:
             break
-    st = ft.score(st, batch.layout, task, key)
+    st = score(st, batch.layout, task, key)
     best = np.asarray(st.best_weights, np.float64)
     finite = np.isfinite(np.asarray(st.best_cost))
     out = [g.with_weights(best[i, : g.n_params]) if finite[i] else g for i, g in enumerate(genomes)]

@@ -41,6 +41,7 @@ from .config import EANT2Config as EANT2Config
 from .config import enable_compilation_cache as enable_compilation_cache
 from .config import enable_x64 as enable_x64
 from .exploitation import ExploitConfig as ExploitConfig
+from .finetune import finetune as finetune
 from .loop import resume as resume
 from .loop import run as run
 from .loop import run_lockstep as run_lockstep

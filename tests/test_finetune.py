@@ -21,9 +21,9 @@ import optax
 import pytest
 
 from bench.common import random_genome
-from eant2_jax import compile_genomes, cost, interpret, tasks
-from eant2_jax import finetune as ft
+from eant2_jax import EANT2Config, ExploitConfig, compile_genomes, cost, interpret, strategy, tasks
 from eant2_jax.compiler import Bucket
+from eant2_jax.finetune import finetune, init, run_chunk, value_and_grad
 from eant2_jax.genome import GeneKind, Genome
 from eant2_jax.kernels import activations
 
@@ -83,7 +83,7 @@ def _reference_cost(genome: Genome, w: jax.Array, task: tasks.Regression) -> jax
     return jnp.mean(jnp.square(jnp.stack(ys) - task.targets))
 
 
-_value_and_grad = jax.jit(ft.value_and_grad)
+_value_and_grad = jax.jit(value_and_grad)
 
 
 @pytest.mark.parametrize("seed", [11, 12])
@@ -121,19 +121,19 @@ def test_gradient_matches_numpy_finite_difference():
 
 def test_padding_stays_zero_and_batch_equals_one_at_a_time():
     task, genomes = _task(31), _genomes(31)
-    together = ft.finetune(
+    together = finetune(
         genomes, task, key=jax.random.key(3), optimizer=CLIPPED, steps=STEPS,
         bucket=BUCKET, min_rows=ROWS,
     )  # fmt: skip
     batch = compile_genomes(genomes, N_IN, bucket=BUCKET, min_rows=ROWS)
-    st = ft.init(batch.weights, CLIPPED)
-    st, _ = ft.run_chunk(st, batch.layout, task, jax.random.key(3), optimizer=CLIPPED, steps=STEPS)
+    st = init(batch.weights, CLIPPED)
+    st, _ = run_chunk(st, batch.layout, task, jax.random.key(3), optimizer=CLIPPED, steps=STEPS)
     mask = np.asarray(batch.layout.gene_mask)
     for w in (st.weights, st.best_weights):
         assert np.all(np.asarray(w)[~mask] == 0)  # padding genes and padding rows
     assert np.any(np.asarray(st.weights)[mask] != np.asarray(batch.weights)[mask])
     for i, g in enumerate(genomes):
-        alone = ft.finetune(
+        alone = finetune(
             [g], task, key=jax.random.key(3), optimizer=CLIPPED, steps=STEPS,
             bucket=BUCKET, min_rows=ROWS,
         )  # fmt: skip
@@ -145,9 +145,12 @@ def test_padding_stays_zero_and_batch_equals_one_at_a_time():
 
 def test_deterministic_and_never_worse():
     task, genomes = _task(41), _genomes(41)
-    kwargs = dict(key=jax.random.key(5), steps=STEPS, bucket=BUCKET, min_rows=ROWS)
-    a = ft.finetune(genomes, task, **kwargs)
-    b = ft.finetune(genomes, task, **kwargs)
+    # CLIPPED: the program the test above compiled (the default optimiser is the slow
+    # tests' and the driver's).
+    kwargs = dict(key=jax.random.key(5), optimizer=CLIPPED, steps=STEPS, bucket=BUCKET,
+                  min_rows=ROWS)  # fmt: skip
+    a = finetune(genomes, task, **kwargs)
+    b = finetune(genomes, task, **kwargs)
     for ga, gb in zip(a.genomes, b.genomes, strict=True):
         np.testing.assert_array_equal(ga.weights, gb.weights)
     assert a.costs == b.costs
@@ -172,7 +175,7 @@ def test_deterministic_and_never_worse():
 )
 def test_bad_arguments_one_line(kwargs, error, words):
     with pytest.raises(error, match=words) as info:
-        ft.finetune(_genomes(51, 1), _task(51), key=jax.random.key(0), **kwargs)
+        finetune(_genomes(51, 1), _task(51), key=jax.random.key(0), **kwargs)
     assert "\n" not in str(info.value)
 
 
@@ -180,10 +183,8 @@ def test_nonfinite_row_skips_its_steps():
     task, genomes = _task(61), _genomes(61, 2)
     batch = compile_genomes(genomes, N_IN, bucket=BUCKET, min_rows=ROWS)
     weights = batch.weights.at[0, 0].set(jnp.inf)
-    st = ft.init(weights, CLIPPED)
-    st, costs = ft.run_chunk(
-        st, batch.layout, task, jax.random.key(3), optimizer=CLIPPED, steps=STEPS
-    )
+    st = init(weights, CLIPPED)
+    st, costs = run_chunk(st, batch.layout, task, jax.random.key(3), optimizer=CLIPPED, steps=STEPS)
     assert not np.any(np.isfinite(np.asarray(costs)[:, 0]))
     np.testing.assert_array_equal(np.asarray(st.weights[0]), np.asarray(weights[0]))
     assert np.isinf(float(st.best_cost[0]))
@@ -195,5 +196,29 @@ def test_servo_kinematic_gradient_lowers_its_cost():
     task = tasks.make("servo", n_starts=16)
     rng = np.random.default_rng(71)
     genomes = [random_genome(rng, n, n_inputs=10, n_outputs=3) for n in (36, 44)]
-    res = ft.finetune(genomes, task, key=jax.random.key(0), steps=30)
+    res = finetune(genomes, task, key=jax.random.key(0), steps=30)
     assert all(c < s for c, s in zip(res.costs, res.start_costs, strict=True))
+
+
+@pytest.mark.slow
+def test_driver_recipe():
+    """docs/finetune.md's driver: the stage between strategy.exploit and strategy.tell."""
+    task, key, steps = tasks.xor(), jax.random.key(0), 30
+    config = EANT2Config(population=4, exploit=ExploitConfig(max_iters=40, pruner="covariance"))
+    state, brood = None, strategy.init(key, task, config)
+    for _ in range(2):
+        tuned = strategy.exploit(brood, task, config)
+        polished = finetune(
+            tuned.genomes, task, steps=steps, key=jax.random.fold_in(key, 10**6 + brood.generation)
+        )
+        # The stage starts where CMA-ES ended (the same cost up to another program's
+        # rounding) and never ends above it.
+        np.testing.assert_allclose(polished.start_costs, tuned.costs, rtol=1e-5, atol=1e-12)
+        assert all(p <= s for p, s in zip(polished.costs, polished.start_costs, strict=True))
+        tuned = tuned._replace(
+            genomes=polished.genomes,
+            costs=polished.costs,
+            evaluations=[e + steps + 1 for e in tuned.evaluations],
+        )
+        state, _, _, _ = strategy.tell(key, state, brood, tuned, config)
+        brood = strategy.ask(key, state, task, config)

@@ -25,12 +25,15 @@ from test_pole import DPNV_GENOME
 
 import eant2_jax
 from eant2_jax.app.cli import main
+from eant2_jax.compiler import networks
 from eant2_jax.export import dense
 from eant2_jax.export_onnx import MIN_OPSET, ONNX_ACTIVATIONS, save, to_onnx
 from eant2_jax.genome import GeneKind, Genome
 from eant2_jax.genomefile import GenomeFile, GenomeFileError
 from eant2_jax.kernels import activations
 from eant2_jax.loaded import LoadedNetwork
+from eant2_jax.tasks import pole
+from eant2_jax.tasks.pole_physics import observe
 
 ROOT = Path(__file__).resolve().parent.parent
 SERVO = ROOT / "bench" / "inputs" / "servo-h100-none-s1-gen13.genome"
@@ -107,6 +110,23 @@ def test_recurrent_pole_controller_state_in_and_out():
     assert props["neurons"] == str(dense(spec)["neurons"]) and props["task"] == "dpnv"
     assert [i.name for i in model.graph.input] == ["x", "h_prev"]
     assert [o.name for o in model.graph.output] == ["y", "h"]
+
+
+def test_pole_controller_on_its_own_trajectory():
+    """The dpnv controller balancing the double pole (the library's closed loop,
+    `pole.trajectory`, 500 steps): the ONNX graph, fed the observations of that trajectory
+    and its own state, gives the actions the library took."""
+    task = eant2_jax.tasks.make("dpnv")
+    spec = GenomeFile.from_task(Genome.parse(DPNV_GENOME), task, name="dpnv")
+    net = jax.tree.map(lambda a: a[0], networks([spec.genome], 3))
+    states, actions = jax.jit(pole.trajectory, static_argnames="steps")(
+        task, net, task.start, steps=500
+    )
+    before = np.concatenate([np.asarray(task.start)[None], np.asarray(states)[:-1]])
+    obs = np.asarray(jax.vmap(lambda s: observe(s, velocities=task.velocities))(before), np.float32)
+    assert np.all(np.abs(np.asarray(states)[:, 2]) < 0.2)  # the first pole stays up
+    got, _ = run_onnx(spec, obs[:, None, :])
+    np.testing.assert_allclose(got[:, 0, 0], np.asarray(actions), rtol=RTOL, atol=ATOL)
 
 
 def test_servo_network_from_a_run():

@@ -8,7 +8,9 @@ header, or one given them with ``with_activations``):
 * `to_jax_source` — a Python module that needs only ``jax``: the dense tensors as
   literals and ``network(xs)`` (``[T, M, n_in] -> [T, M, n_out]``) plus ``step(x, h)``;
   `to_jax` runs that source and returns its ``network``.
-* `formula` — for small feed-forward networks, one line of Python per neuron.
+* `formula` — for small feed-forward networks, one line of Python per neuron (for any
+  size, recurrent networks and LaTeX: `eant2_jax.export_sympy`; ONNX:
+  `eant2_jax.export_onnx`; docs/export.md).
 
 The dense tensors are those of `eant2_jax.kernels.network` for this genome alone,
 without padding: neuron slots in topological order (descending gene index), so ``w_ff`` is

@@ -230,3 +230,22 @@ def test_missing_extra_is_one_line(monkeypatch, tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "eant2-jax[export]" in err
     assert not (tmp_path / "net.genome.onnx").exists()
+
+
+def test_cli_file_without_header_takes_activations(tmp_path, capsys):
+    """bench/inputs/servo-none-s1-best.genome has no header: eant2 export asks for
+    --activations in one line, and with them exports the network the library loads so."""
+    genome = tmp_path / "old.genome"
+    genome.write_text((SERVO.parent / "servo-none-s1-best.genome").read_text())
+    assert main(["export", str(genome), "--format", "onnx"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--activations HIDDEN,OUTPUT" in err
+    assert main(["export", str(genome), "--format", "onnx", "--activations", "tanh"]) == 2
+    args = ["export", str(genome), "--format", "onnx", "--activations", "tanh,identity"]
+    assert main(args) == 0
+    spec = GenomeFile.read(genome).with_activations("tanh", "identity")
+    model = onnx.load(str(tmp_path / "old.genome.onnx"))
+    xs = np.random.default_rng(6).normal(size=(1, 8, 10)).astype(np.float32)
+    n_h = len(dense(spec)["neurons"])
+    (y,) = session(model).run(["y"], {"x": xs[0], "h_prev": np.zeros((8, n_h), np.float32)})
+    np.testing.assert_allclose(y, np.asarray(LoadedNetwork(spec)(xs))[0], rtol=RTOL, atol=ATOL)

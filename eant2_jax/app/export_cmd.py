@@ -33,6 +33,13 @@ def add_parser(sub) -> None:
     )
     p.add_argument("--force", action="store_true", help="replace an existing output file")
     p.add_argument(
+        "--activations",
+        metavar="HIDDEN,OUTPUT",
+        default=None,
+        help="for a file without a header: the activations of hidden and output neurons "
+        "(e.g. tanh,identity); a header's must agree",
+    )
+    p.add_argument(
         "--substitute",
         action="store_true",
         help="sympy/latex: the outputs as expressions of the inputs alone (default: one "
@@ -48,6 +55,16 @@ def export(args: argparse.Namespace) -> int:
 
     src = Path(args.genome_file)
     spec = GenomeFile.parse(read_text(src), source=str(src))
+    if args.activations is not None:
+        names = args.activations.split(",")
+        if len(names) != 2:
+            raise ValueError(f"--activations expects HIDDEN,OUTPUT, got {args.activations!r:.60}")
+        spec = spec.with_activations(*names)
+    elif not spec.has_header:
+        raise ValueError(
+            f"{src}: no header naming the activations; pass --activations HIDDEN,OUTPUT "
+            "(the run's, e.g. tanh,identity)"
+        )
     if args.out == "-" and args.format == "onnx":
         raise ValueError("--out -: ONNX is binary; name a file")
     out = Path(args.out) if args.out else src.with_name(src.name + FORMATS[args.format])

@@ -13,6 +13,7 @@ import subprocess
 import sys
 import textwrap
 
+import numpy as np
 import pytest
 
 pytestmark = pytest.mark.slow
@@ -182,3 +183,41 @@ def test_make_mesh_errors():
     assert distributed.make_mesh(None) is None
     with pytest.raises(ValueError, match="EANT2_COORDINATOR"):
         distributed.initialize(coordinator_address="127.0.0.1:1")
+
+
+def test_each_device_runs_its_own_loop_and_records_what_one_device_does():
+    """A chunk split over two devices (`exploitation.split_chunk`): the device whose
+    structures stop first ends its loop early; its later records must still be those one
+    device writes for stopped structures, and the engine counter must end the same."""
+    out = _python(
+        """
+        from eant2_jax import exploitation as ex
+        c = ex.ExploitConfig(max_iters=80, chunk=32, pruner="none", patience=10)
+        # rows 0-1 (device 0) tune two structures; rows 2-3 (device 1) are padding, which
+        # never runs: device 1's loop ends at once while device 0's runs on
+        two = [genomes[2], genomes[1]]
+        prep = tuning.prepare(two, task, key=jax.random.key(0), config=c, min_rows=4)
+        def go(mesh):
+            st, h = ex.run(prep.state, prep.batch.layout, task, key=jax.random.key(1),
+                           config=c, mesh=mesh)
+            st = distributed.gather(st)
+            return st, h
+        (a, ha), (b, hb) = go(None), go(distributed.make_mesh(2))
+        stop_at = [int(np.argmin(ha.running[:, r])) for r in range(4)]
+        print(json.dumps({
+            "running": [ha.running.tolist(), hb.running.tolist()],
+            "evals": [ha.evaluations.tolist(), hb.evaluations.tolist()],
+            "sigma": [ha.sigma.tolist(), hb.sigma.tolist()],
+            "tick": [int(a.tick), int(b.tick)], "stop_at": stop_at,
+            "cost": [np.asarray(a.cma.best_cost).tolist(), np.asarray(b.cma.best_cost).tolist()],
+        }))
+        """,
+        devices=2,
+    )
+    assert out["running"][0] == out["running"][1]
+    assert out["evals"][0] == out["evals"][1]
+    assert out["tick"][0] == out["tick"][1]
+    # the scenario the test is for: device 1 had nothing to run, device 0 ran past a chunk
+    assert out["stop_at"][2:] == [0, 0] and min(out["stop_at"][:2]) > 32, out["stop_at"]
+    np.testing.assert_allclose(*out["sigma"], rtol=1e-5)
+    np.testing.assert_allclose(*out["cost"], rtol=1e-5)  # padding rows: inf on both

@@ -112,6 +112,7 @@ def test_recurrent_step_with_its_state():
     slot = {n: i for i, n in enumerate(dense(spec)["neurons"])}
     assert sorted(str(s) for s in net.state) == ["hp1", "hp2", "hp3"]
     loaded = LoadedNetwork(spec)
+    assert loaded.to_latex() == net.latex() and loaded.to_sympy().equations == net.equations
     rng = np.random.default_rng(5)
     xs = rng.normal(0, 0.3, size=(64, 3)).astype(np.float32)
     state = rng.normal(0, 0.3, size=(64, loaded.initial_state().shape[0])).astype(np.float32)

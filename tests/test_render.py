@@ -68,6 +68,7 @@ def cartpole():
 def test_gymnax_episode_states_are_the_tasks_own(cartpole):
     task, rng = cartpole, np.random.default_rng()
     env, params = task.env, task.env_params
+    episode = jax.jit(type(task).episode)  # the task's own, nothing recorded
     for trial in range(3):  # one structure: one compilation of each program
         genome = _random_genome(rng, 4, 2)
         if trial == 0:  # a controller that balances: the whole 500 steps
@@ -75,7 +76,7 @@ def test_gymnax_episode_states_are_the_tasks_own(cartpole):
         net = render.network_of(GenomeFile(genome, "tanh", "identity", 4), task)
         key = jax.random.key(int(rng.integers(2**31)))
         ep = render.gymnax_episode(task, net, key)
-        ret, length = jax.jit(task.episode)(net, key)  # the task's own, nothing recorded
+        ret, length = episode(task, net, key)
         assert (ep.ret, ep.length) == (float(ret), int(length))
         assert ep.states.x.shape == ep.rewards.shape == (ep.length,)
         assert float(ep.rewards.sum()) == ep.ret  # CartPole: 1 per step
@@ -133,11 +134,11 @@ def test_servo_moves_are_the_tasks_own(servo):
     moves = render.servo_moves(task, net, jax.random.key(int(rng.integers(2**31))), starts=12,
                                moves=3)  # fmt: skip
     assert sorted(moves.starts.tolist()) == list(range(12))  # drawn without replacement
-    own = np.asarray(task.start_costs(task.network_policy(net), jnp.zeros_like(net.bias)))
-    # Mean over 3 moves in another order of additions: float32 rounding (~1e-7 relative).
+    own = jax.jit(lambda t, n: t.start_costs(t.network_policy(n), jnp.zeros_like(n.bias)))
+    own = np.asarray(own(task, net))
+    # The task's cost from each start (Servo.episode: the mean of its 3 moves); the same
+    # moves, their mean taken in another program: float32 rounding (~1e-7 relative).
     np.testing.assert_allclose(moves.cost.mean(axis=1), own[moves.starts], rtol=1e-6)
-    cost = float(task.cost(None, jax.tree.map(lambda a: a[None], net))[0])
-    np.testing.assert_allclose(moves.cost.mean(), cost, rtol=1e-6)
     # A step-by-step replay of the task's own move from the first start.
     s = int(moves.starts[0])
     q, qd, x, h = task.q_start[s], jnp.zeros(3), task.x_start[s], jnp.zeros_like(net.bias)
@@ -215,3 +216,23 @@ def test_network_drawing_shows_weights_and_a_colour_bar(tmp_path):
     path = netdraw.draw_network(genome, tmp_path / "sub" / "n.png")
     with Image.open(path) as im:
         assert im.format == "PNG"
+
+
+@pytest.mark.slow
+def test_a_run_directory_plays_its_champion_on_its_own_task(tmp_path, capsys):
+    out = tmp_path / "xor"
+    config = eant2_jax.EANT2Config(population=2, exploit=eant2_jax.ExploitConfig(max_iters=5))
+    eant2_jax.run(tasks.make("xor"), key=jax.random.key(0), generations=0, config=config,
+                  out=str(out))  # fmt: skip
+    spec, name = render.read_source(str(out))
+    assert (spec.task, name) == ("xor", "xor/best.genome") and spec.has_header
+    assert render.task_kind(render.task_of(spec, str(out))) is None
+    assert main(["render", str(out), "--out", str(tmp_path / "x.gif")]) == 2
+    err = capsys.readouterr().err
+    assert 'draws the servo task and gymnax environments, not "xor"' in err
+    assert err.count("\n") == 1
+    pytest.importorskip("gymnax")
+    assert main(["render", str(out), "--task", "gymnax:CartPole-v1"]) == 2
+    err = capsys.readouterr().err
+    assert "the genome does not fit" in err and err.count("\n") == 1
+    assert not (tmp_path / "x.gif").exists()

@@ -8,16 +8,25 @@ directory is checked, trusted and rewound before a run goes on in it.
   ``config.json`` by itself; a user's task (``module:factory``, ``file.py:factory``) is
   code, and code is never run because a data file names it: the caller names it again
   (docs/reliability.md, "Trust");
+* `resumed`: what a resume may change (the budgets and stopping options, `RESUMABLE`),
+  checked, and the ``config.json`` that records it;
 * `rewind` and `commit`: the directory cut back to its last commit, and one more
-  generation committed (`eant2_jax.rundir.RunDir` does the files).
+  generation committed (`eant2_jax.rundir.RunDir` does the files);
+* `task_file_sha256` and `task_file_changed`: the SHA-256 of a user's task file, recorded
+  when a run starts and compared when it is resumed.
 
 The files themselves, their crash safety and their checksums are `eant2_jax.rundir`'s.
 """
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+import hashlib
+import sys
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 
@@ -33,16 +42,29 @@ from .tasks import make as make_task
 from .tasks.base import Task
 
 __all__ = [
+    "RESUMABLE",
     "Validated",
     "check_fits",
     "commit",
     "create",
+    "resumed",
     "rewind",
     "run_meta",
+    "task_file_changed",
+    "task_file_sha256",
     "task_for",
     "validate",
     "validated",
 ]
+
+# The configuration fields a resume may change: budgets and stopping options (with the total
+# of generations, config.json's ``generations``). Everything else is the run's own: a
+# resumed run is the run it was, allowed to go further or to stop sooner.
+RESUMABLE = tuple(
+    name
+    for name in ("target_cost", "max_evaluations", "stop_when_solved")
+    if name in {f.name for f in dataclasses.fields(EANT2Config)}
+)
 
 
 class Validated(NamedTuple):
@@ -239,9 +261,101 @@ def task_for(path: Path, meta: dict, task: Task | None) -> Task:
 
 def run_meta(task: Task, meta: dict | None) -> dict:
     """What ``config.json`` records of the task (and the caller's ``meta``); best.genome's
-    header reads it too, in the run and after a resume alike."""
+    header reads it too, in the run and after a resume alike. A user's task also records
+    the SHA-256 of its file (`task_file_sha256`), for a resume to compare."""
     spec = spec_of(task) or {"task_type": f"{type(task).__module__}.{type(task).__qualname__}"}
-    return {**spec, **(meta or {})}
+    digest = task_file_sha256(task)
+    return {**spec, **({"task_sha256": digest} if digest else {}), **(meta or {})}
+
+
+def task_file_sha256(task: Task) -> str | None:
+    """The SHA-256 of the file that defines a user's task (``file.py:factory``: that file;
+    ``module:factory``: the module's file), or None for a registered task, a task not built
+    by `eant2_jax.tasks.make`, or a file that cannot be read. Reads the file already
+    imported to build ``task``; imports nothing."""
+    spec = spec_of(task)
+    if spec is None or is_registered(spec["task"]):
+        return None
+    source = spec["task"].rsplit(":", 1)[0]
+    if source.endswith(".py"):
+        path = source
+    else:
+        path = getattr(sys.modules.get(source), "__file__", None)
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest() if path else None
+    except OSError:
+        return None
+
+
+def task_file_changed(meta: dict, task: Task) -> str | None:
+    """A one-line warning when the file of the user's task ``task`` no longer holds what it
+    held when the run in ``meta`` (its ``config.json``) started; None when it does, or when
+    either side has no record (a registered task, a run from before the record)."""
+    recorded, now = meta.get("task_sha256"), task_file_sha256(task)
+    if not isinstance(recorded, str) or now is None or recorded == now:
+        return None
+    return (
+        f"the file of task {meta.get('task')!s:.300} has changed since the run started "
+        "(its SHA-256 differs): the resumed generations run the new code"
+    )
+
+
+def resumed(
+    v: Validated,
+    generations: int | None,
+    changes: Mapping[str, Any] | None,
+    resolve: Callable[[EANT2Config], EANT2Config] | None = None,
+) -> tuple[EANT2Config, int, dict | None]:
+    """What a resume goes on with: the configuration, the total of generations, and the
+    new ``config.json`` object that records them (None when nothing changes).
+
+    Args:
+      v: the run directory, validated.
+      generations: the new total (None: as recorded); not below the last completed one.
+      changes: configuration fields to change, only those of `RESUMABLE`, checked by their
+        specs. The object records them and appends ``{"after_generation", "generations",
+        and the fields}`` to its ``resumed`` list.
+      resolve: applied to a changed configuration, as a run's start applies it
+        (`eant2_jax.strategy.resolved`: no target and the stop when solved on is the
+        task's solved level); what it sets is recorded too.
+
+    Raises:
+      ValueError: one line naming the option that may not change or its bad value.
+    """
+    changes = dict(changes or {})
+    for name in changes:
+        if name not in RESUMABLE:
+            raise ValueError(
+                f"{name!s:.60} cannot change on resume (a run keeps its configuration); "
+                f"a resume may change generations, {', '.join(RESUMABLE)}"
+            )
+    meta = v.committed.config
+    done = -1 if v.state is None else v.state.generation
+    total = v.generations if generations is None else generations
+    if total < done:
+        raise ValueError(
+            f"generations {total}: the run has already completed generation {done}; a "
+            "resume may only keep or raise the total"
+        )
+    data = copy.deepcopy(meta["config"])
+    data.update(changes)
+    config = EANT2Config.from_dict(data, complete=v.committed.strict)  # each field's checks
+    if changes and resolve is not None:
+        config = resolve(config)
+    now = config.to_dict()
+    values = {
+        name: now[name]
+        for name in RESUMABLE
+        if name in changes or dumps(now[name]) != dumps(meta["config"].get(name))
+    }
+    if total == v.generations and all(
+        dumps(meta["config"].get(k)) == dumps(x) for k, x in values.items()
+    ):
+        return v.config, total, None
+    history = meta.get("resumed") if isinstance(meta.get("resumed"), list) else []
+    entry = {"after_generation": done, "generations": total, **values}
+    new = {**meta, "generations": total, "config": {**meta["config"], **values}}
+    return config, total, {**new, "resumed": [*history, entry]}
 
 
 def create(out: str, meta: dict, generations: int, key: jax.Array, config: EANT2Config) -> RunDir:

@@ -39,8 +39,9 @@ The library never prints: progress goes to ``callback(event: dict)``.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import jax
 
@@ -50,6 +51,7 @@ from .checkpoint import (
     check_fits,
     commit,
     create,
+    resumed,
     rewind,
     run_meta,
     task_for,
@@ -204,6 +206,7 @@ def resume(
     task: Task | None = None,
     *,
     generations: int | None = None,
+    changes: Mapping[str, Any] | None = None,
     callback: Callable[[dict], None] | None = None,
     solution_test: Callable[[Genome], bool] | None = None,
 ) -> RunResult:
@@ -220,7 +223,13 @@ def resume(
         (``module:factory``, ``file.py:factory``) is never imported because a directory
         names it: pass it (``tasks.make(SPEC, **options)``; its spec must be the recorded
         one). docs/reliability.md, "Trust".
-      generations: new total number of generations (default: the one in ``config.json``).
+      generations: new total number of generations (default: the one in ``config.json``);
+        not below the last completed generation.
+      changes: budgets and stopping options to change, ``{"target_cost": 0.01,
+        "max_evaluations": 10**6}`` (`eant2_jax.checkpoint.RESUMABLE`; any other field is
+        refused in one line). A new total or change is checked by the fields' specs and
+        recorded in ``config.json`` before the first new generation
+        (`eant2_jax.checkpoint.resumed`; crash-safe, `eant2_jax.rundir.RunDir.replace_config`).
       callback: progress events, as for `run`.
       solution_test: as for `run`. The checkpoint's population is tested first (best
         first): a run that stopped on a solution, resumed with the same test, stops again
@@ -229,6 +238,7 @@ def resume(
     Raises:
       RunDirError: not a run directory, a corrupt one, no task given and none recorded, a
         user task not given, or a task given that is not the recorded one.
+      ValueError: a change that is not allowed, or a bad value (one line naming it).
     """
     if generations is not None and (
         isinstance(generations, bool) or not isinstance(generations, int) or generations < 0
@@ -239,11 +249,14 @@ def resume(
         task = task_for(rundir.path, v.committed.config, task)
         check_task(task)
         check_fits(rundir.path, v, task)
-        mesh = distributed.make_mesh(v.config.devices)
+        config, total, meta = resumed(v, generations, changes, lambda c: strategy.resolved(c, task))
+        mesh = distributed.make_mesh(config.devices)
         rewind(rundir, v, task)
-        total = v.generations if generations is None else generations
-        member = _Member(0, v.key, total, rundir, v.committed.config, v.state, v.records, v.pruning)
-        _drive(task, [member], v.config, callback, mesh, solution_test, grouped=False)
+        if meta is not None:
+            rundir.replace_config(meta, v.committed.checkpoint)
+        meta = v.committed.config if meta is None else meta
+        member = _Member(0, v.key, total, rundir, meta, v.state, v.records, v.pruning)
+        _drive(task, [member], config, callback, mesh, solution_test, grouped=False)
     return member.result()
 
 

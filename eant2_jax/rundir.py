@@ -389,6 +389,10 @@ class RunDir:
             **{name: _sha(logs[name][: offsets[name]]) for name in LOGS},
             "state": _state_sum(ckpt["state"]),
         }
+        # A config.json replaced by a resume: the checkpoint names the new file's sum
+        # while the replacement is under way (`replace_config`).
+        if sums[CONFIG] != actual[CONFIG] and ckpt.get("config_next") == actual[CONFIG]:
+            actual[CONFIG] = sums[CONFIG]
         for name in SUMS:
             if sums[name] != actual[name]:
                 what = "the checkpoint's state" if name == "state" else name
@@ -424,7 +428,7 @@ class RunDir:
                 os.close(fd)
         # A kill inside write_atomic leaves its temporary file behind (the target itself is
         # whole, old or new): remove our own leftovers, named as write_atomic names them.
-        for name in (BEST, CHECKPOINT):
+        for name in (BEST, CHECKPOINT, CONFIG):
             for tmp in self.path.glob(f".{name}.*.tmp"):
                 tmp.unlink(missing_ok=True)
         # best.genome is a copy of the checkpoint's best: a kill between its rename and the
@@ -433,6 +437,29 @@ class RunDir:
             current = self._read(BEST)
             if current != (best + "\n").encode():
                 write_atomic(self.path / BEST, best + "\n")
+
+    def replace_config(self, config: dict, checkpoint: dict | None) -> None:
+        """Replace ``config.json`` with ``config`` (its ``format`` included), after `read`
+        and `rewind`, keeping the checkpoint's checksum of it true at every instant.
+
+        With a checkpoint of checksums (``checkpoint``, as `read` returned it), three
+        atomic replacements: the checkpoint naming the new file's sum as ``config_next``
+        (`read` accepts either sum while it is there), config.json, then the checkpoint
+        with the new sum alone. A kill between any two leaves a directory that `read`
+        accepts, with the old or the new config.json; nothing committed is lost.
+        """
+        text = dumps(config, indent=2) + "\n"
+        new = _sha(text.encode())
+        sums = None if checkpoint is None else checkpoint.get("sha256")
+        if isinstance(sums, dict):
+            base = {k: v for k, v in checkpoint.items() if k != "config_next"}
+            write_atomic(self.path / CHECKPOINT, dumps({**base, "config_next": new}) + "\n")
+            write_atomic(self.path / CONFIG, text)
+            done = {**base, "sha256": {**sums, CONFIG: new}}
+            write_atomic(self.path / CHECKPOINT, dumps(done) + "\n")
+        else:  # before the first commit, or a format without checksums
+            write_atomic(self.path / CONFIG, text)
+        self._config_sum = new
 
     def commit(
         self, generation_records: list[dict], pruning_records: list[dict], best: str, state: dict

@@ -4,9 +4,12 @@ line naming the option, an unwritable place named as the user named it, and an i
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -19,7 +22,9 @@ from test_report import make_run
 import eant2_jax
 from eant2_jax import EANT2Config
 from eant2_jax.app.cli import main
+from eant2_jax.checkpoint import validate
 from eant2_jax.records import RUN_DEPENDENT
+from eant2_jax.rundir import CHECKPOINT
 
 TINY = ["--population", "3", "--max-iters", "20", "--no-prune"]
 
@@ -227,3 +232,182 @@ def test_an_int_key_is_the_seed_s_key_and_anything_else_is_one_line(tmp_path):
     with pytest.raises(ValueError, match=r"keys\[1\]: an int seed"):
         eant2_jax.run_lockstep(task, [0, -3], config=config, generations=0)
     assert not (tmp_path / "b").exists()
+
+
+# ----------------------------------------------------------------------------- resume
+RESUME_CONFIG = EANT2Config(population=3, exploit=eant2_jax.ExploitConfig(max_iters=20))
+
+
+@pytest.fixture(scope="module")
+def xor_runs(tmp_path_factory):
+    """A tiny XOR run of 1 generation and the same run of 2, uninterrupted."""
+    d = tmp_path_factory.mktemp("xor_runs")
+    task = eant2_jax.tasks.make("xor")
+    for name, generations in (("one", 1), ("two", 2)):
+        eant2_jax.run(task, key=jax.random.key(5), config=RESUME_CONFIG,
+                      generations=generations, out=str(d / name))  # fmt: skip
+    return d
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+def _files(d: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(d.iterdir())}
+
+
+def _records(d: Path) -> list[dict]:
+    rows = [json.loads(x) for x in (d / "generations.jsonl").read_text().splitlines()]
+    return [{k: v for k, v in r.items() if k not in RUN_DEPENDENT} for r in rows]
+
+
+def test_resume_records_its_new_generations_and_reports_agree(
+    xor_runs, tmp_path, capsys, monkeypatch
+):
+    """A run of 1 resumed to 2 records 2 in config.json, holds the uninterrupted run's
+    records, and a report takes the two as runs of one setting (it refused "2 vs 1")."""
+    d = _copy(xor_runs / "one", tmp_path / "resumed")
+    rc, _, err = _main(["resume", d, "--generations", "2"], capsys, monkeypatch)
+    assert rc == 0, err
+    meta = json.loads((d / "config.json").read_text())
+    assert meta["generations"] == 2
+    assert meta["resumed"] == [{"after_generation": 1, "generations": 2}]
+    assert _records(d) == _records(xor_runs / "two")
+    v = validate(str(d))  # the checkpoint's checksum of the new config.json holds
+    assert v.generations == 2 and "config_next" not in json.loads((d / CHECKPOINT).read_text())
+    argv = ["report", d, xor_runs / "two", "--out", tmp_path / "rep"]
+    rc, _, err = _main(argv, capsys, monkeypatch)
+    assert rc == 0, err
+
+
+def test_resume_changes_budgets_and_stopping_options_recorded(
+    xor_runs, tmp_path, capsys, monkeypatch
+):
+    """--target-cost and --max-evaluations (or --set) apply to the resumed run and are
+    recorded; a run that meets them stops without another generation."""
+    one = json.loads((xor_runs / "one" / "generations.jsonl").read_text().splitlines()[-1])
+    base = validate(str(xor_runs / "one")).config
+    for i, (argv, field, value) in enumerate([
+        (["--target-cost", "10"], "target_cost", 10.0),
+        (["--set", "target_cost=10"], "target_cost", 10.0),
+        (["--max-evaluations", "1"], "max_evaluations", 1),
+    ]):  # fmt: skip
+        d = _copy(xor_runs / "one", tmp_path / f"r{i}")
+        rc, _, err = _main(["resume", d, "--generations", "5", *argv], capsys, monkeypatch)
+        assert rc == 0, err
+        meta = json.loads((d / "config.json").read_text())
+        assert (meta["generations"], meta["config"][field]) == (5, value)
+        assert meta["resumed"] == [{"after_generation": 1, "generations": 5, field: value}]
+        assert len(_records(d)) == 2  # stopped at once: the target or budget is met
+        assert validate(str(d)).config == dataclasses.replace(base, **{field: value})
+    assert one["best_cost"] < 10 and one["evaluations"] > 1
+    # null is the target eant2 run would resolve: the task's solved level while the stop
+    # when solved is on, none without it; in Python, changes= does the same.
+    rc, _, err = _main(["resume", d, "--set", "target_cost=null"], capsys, monkeypatch)
+    assert rc == 0 and validate(str(d)).config.target_cost == base.target_cost, err
+    argv = ["resume", d, "--target-cost", "null", "--no-solved-stop"]
+    rc, _, err = _main(argv, capsys, monkeypatch)
+    assert rc == 0, err
+    meta = json.loads((d / "config.json").read_text())
+    assert (meta["config"]["target_cost"], meta["config"]["stop_when_solved"]) == (None, False)
+    assert meta["resumed"][-1] == {"after_generation": 1, "generations": 5, "target_cost": None,
+                                   "stop_when_solved": False}  # fmt: skip
+    d = _copy(xor_runs / "one", tmp_path / "py")
+    eant2_jax.resume(str(d), changes={"target_cost": 10.0})
+    assert validate(str(d)).config.target_cost == 10.0
+
+
+@pytest.mark.parametrize(
+    ("argv", "phrase"),
+    [
+        (["--population", "4"], "--population cannot change on resume"),
+        (["--no-prune"], "--no-prune cannot change on resume"),
+        (["--max-iters", "5"], "--max-iters cannot change on resume"),
+        (["--seed", "1"], "--seed cannot change on resume"),
+        (["--task-option", "a=1"], "--task-option cannot change on resume"),
+        (["--config", "c.json"], "--config cannot change on resume"),
+        (["--set", "exploit.sigma0=1"], "exploit.sigma0 cannot change on resume"),
+        (["--set", "population=4"], "population cannot change on resume"),
+        (["--max-evaluations", "0"], "argument --max-evaluations: EANT2Config.max_evaluations"),
+        (["--target-cost", "inf"], "argument --target-cost: EANT2Config.target_cost"),
+        (["--generations", "0"], "generations 0: the run has already completed generation 1"),
+    ],
+)
+def test_resume_refuses_every_other_change_in_one_line(
+    argv, phrase, xor_runs, tmp_path, capsys, monkeypatch
+):
+    d = _copy(xor_runs / "one", tmp_path / "r")
+    before = _files(d)
+    monkeypatch.chdir(tmp_path)
+    rc, stdout, err = _main(["resume", d, *argv], capsys, monkeypatch)
+    assert rc == 2 and stdout == "" and len(err) == 1 and phrase in err[0], err
+    assert _files(d) == before
+
+
+def test_resume_in_python_refuses_other_fields_by_name(xor_runs, tmp_path):
+    d = _copy(xor_runs / "one", tmp_path / "r")
+    before = _files(d)
+    for changes, phrase in [
+        ({"population": 4}, "population cannot change on resume"),
+        ({"exploit": {"max_iters": 5}}, "exploit cannot change on resume"),
+        ({"max_evaluations": 0}, "max_evaluations must be >= 1"),
+    ]:
+        with pytest.raises(ValueError, match=phrase) as e:
+            eant2_jax.resume(str(d), changes=changes)
+        assert "\n" not in str(e.value)
+    assert _files(d) == before
+
+
+@pytest.mark.parametrize("killed_after", [1, 2])
+def test_a_kill_inside_the_config_update_leaves_a_run_that_resumes(
+    killed_after, xor_runs, tmp_path, monkeypatch
+):
+    """config.json and its checksum in the checkpoint are replaced in three atomic steps;
+    a kill after the first or second leaves a directory that validates (old or new
+    config.json) and resumes, and the next commit leaves one checksum."""
+    from eant2_jax import rundir
+
+    d = _copy(xor_runs / "one", tmp_path / "r")
+    real, calls = rundir.write_atomic, []
+
+    def killed(path, text):
+        if len(calls) == killed_after:
+            raise KeyboardInterrupt
+        calls.append(path.name)
+        real(path, text)
+
+    monkeypatch.setattr(rundir, "write_atomic", killed)
+    with pytest.raises(KeyboardInterrupt):
+        eant2_jax.resume(str(d), generations=2)
+    monkeypatch.setattr(rundir, "write_atomic", real)
+    assert calls == [CHECKPOINT, "config.json"][:killed_after]
+    assert validate(str(d)).generations == (1, 2)[killed_after - 1]
+    eant2_jax.resume(str(d), generations=2)
+    assert _records(d) == _records(xor_runs / "two")
+    assert "config_next" not in json.loads((d / CHECKPOINT).read_text())
+    assert validate(str(d)).generations == 2
+
+
+def test_resume_warns_when_the_task_file_changed(xor_runs, tmp_path, capsys, monkeypatch):
+    """config.json records the SHA-256 of a user's task file; a resume naming the task
+    again warns in one line when the file's content changed, and only then."""
+    f = tmp_path / "mytask.py"
+    f.write_text(
+        "from eant2_jax import tasks\n\n\ndef make_task():\n    return tasks.make('xor')\n"
+    )
+    out = tmp_path / "run"
+    argv = ["run", f"{f}:make_task", *TINY, "--generations", "0", "--out", out]
+    rc, _, err = _main(argv, capsys, monkeypatch)
+    assert rc == 0, err
+    meta = json.loads((out / "config.json").read_text())
+    assert meta["task_sha256"] == hashlib.sha256(f.read_bytes()).hexdigest()
+    resume = ["resume", out, "--task", f"{f}:make_task"]
+    rc, _, err = _main(resume, capsys, monkeypatch)
+    assert rc == 0 and err == [], err
+    f.write_text(f.read_text() + "# edited\n")
+    rc, _, err = _main(resume, capsys, monkeypatch)
+    warnings = [e for e in err if e.startswith("eant2: warning:")]
+    assert rc == 0 and len(warnings) == 1, err
+    assert "has changed since the run started" in warnings[0] and str(f) in warnings[0]

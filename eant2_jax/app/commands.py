@@ -146,13 +146,19 @@ def _named_task(spec: str | None, options, where: str):
 
 
 def resume(args: argparse.Namespace) -> int:
+    """Continue a run directory (or finish a reproduction), with the budgets and stopping
+    options it asks for (`eant2_jax.app.resumeargs`); warns in one line when the file of
+    the user's task named again has changed since the run started."""
     import eant2_jax
     from eant2_jax.app.experiments import MANIFEST
+    from eant2_jax.app.resumeargs import changes_of
+    from eant2_jax.checkpoint import task_file_changed
     from eant2_jax.progress import ProgressReporter
     from eant2_jax.rundir import RunDir
 
+    changes = changes_of(args)
     if (Path(args.dir) / MANIFEST).is_file():
-        return _resume_reproduction(args)
+        return _resume_reproduction(args, changes)
     with RunDir.open(args.dir, lock=False) as rundir:  # resume takes the lock itself
         meta = rundir.config()
     config = meta.get("config")
@@ -162,24 +168,29 @@ def resume(args: argparse.Namespace) -> int:
     # A task that is the user's code is rebuilt only when named again here (--task);
     # nothing a directory names is imported (docs/reliability.md, "Trust").
     task = _named_task(args.task, meta.get("task_options", {}), f"{args.dir}/config.json")
+    warning = None if task is None else task_file_changed(meta, task)
+    if warning is not None:
+        print(f"eant2: warning: {warning}", file=sys.stderr)
     total = args.generations if args.generations is not None else meta.get("generations", 0)
     result = eant2_jax.resume(
         args.dir,
         task,
         generations=args.generations,
+        changes=changes,
         callback=process.interruptible(ProgressReporter(total, header=f"eant2 resume {args.dir}")),
     )
     return _finish(result, Path(args.dir))
 
 
-def _resume_reproduction(args: argparse.Namespace) -> int:
+def _resume_reproduction(args: argparse.Namespace, changes: dict) -> int:
     """``eant2 resume DIR`` of an ``eant2 reproduce`` directory."""
     from eant2_jax.app.experiments import MANIFEST, resume_reproduction
 
-    if args.generations is not None:
+    if args.generations is not None or changes:
+        what = "--generations" if args.generations is not None else ", ".join(changes)
         raise ValueError(
-            f"{args.dir} is an eant2 reproduce directory: --generations does not apply "
-            "(its runs keep the number they were started with)"
+            f"{args.dir} is an eant2 reproduce directory: {what} does not apply "
+            "(its runs keep the budgets they were started with)"
         )
     task = None
     if args.task is not None:

@@ -22,7 +22,7 @@ from ..jsonio import loads
 from .taskoptions import read_value, task_options
 
 __all__ = ["RUN_BASE", "REPRODUCE_BASE", "FieldFlag", "build_parser", "config_from"]
-__all__ += ["read_value", "task_options"]
+__all__ += ["RUN_FLAGS", "assignment", "field_type", "read_value", "task_options"]
 
 # What each command's configuration starts from, before --config, flags and --set (as a
 # partial EANT2Config.to_dict(); unset fields take their defaults). `eant2 run` prunes with
@@ -113,7 +113,9 @@ def field_value(path: str, value: Any) -> Any:
     return normal(owner.__name__, f, value)
 
 
-def _field_type(flag: FieldFlag) -> Callable[[str], Any]:
+def field_type(flag: FieldFlag) -> Callable[[str], Any]:
+    """The argparse type of ``flag``: its text read and checked by its field's spec."""
+
     def parse(text: str) -> Any:
         try:
             return field_value(flag.path, (flag.text or read_value)(text))
@@ -123,7 +125,7 @@ def _field_type(flag: FieldFlag) -> Callable[[str], Any]:
     return parse
 
 
-def _assignment(text: str) -> tuple[str, Any]:
+def assignment(text: str) -> tuple[str, Any]:
     """``--set NAME=VALUE``: the field's dotted name and its checked value."""
     name, sep, raw = text.partition("=")
     if not sep or not name.strip():
@@ -160,13 +162,13 @@ def add_config_options(parser: argparse.ArgumentParser, flags, base: dict) -> No
         if flag.const is not None:
             parser.add_argument(*flag.flags, action="store_const", const=flag.const, **kwargs)
         else:
-            parser.add_argument(*flag.flags, type=_field_type(flag), metavar=flag.metavar, **kwargs)
+            parser.add_argument(*flag.flags, type=field_type(flag), metavar=flag.metavar, **kwargs)
     parser.set_defaults(field_flags=tuple((f.dest, f.path) for f in flags), config_base=base)
     parser.add_argument(
         "--set",
         dest="assignments",
         action="append",
-        type=_assignment,
+        type=assignment,
         default=[],
         metavar="NAME=VALUE",
         help="set any configuration field, e.g. exploit.sigma0=0.3 (repeatable; VALUE is JSON "
@@ -312,7 +314,9 @@ def build_parser() -> argparse.ArgumentParser:
     config.add_argument(
         "--json", action="store_true", help="print eant2 run's default configuration as JSON"
     )
-    _resume_parser(
+    from .resumeargs import add_resume_arguments  # it builds on this module's options
+
+    add_resume_arguments(
         sub.add_parser(
             "resume",
             help="continue a run directory from its last generation, or finish an eant2 "
@@ -461,22 +465,4 @@ def _report_parser(report: argparse.ArgumentParser) -> None:
         metavar="GEN",
         help="read every run only up to this generation (arms at equal generations when "
         "some runs stopped early)",
-    )
-
-
-def _resume_parser(resume: argparse.ArgumentParser) -> None:
-    resume.add_argument("dir", help="the run directory (or eant2 reproduce's directory)")
-    resume.add_argument(
-        "--generations",
-        type=non_negative,
-        default=None,
-        help="new total number of generations (default: as first asked)",
-    )
-    resume.add_argument(
-        "--task",
-        default=None,
-        metavar="SPEC",
-        help="the task, named again: needed when the directory's task is your own code "
-        "(module:factory, file.py:factory), which is never imported because a directory "
-        "names it; built with the recorded task options and checked against the recorded spec",
     )

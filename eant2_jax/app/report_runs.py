@@ -57,7 +57,8 @@ class LoadedRun:
 
 # Fields of config.json that may differ between compared runs: the arms differ in pruning,
 # runs in their seed, and devices are placement only (the results are identical).
-_FREE = {"format", "seed", "key", "arm", "devices"}
+# A resume's history (``resumed``) may differ too: what it set is compared where it is.
+_FREE = {"format", "seed", "key", "arm", "devices", "resumed"}
 
 
 def setting(meta: dict) -> dict:

@@ -333,12 +333,14 @@ def gymnax_animation(
 
         def update(t: int) -> None:
             draw(states[t])
+            action = ", ".join(f"{a:.3g}" for a in np.ravel(actions[t]))
             ax.set_title(
-                f"{title}\n{task.env_name}: step {t + 1}/{episode.length}, action "
-                f"{np.round(actions[t], 3).tolist()}, return {returns[t]:g}",
+                f"{title}\n{task.env_name}: step {t + 1}/{episode.length}, action {action}, "
+                f"return {returns[t]:g}",
                 fontsize=8,
             )
 
+        update(0)  # the title's two lines are there when the layout is made
         fig.tight_layout()
         return save_animation(
             fig, update, n, out, fps=fps, overwrite=overwrite, frame=frame, dpi=dpi

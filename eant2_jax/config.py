@@ -16,66 +16,19 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 from flax import struct
 
 from .configspec import Check, Configured, above, at_least, between, document, one_of, option
 from .exploration import OPERATORS
+
+# Process-wide JAX settings live in their own module; their names stay importable here.
+from .jaxsetup import enable_compilation_cache as enable_compilation_cache
+from .jaxsetup import enable_x64 as enable_x64
 from .kernels.pruning import PRUNERS
 
 __all__ = ["EANT2Config", "ExploitConfig", "enable_x64"]
-
-
-def enable_x64() -> None:
-    """Turn on JAX's 64-bit mode, which ``ExploitConfig(dtype="float64")`` needs. Call it
-    before any array is made: arrays made earlier keep their 32-bit types."""
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-
-
-def enable_compilation_cache(
-    path: str | os.PathLike | None = None, *, min_compile_secs: float = 0.0
-) -> Path | None:
-    """Keep compiled XLA programs on disk between processes (JAX's persistent compilation
-    cache, with XLA's GPU autotuning results): a second run of the same programs loads
-    them instead of compiling (on a GPU, a servo run's first generation went from 22.9 s
-    to 12.4 s: docs/benchmarks.md). With it, the engine's traced programs are kept too
-    (`eant2_jax.programs.store`, in the folder's ``eant2-programs``), so that a later process
-    neither traces nor compiles them. The ``eant2`` command line calls it; the library
-    itself never changes global JAX settings, so Python users call it once, first.
-
-    Args:
-      path: the cache folder; default ``$EANT2_CACHE_DIR``, else
-        ``~/.cache/eant2_jax/xla``. An empty ``EANT2_CACHE_DIR`` (or ``path=""``) turns the
-        cache off.
-      min_compile_secs: keep only programs that took at least this long to compile (0:
-        every program, so that a warm start compiles nothing).
-
-    Returns:
-      The folder used, or None when the cache is off.
-    """
-    import jax
-
-    from .programs import store as programs_store
-
-    if path is None:
-        path = os.environ.get("EANT2_CACHE_DIR", str(Path.home() / ".cache" / "eant2_jax" / "xla"))
-    if not str(path):
-        return None
-    path = Path(path).expanduser()
-    if not (min_compile_secs >= 0 and math.isfinite(min_compile_secs)):
-        raise ValueError(f"min_compile_secs must be >= 0 and finite, got {min_compile_secs!r}")
-    if not programs_store.trusted_folder(path, "compilation cache"):  # as ssh: others' or shared
-        return None
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_secs))
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    return path
-
 
 RECOMMEND = ("best", "mean", "both")
 DTYPES = ("float32", "float64")
@@ -110,8 +63,9 @@ class ExploitConfig(Configured):
     traced.) Numbers are normalised to one Python type per field, so that every config
     traces to the same program.
 
-    The defaults prune tentatively (re-fit, acceptance against the best cost, an attempt at
-    every stop); `literal` gives the paper's rule as written. docs/pruning.md says why.
+    The defaults prune with the covariance method (``pruner="none"`` is plain CMA-ES),
+    tentatively (re-fit, acceptance against the best cost, an attempt at every stop);
+    `literal` gives the paper's rule as written. docs/pruning.md says why.
 
     Fields: one spec each (`eant2_jax.configspec.option`), listed from the specs by
     ``help(ExploitConfig)``, ``eant2 config`` and docs/quickstart.md.
@@ -183,11 +137,15 @@ class ExploitConfig(Configured):
         none=-math.inf,
     )
     pruner: str = option(
-        "none",
-        "``covariance`` (the paper's), ``magnitude``, ``obd``, ``obs``, ``snr`` "
-        "(signal-to-noise) or ``none``.",
+        "covariance",
+        "``covariance`` (the paper's, the default wherever a config is built), "
+        "``magnitude``, ``obd``, ``obs``, ``snr`` (signal-to-noise) or ``none`` (no "
+        "pruning: plain CMA-ES).",
         check=one_of(*PRUNERS),
         static=True,
+        # Before pruning existed nothing pruned; every run directory since writes the field.
+        added="0.1.0 (6e2a709)",
+        old="none",
     )
     prune_window: int = option(
         100,
@@ -452,9 +410,20 @@ class EANT2Config(Configured):
     size_atol: float = option(1e-9, "Absolute cost tolerance of that rule.", check=_NON_NEGATIVE)
     target_cost: float | None = option(
         None,
-        "Stop the run once the best cost is at or below this (None: run all generations). A "
-        "stopped run's directory holds fewer generations than asked.",
+        "Stop the run once the best cost is at or below this. None: the task's solved level "
+        "(its ``solved_cost``) while ``stop_when_solved``, else no target (run all "
+        "generations). A run starts by resolving it (`eant2_jax.strategy.resolved`), and "
+        "its run directory's config.json records the target it used; a stopped run's "
+        "directory holds fewer generations than asked.",
         check=Check(math.isfinite, "finite"),
+    )
+    stop_when_solved: bool = option(
+        True,
+        "With no ``target_cost`` given, stop once the best cost reaches the task's solved "
+        "level, where the task defines one (XOR, dpv, gymnax and brax environments with a "
+        "solved return: docs/tasks.md). False runs every generation (``--no-solved-stop``).",
+        added="0.1.0 (issue 43)",
+        old=False,
     )
     max_evaluations: int | None = option(
         None,
@@ -492,8 +461,9 @@ class EANT2Config(Configured):
         old=None,
     )
     exploit: ExploitConfig = option(
-        help="The CMA-ES / pruning configuration (its ``pruner`` turns pruning on).",
-        factory=lambda: ExploitConfig(pruner="covariance"),
+        help="The CMA-ES / pruning configuration (its ``pruner``, covariance by default, "
+        "chooses the pruning; ``none`` turns it off).",
+        factory=ExploitConfig,
         convert=_exploit,
         want="an ExploitConfig",
     )

@@ -7,12 +7,12 @@
                            callback=eant2_jax.ProgressReporter(2))
 
 prints, on standard error, one line per event (a live line that rewrites itself on a
-terminal); from ``docs/examples/point_mass.py``::
+terminal): a "compiling" line before a program is first compiled, and per generation::
 
-    gen 0/2: compiling the exploitation program (6 structures, 8 genes, depth 1, 10 candidates)...
-    gen 0/2 | best 0.0217 | size 3 (1 neurons) | pruned 0/0 | 1,001 evals, 166/s | 6.0 s
-    gen 1/2: compiling the exploitation program (6 structures, 8 genes, depth 2, 10 candidates)...
-    gen 1/2 | best 0.01761 | size 4 (1 neurons) | pruned 0/0 | 7,007 evals, 794/s | 8.8 s
+    gen 1/2 | best 0.01853 | mean 0.01872 ± 9.6e-05 | size 3 (1 neurons) | pruned 0/5 |
+        7,128 evals, 167/s | 42.6 s
+
+(one line; docs/tasks-custom.md shows all that ``docs/examples/point_mass.py`` printed).
 
 The ``eant2`` command line renders its runs with the same class.
 """
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 from typing import TextIO
 
 __all__ = ["ProgressReporter"]
@@ -39,6 +40,13 @@ class ProgressReporter:
       header: a line printed with the first event, i.e. once the run directory has been
         accepted, so that an error before that is the only line.
       live: rewrite one line in place (default: whether ``stream`` is a terminal).
+      clock: the time in seconds (default ``time.perf_counter``; a test passes its own).
+
+    A generation's line shows the best cost, the population's cost mean and standard
+    deviation, the best network's size, the pruning attempts accepted, the run's
+    evaluations and a rate: the evaluations spent in THIS process (its generations'
+    ``generation_evaluations``, all runs' together) over the time since the reporter was
+    made, so that a resumed run's rate does not count the evaluations of earlier processes.
     """
 
     def __init__(
@@ -47,13 +55,16 @@ class ProgressReporter:
         stream: TextIO | None = None,
         header: str | None = None,
         live: bool | None = None,
+        clock: Callable[[], float] = time.perf_counter,
     ):
         self.total = total
         self.header = header
         self._stream = stream
         self.live = live
         self.last: dict | None = None
-        self.t0 = time.perf_counter()
+        self.clock = clock
+        self.t0 = clock()
+        self.spent = 0  # cost evaluations of the generations reported by this process
 
     @property
     def stream(self) -> TextIO:
@@ -87,10 +98,13 @@ class ProgressReporter:
                 )
         elif kind == "generation":
             self.last = event
-            elapsed = time.perf_counter() - self.t0
-            rate = event["evaluations"] / max(elapsed, 1e-9)
+            elapsed = self.clock() - self.t0
+            spent = event.get("generation_evaluations")
+            self.spent += event["evaluations"] if spent is None else spent
+            rate = self.spent / max(elapsed, 1e-9)
             text = (
                 f"{self._gen(event['generation'])} | best {event['best_cost']:.4g}"
+                f"{_spread(event)}"
                 f" | size {event['best_size']} ({event['best_neurons']} neurons)"
                 f" | pruned {event['prune_accepted']}/{event['prune_attempts']}"
                 f" | {event['evaluations']:,} evals, {rate:,.0f}/s | {elapsed:.1f} s"
@@ -105,3 +119,9 @@ class ProgressReporter:
     def _line(self, text: str) -> None:
         self.stream.write("\r" + text[:160].ljust(100))
         self.stream.flush()
+
+
+def _spread(event: dict) -> str:
+    """`` | mean M ± S``: the population's cost mean and standard deviation, if recorded."""
+    mean, std = event.get("mean_cost"), event.get("cost_std")
+    return "" if mean is None or std is None else f" | mean {mean:.4g} ± {std:.2g}"

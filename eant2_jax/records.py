@@ -119,6 +119,15 @@ class RunState:
     def best(self) -> Individual:
         return self.population[0]
 
+    def cost_stats(self) -> tuple[float | None, float | None]:
+        """The population's cost mean and standard deviation (ddof 0) over its finite costs
+        (None, None when none is finite)."""
+        costs = np.array([ind.cost for ind in self.population], np.float64)
+        costs = costs[np.isfinite(costs)]
+        if not costs.size:
+            return None, None
+        return float(np.mean(costs)), float(np.std(costs))
+
 
 @dataclasses.dataclass(frozen=True)
 class GenerationRecord:
@@ -138,6 +147,13 @@ class GenerationRecord:
         and compiling them, and the persistent cache's hits and misses
         (`eant2_jax.programs.stats`; 0 in records written before they existed). Like the wall
         times they depend on the process, not on the run: ``RUN_DEPENDENT`` names them.
+      generation_evaluations: cost evaluations spent in this generation (``evaluations``
+        minus the previous record's); a progress rate divides those of its own process by
+        its own time.
+      mean_cost, cost_std: the population's cost after selection, its mean and standard
+        deviation (ddof 0, as neat-python's StatisticsReporter), over the individuals whose
+        cost is finite (None if none is).
+      The last three are None in records written before they existed.
     """
 
     generation: int
@@ -157,6 +173,9 @@ class GenerationRecord:
     compile_s: float = 0.0
     cache_hits: int = 0
     cache_misses: int = 0
+    generation_evaluations: int | None = None
+    mean_cost: float | None = None
+    cost_std: float | None = None
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)

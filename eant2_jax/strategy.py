@@ -12,7 +12,8 @@ exploitation box), one function each::
                                   pruning (`eant2_jax.tuning.tune`)
     tell      select              rank-based greedy selection with the diversity rules: the
                                   new `RunState`, its `GenerationRecord`, its pruning records
-    stopped   repeat?             target cost or evaluation budget reached
+    stopped   repeat?             target cost (by default the task's solved level,
+                                  `resolved`) or evaluation budget reached
 
 Each takes the run's PRNG key first (generation ``g`` draws from ``fold_in(key, g)``) and
 is a function of its arguments: the same key, config and state give the same brood, the
@@ -23,6 +24,7 @@ ten lines (the run of `eant2_jax.run` for ``generations``, without a run directo
 
     from eant2_jax import strategy
 
+    config = strategy.resolved(config, task)  # the target: the task's solved level
     state, records, brood = None, [], strategy.init(key, task, config)
     while True:
         tuned = strategy.exploit(brood, task, config)
@@ -58,7 +60,7 @@ from .programs import stats
 from .programs.guesses import generation_rows, grow_bucket
 from .pruning import PruneAttempt
 from .records import GenerationRecord, Individual, RunState, key_data
-from .tasks.base import Task
+from .tasks.base import Task, solved_cost
 from .tuning import Search, inherited, start_keys, tune
 
 __all__ = [
@@ -70,6 +72,7 @@ __all__ = [
     "exploit_together",
     "init",
     "initialise",
+    "resolved",
     "stopped",
     "tell",
 ]
@@ -376,11 +379,24 @@ def tell(
         bucket=None if bucket is None else (bucket.neurons, bucket.genes, bucket.sweeps),
     )
     compiled = stats.snapshot() - brood.compiled
-    return Told(state, _record(state, len(new), prune, dt, compiled), prune, solution)
+    record = _record(state, len(new), prune, dt, compiled, state.evaluations - brood.evaluations)
+    return Told(state, record, prune, solution)
+
+
+def resolved(config: EANT2Config, task: Task) -> EANT2Config:
+    """The configuration a run of ``task`` runs with: with no ``target_cost`` and
+    ``stop_when_solved`` on, ``target_cost`` becomes the task's solved level (its
+    ``solved_cost``, where it defines one). The one place the run's target is decided: a
+    run directory records the configuration this returns, so a resume and a report read
+    the target the run used. Resolving twice changes nothing."""
+    if config.target_cost is not None or not config.stop_when_solved:
+        return config
+    level = solved_cost(task)
+    return config if level is None else dataclasses.replace(config, target_cost=level)
 
 
 def stopped(state: RunState, config: EANT2Config) -> bool:
-    """Whether a run stops before its next generation: ``target_cost`` or
+    """Whether a run stops before its next generation: ``target_cost`` (see `resolved`) or
     ``max_evaluations`` reached (docs/algorithm.md, "When a run stops")."""
     if config.target_cost is not None and state.best().cost <= config.target_cost:
         return True
@@ -393,9 +409,11 @@ def _record(
     prune: list[PruneAttempt],
     t: float,
     compiled: stats.CompileStats,
+    spent: int,
 ) -> GenerationRecord:
     best = state.best()
     sizes = [ind.genome.n_params for ind in state.population]
+    mean_cost, cost_std = state.cost_stats()
     return GenerationRecord(
         generation=state.generation,
         best_cost=best.cost,
@@ -414,4 +432,7 @@ def _record(
         cache_hits=compiled.cache_hits,
         cache_misses=compiled.cache_misses,
         best_genome=str(best.genome),
+        generation_evaluations=spent,
+        mean_cost=mean_cost,
+        cost_std=cost_std,
     )

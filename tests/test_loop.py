@@ -54,7 +54,10 @@ XOR_OUT = np.array([False, True, True, False])
 # Seed 0 solves XOR in generation 1 (its first structural mutation: one hidden neuron).
 SEED = 0
 GENERATIONS_API = 1
-CONFIG = EANT2Config(population=6, exploit=ExploitConfig(max_iters=300, pruner="covariance"))
+# stop_when_solved off: these tests are about runs of a given number of generations.
+CONFIG = EANT2Config(
+    population=6, stop_when_solved=False, exploit=ExploitConfig(max_iters=300, pruner="covariance")
+)
 
 # The command-line runs: small and short (their cost is compilation and process start-up).
 CLI_RUN = ["--population", "4", "--seed", "1", "--max-iters", "200"]
@@ -872,7 +875,7 @@ def test_solution_test_halts_every_structure_and_counts_only_evaluations():
     from eant2_jax.tuning import tune
 
     genomes = [Genome.parse("N0/2*1 I0*0.1 I1*-0.1"), Genome.parse("N0/3*1 B*0 I0*0.1 I1*0")]
-    config = ExploitConfig(max_iters=40, chunk=5, patience=1000, popsize=6)
+    config = ExploitConfig(max_iters=40, chunk=5, patience=1000, popsize=6, pruner="none")
     full = tune(genomes, tasks.make("xor"), key=jax.random.key(3), config=config)
     assert full.solution is None and full.evaluations == [240, 240]
     calls = []
@@ -995,7 +998,7 @@ def test_first_program_compiled_ahead_from_shapes_is_used_and_changes_nothing(mo
     from eant2_jax.programs import guesses
 
     exploit = ExploitConfig(max_iters=30 if task == "xor" else 4, pruner="covariance")
-    config = EANT2Config(population=4, exploit=exploit)
+    config = EANT2Config(population=4, stop_when_solved=False, exploit=exploit)
 
     def run():
         return eant2_jax.run(tasks.make(task), key=jax.random.key(3), config=config,
@@ -1050,7 +1053,11 @@ def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
     from eant2_jax import programs
     from eant2_jax.programs import guesses
 
-    config = EANT2Config(population=10, exploit=ExploitConfig(max_iters=50, pruner="covariance"))
+    config = EANT2Config(
+        population=10,
+        stop_when_solved=False,
+        exploit=ExploitConfig(max_iters=50, pruner="covariance"),
+    )
 
     def run():
         return eant2_jax.run(tasks.make("xor"), key=jax.random.key(1), config=config,

@@ -10,8 +10,18 @@ import eant2_jax
 from eant2_jax import EANT2Config, ExploitConfig, strategy, tasks
 from eant2_jax.records import RUN_DEPENDENT
 
-CONFIG = EANT2Config(population=4, exploit=ExploitConfig(max_iters=40, pruner="covariance"))
-INHERIT = EANT2Config(population=4, reexploit=True, inherit_search=True, exploit=CONFIG.exploit)
+CONFIG = EANT2Config(
+    population=4, stop_when_solved=False, exploit=ExploitConfig(max_iters=40, pruner="covariance")
+)
+INHERIT = EANT2Config(
+    population=4,
+    stop_when_solved=False,
+    reexploit=True,
+    inherit_search=True,
+    exploit=CONFIG.exploit,
+)
+# The default stop: XOR's solved level (it solves XOR at generation 1 of 3).
+SOLVING = EANT2Config(population=6, exploit=ExploitConfig(max_iters=100))
 
 
 def _same_records(a, b):
@@ -20,13 +30,16 @@ def _same_records(a, b):
     assert strip == [{k: v for k, v in r.to_json().items() if k not in RUN_DEPENDENT} for r in b]
 
 
-@pytest.mark.parametrize("config", [CONFIG, INHERIT], ids=["default", "reexploit-inherit"])
+@pytest.mark.parametrize(
+    "config", [CONFIG, INHERIT, SOLVING], ids=["default", "reexploit-inherit", "solved-stop"]
+)
 def test_a_ten_line_driver_is_the_run(config):
     """The driver of the strategy's docstring (ten lines) against `eant2_jax.run` on XOR:
     the same records and population, to the bit."""
     task, key, generations = tasks.make("xor"), jax.random.key(7), 3
 
     # -- the ten lines of docs/algorithm.md, "Your own driver"
+    config = strategy.resolved(config, task)  # the target: the task's solved level
     state, records, brood = None, [], strategy.init(key, task, config)
     while True:
         tuned = strategy.exploit(brood, task, config)
@@ -42,7 +55,11 @@ def test_a_ten_line_driver_is_the_run(config):
     _same_records(records, res.generations)
     assert [i.to_json() for i in state.population] == [i.to_json() for i in res.population]
     assert str(best.genome) == str(res.best) and best.cost == res.population[0].cost
-    assert len(records) == generations + 1
+    if config.stop_when_solved:
+        assert records[-1].best_cost <= tasks.XOR_SOLVED < records[-2].best_cost
+        assert len(records) < generations + 1
+    else:
+        assert len(records) == generations + 1
 
 
 def test_the_steps_are_functions_of_their_inputs():

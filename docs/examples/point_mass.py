@@ -62,9 +62,17 @@ if __name__ == "__main__":
 
     task = eant2_jax.tasks.make(__file__)  # remembers its spec: the run can be resumed
     zero = eant2_jax.cost("N0/2*1 I0*0 I1*0", task, key=jax.random.key(1))[0]
-    res = eant2_jax.optimize("N0/2*1 I0*0 I1*0", task, key=jax.random.key(0), max_iters=100)
     print(f"no force: cost {zero:.4f}")
+    # A bias the task does not need (it is symmetric about x = 0): covariance pruning, on by
+    # default, removes it. On a noisy task the pruned network is compared with the current
+    # mean on the same episodes (prune_reference="mean"; docs/pruning.md).
+    start = "N0/3*1 I0*0 I1*0 B*0"
+    res = eant2_jax.optimize(
+        start, task, key=jax.random.key(0), max_iters=100, prune_reference="mean"
+    )
+    removed = [a.kind for a in res.pruning if a.accepted]
     print(f"optimize: cost {res.cost:.4f} ({res.stop_reason}), {res.genome.n_params} genes")
+    print(f"pruning:  {len(res.pruning)} attempt(s), removed {removed}: {res.genome}")
 
     config = eant2_jax.EANT2Config(population=6, exploit=eant2_jax.ExploitConfig(max_iters=100))
     result = eant2_jax.run(

@@ -34,6 +34,8 @@ from .base import Task as Task
 from .base import TaskError as TaskError
 from .base import check_task as check_task
 from .base import map_networks as map_networks
+from .base import solved_cost as solved_cost
+from .regression import XOR_SOLVED as XOR_SOLVED
 from .regression import Regression as Regression
 from .regression import regression as regression
 from .regression import xor as xor

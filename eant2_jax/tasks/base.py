@@ -24,7 +24,15 @@ import numpy as np
 
 from ..kernels.network import Network, activation
 
-__all__ = ["ReportingTask", "Task", "TaskError", "check_costs", "check_task", "map_networks"]
+__all__ = [
+    "ReportingTask",
+    "Task",
+    "TaskError",
+    "check_costs",
+    "check_task",
+    "map_networks",
+    "solved_cost",
+]
 
 PROTOCOL = ("n_inputs", "n_outputs", "hidden", "output", "cost")
 _GUIDE = "see docs/tasks-custom.md"
@@ -55,10 +63,13 @@ class Task(Protocol):
         ...
 
 
-# Optional attribute of a task (not part of the protocol's isinstance check):
+# Optional attributes of a task (not part of the protocol's isinstance check):
 #   noisy: bool — True when costs depend on the key (random starts, noise). Then
 #   eant2_jax.tuning.tune re-evaluates each tuned network on fresh episodes (a key no
 #   CMA-ES iteration used) and reports THAT cost, not the best draw seen during the search.
+#   solved_cost: float | None — the cost at or below which the task counts as solved
+#   (XOR, dpv, environments whose return defines it; `solved_cost`). A run with no
+#   target_cost of its own stops there (EANT2Config.stop_when_solved). None: unknown.
 
 
 @runtime_checkable
@@ -149,6 +160,13 @@ def check_task(task: Any, genomes: Sequence[Any] = (), *, what: str | None = Non
     noisy = getattr(task, "noisy", False)
     if not isinstance(noisy, bool | np.bool_):
         raise TaskError(f"{what}: noisy must be True or False, got {noisy!r}")
+    solved = getattr(task, "solved_cost", None)
+    if solved is not None and (
+        isinstance(solved, bool)
+        or not isinstance(solved, numbers.Real)
+        or not np.isfinite(float(solved))
+    ):
+        raise TaskError(f"{what}: solved_cost must be a finite number or None, got {solved!r:.60}")
     leaves = jax.tree.leaves(task)
     if len(leaves) == 1 and leaves[0] is task:
         raise TaskError(
@@ -171,6 +189,13 @@ def check_task(task: Any, genomes: Sequence[Any] = (), *, what: str | None = Non
             raise ValueError(
                 f"genome {i} reads input {g.n_inputs - 1} but the task has {task.n_inputs} inputs"
             )
+
+
+def solved_cost(task: Any) -> float | None:
+    """The task's solved level (its optional ``solved_cost``), a float, or None when the
+    task defines none (`check_task` has checked it)."""
+    level = getattr(task, "solved_cost", None)
+    return None if level is None else float(level)
 
 
 def check_costs(task: Any, costs: Any, batch: tuple[int, ...]) -> jax.Array:

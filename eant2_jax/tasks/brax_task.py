@@ -55,6 +55,7 @@ __all__ = [
     "BACKENDS",
     "MAX_FRAMES",
     "PRECISIONS",
+    "SOLVED_RETURNS",
     "BraxTask",
     "PipelineTask",
     "brax",
@@ -73,6 +74,11 @@ PRECISIONS = ("highest", "high", "default")
 # their defaults (an environment sets its own n_frames when not given).
 _PIPELINE_OPTIONS = {"n_frames": 1}
 MAX_FRAMES = 1000  # physics steps per environment step (action repeat) at most
+# The solved return of a brax environment that ports a Gymnasium one with the same reward
+# (+1 per step balanced) and episode length (1000): Gymnasium's registry
+# (``gymnasium.spec("InvertedPendulum-v5").reward_threshold``). Its ``solved_cost`` is
+# minus this with the default constructor and ``max_steps``.
+SOLVED_RETURNS = {"inverted_pendulum": 950.0}
 
 
 # What brax itself warns about, none of it the user's doing (each an error under the test
@@ -231,6 +237,15 @@ class BraxTask(PipelineTask):
     @property
     def env(self):
         return _environment(self.env_name, self.backend, self.params)
+
+    @property
+    def solved_cost(self) -> float | None:
+        """Minus the solved return of an environment whose return defines one, with its
+        default constructor and episode length (`SOLVED_RETURNS`), else None."""
+        solved = SOLVED_RETURNS.get(self.env_name)
+        return (
+            -solved if solved is not None and not self.params and self.max_steps == 1000 else None
+        )
 
 
 def brax(

@@ -46,9 +46,19 @@ from ..kernels import network as kn
 from .episodic import EpisodicTask, check_choice, check_episode_options, check_int, check_like
 from .episodic import returns as returns
 
-__all__ = ["GymnaxTask", "NORMALIZE", "gymnax", "returns"]
+__all__ = ["NORMALIZE", "SOLVED_RETURNS", "GymnaxTask", "gymnax", "returns"]
 
 NORMALIZE = ("bounds", "none")
+# The solved return of the gymnax environments that port a Gymnasium one with the same id,
+# reward and episode limit: Gymnasium's registry (``gymnasium.spec(id).reward_threshold``;
+# tests/test_gymnax.py checks them against it). With its default parameters and episode
+# limit, such a task's ``solved_cost`` is minus this.
+SOLVED_RETURNS = {
+    "CartPole-v1": 475.0,
+    "Acrobot-v1": -100.0,
+    "MountainCar-v0": -110.0,
+    "MountainCarContinuous-v0": 90.0,
+}
 _HUGE = 1e6  # bounds beyond this count as unbounded (gymnax writes finfo.max for "none")
 
 
@@ -86,6 +96,8 @@ class GymnaxTask(EpisodicTask):
       n_inputs, n_outputs: network inputs (flattened observation) and outputs (static).
       discrete: argmax over outputs (True) or a continuous action (static).
       action_shape: shape of one continuous action (static).
+      solved_cost: minus the environment's solved return (`SOLVED_RETURNS`) with its
+        default parameters and episode limit, else None (static).
 
     and `EpisodicTask`'s ``episodes``, ``max_steps``, ``chunk``, ``hidden``, ``output``
     and ``noisy`` (keyword-only).
@@ -101,6 +113,7 @@ class GymnaxTask(EpisodicTask):
     n_outputs: int = struct.field(pytree_node=False)
     discrete: bool = struct.field(pytree_node=False)
     action_shape: tuple[int, ...] = struct.field(pytree_node=False)
+    solved_cost: float | None = struct.field(pytree_node=False, default=None)
 
     @property
     def env(self):
@@ -214,6 +227,7 @@ def gymnax(
     check_choice(where, "normalize", normalize, NORMALIZE)
     env_params = _with_params(where, env_params, params)
     limit = getattr(env_params, "max_steps_in_episode", None)
+    solved = SOLVED_RETURNS.get(name) if not params and max_steps in (None, limit) else None
     if max_steps is None:
         if limit is None:
             raise ValueError(f"{where} has no episode limit: pass max_steps")
@@ -250,6 +264,7 @@ def gymnax(
         n_outputs=n_outputs,
         discrete=discrete,
         action_shape=action_shape,
+        solved_cost=None if solved is None else -solved,
         episodes=episodes,
         max_steps=max_steps,
         chunk=chunk,

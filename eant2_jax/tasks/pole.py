@@ -168,6 +168,13 @@ class PoleTask:
     def n_outputs(self) -> int:
         return 1
 
+    @property
+    def solved_cost(self) -> float | None:
+        """``-max_steps`` under the steps fitness: every action balanced, NEAT's and ESP's
+        dpv solution; None under the damping fitness, whose solutions are those that pass
+        `solved` (no cost level says it: pass ``solution_test``, `eant2_jax.run`)."""
+        return -float(self.max_steps) if self.fitness == "steps" else None
+
     def rollout(self, net: kn.Network, start: jax.Array) -> Trial:
         """Run ONE network from ONE start ``[6]`` until it fails or ``max_steps`` actions.
 

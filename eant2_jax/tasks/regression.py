@@ -13,7 +13,7 @@ from numpy.typing import ArrayLike
 from ..kernels import network as kn
 from .base import map_networks
 
-__all__ = ["Regression", "regression", "xor"]
+__all__ = ["XOR_SOLVED", "Regression", "regression", "xor"]
 
 
 @struct.dataclass
@@ -24,12 +24,16 @@ class Regression:
       inputs: ``[T, M, n_in]`` M independent sequences of T steps (T = 1 for plain data).
       targets: ``[T, M, n_out]``.
       hidden, output: activation names (static).
+      solved_cost: the mean squared error at or below which the task counts as solved, or
+        None (static; a run stops there unless told otherwise, `eant2_jax.EANT2Config`'s
+        ``stop_when_solved``).
     """
 
     inputs: jax.Array
     targets: jax.Array
     hidden: str = struct.field(pytree_node=False, default="tanh")
     output: str = struct.field(pytree_node=False, default="identity")
+    solved_cost: float | None = struct.field(pytree_node=False, default=None)
 
     @property
     def n_inputs(self) -> int:
@@ -55,7 +59,12 @@ class Regression:
 
 
 def regression(
-    inputs: ArrayLike, targets: ArrayLike, *, hidden: str = "tanh", output: str = "identity"
+    inputs: ArrayLike,
+    targets: ArrayLike,
+    *,
+    hidden: str = "tanh",
+    output: str = "identity",
+    solved_cost: float | None = None,
 ) -> Regression:
     """A regression task from data.
 
@@ -64,6 +73,8 @@ def regression(
       targets: ``[N, n_out]`` or ``[T, M, n_out]`` to match.
       hidden: activation name of hidden neurons.
       output: activation name of output neurons.
+      solved_cost: the mean squared error that solves the task (a run stops there by
+        default), or None (no known level).
 
     Returns:
       The `Regression` task.
@@ -88,12 +99,26 @@ def regression(
         raise ValueError("regression: empty data set")
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
         raise ValueError("regression: inputs and targets must be finite")
-    return Regression(jnp.asarray(x), jnp.asarray(y), hidden=hidden, output=output)
+    if solved_cost is not None:
+        if isinstance(solved_cost, bool) or not isinstance(solved_cost, int | float):
+            raise ValueError(f"regression: solved_cost must be a number, got {solved_cost!r:.60}")
+        if not (np.isfinite(solved_cost) and solved_cost >= 0):
+            raise ValueError(f"regression: solved_cost must be >= 0 and finite, got {solved_cost}")
+        solved_cost = float(solved_cost)
+    return Regression(
+        jnp.asarray(x), jnp.asarray(y), hidden=hidden, output=output, solved_cost=solved_cost
+    )
+
+
+# XOR is solved when every output is on the right side of 0.5. A mean squared error of at
+# most 0.04 over the four patterns bounds each squared error by 4 * 0.04, each error by 0.4.
+XOR_SOLVED = 0.04
 
 
 def xor(*, hidden: str = "tanh", output: str = "identity") -> Regression:
     """XOR: 2 inputs, 1 output, the four patterns; solved when every output is on the right
-    side of 0.5."""
+    side of 0.5, which a cost (mean squared error) of at most ``XOR_SOLVED`` = 0.04
+    guarantees: the task's ``solved_cost``."""
     x = [[0.0, 0.0], [0.0, 1.0], [1.0, 0.0], [1.0, 1.0]]
     y = [[0.0], [1.0], [1.0], [0.0]]
-    return regression(x, y, hidden=hidden, output=output)
+    return regression(x, y, hidden=hidden, output=output, solved_cost=XOR_SOLVED)

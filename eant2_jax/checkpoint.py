@@ -342,15 +342,13 @@ def resumed(
     config = EANT2Config.from_dict(data, complete=v.committed.strict)  # each field's checks
     if changes and resolve is not None:
         config = resolve(config)
-    now = config.to_dict()
+    now, before = config.to_dict(), v.config.to_dict()
     values = {
         name: now[name]
         for name in RESUMABLE
-        if name in changes or dumps(now[name]) != dumps(meta["config"].get(name))
+        if name in changes or dumps(now[name]) != dumps(before[name])
     }
-    if total == v.generations and all(
-        dumps(meta["config"].get(k)) == dumps(x) for k, x in values.items()
-    ):
+    if total == v.generations and all(dumps(before[k]) == dumps(x) for k, x in values.items()):
         return v.config, total, None
     history = meta.get("resumed") if isinstance(meta.get("resumed"), list) else []
     entry = {"after_generation": done, "generations": total, **values}

@@ -100,7 +100,7 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     keys = jax.random.split(jax.random.key(0), args.structures)
     # The engine's side, prepared as every caller does (compile, popsize, initial state).
     config = ex.ExploitConfig(max_iters=args.iters, chunk=args.iters, patience=10**6,
-                              sigma_tol=0.0, tolfun=None)  # fmt: skip
+                              sigma_tol=0.0, tolfun=None, pruner="none")  # fmt: skip
     prep = tuning.prepare(
         genomes, task, key=jax.random.key(0), config=config, keys=keys, pad_count=False
     )

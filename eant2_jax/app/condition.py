@@ -144,6 +144,7 @@ def _recording_config(sigma0, iters, max_condition, dtype) -> ExploitConfig:
     """CMA-ES runs of ``iters`` iterations with nothing that stops or prunes them, cond(C)
     recorded every iteration."""
     return ExploitConfig(
+        pruner="none",
         sigma0=sigma0,
         max_iters=iters,
         chunk=min(iters, 500),

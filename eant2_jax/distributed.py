@@ -5,8 +5,9 @@ each device holds whole structures — their CMA-ES states, layouts, candidates 
 evaluations — so the big tensors (covariances ``[S, P, P]``, candidate networks
 ``[S, popsize, ...]``, the task's per-move data) never move between devices, and each
 device runs the engine's loop over its own structures (`eant2_jax.exploitation.split_chunk`):
-nothing crosses devices within a chunk. Results are identical to a single-device run with the same key: a structure's random
-numbers depend on its own key and index only, and no reduction runs across structures.
+nothing crosses devices within a chunk. Results are those of a single-device run with the
+same key (up to float reduction order): a structure's random numbers depend on its own key
+and index only, and no reduction runs across structures.
 
 Several processes (hosts) join with `initialize`; every process then runs the same
 host-side EANT2 loop (same key, same decisions) and the mesh spans all processes' devices.

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from eant2_jax.app import netdraw
 from eant2_jax.app import report as rp
 from eant2_jax.app.cli import main
 from eant2_jax.config import EANT2Config, ExploitConfig
@@ -144,11 +145,11 @@ def test_network_drawing_has_a_legend_and_no_unused_bias(tmp_path):
         ax = fig.axes[0]
         return [t.get_text() for t in ax.texts], [t.get_text() for t in ax.get_legend().get_texts()]
 
-    nodes, legend = texts(rp.genome_figure(Genome.parse("N0/2*1 I0*1 R0*0.5")))
-    assert "1" not in nodes and "bias (1)" not in legend  # no B gene: no bias node
+    nodes, legend = texts(netdraw.network_figure(Genome.parse("N0/2*1 I0*1 R0*0.5")))
+    assert "bias (1)" not in legend  # no B gene: no bias node
     assert legend == ["network input", "hidden neuron", "output neuron", "input of a neuron",
-                      "recurrent jumper"]  # fmt: skip
-    nodes, legend = texts(rp.genome_figure(Genome.parse(GENOME), n_inputs=3))
+                      "recurrent jumper", "width, colour: weight"]  # fmt: skip
+    nodes, legend = texts(netdraw.network_figure(Genome.parse(GENOME), n_inputs=3))
     assert "1" in nodes and "bias (1)" in legend and "x2" in nodes
 
 

@@ -262,7 +262,7 @@ def show(args: argparse.Namespace) -> int:
     link or non-file at its name is refused before anything is printed. The PNG is written
     whole and never through a link (`eant2_jax.app.outputs`)."""
     from eant2_jax.app import outputs
-    from eant2_jax.app.netdraw import draw_network as draw_genome  # with weights
+    from eant2_jax.app.netdraw import draw_network
     from eant2_jax.app.report import genome_stats
     from eant2_jax.genomefile import GenomeFile, read_text
 
@@ -285,7 +285,7 @@ def show(args: argparse.Namespace) -> int:
     if keep:
         print(f"drawing: {out} (exists: kept; --force replaces it, --out names another)")
         return 0
-    draw_genome(genome, out, title=src.name, n_inputs=spec.n_inputs, overwrite=args.force)
+    draw_network(genome, out, title=src.name, n_inputs=spec.n_inputs, overwrite=args.force)
     print(f"drawing: {out}")
     return 0
 

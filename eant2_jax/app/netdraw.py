@@ -229,7 +229,7 @@ def draw_network(
     overwrite: bool = True,
 ) -> Path:
     """Draw a network with its weights into a PNG, with a legend and a colour bar (module
-    docstring); the arguments are `eant2_jax.app.report_figures.draw_genome`'s.
+    docstring): ``eant2 show``'s drawing and the report's.
 
     Args:
       genome: the network (the unpruned one when ``pruned`` is given).

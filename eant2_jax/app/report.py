@@ -33,14 +33,8 @@ import numpy as np
 from ..genome import Genome
 from ..rundir import CONFIG, LOGS
 from . import outputs, report_runs
-from .report_figures import (
-    condition_figure,
-    draw_genome,
-    fitness_figure,
-    genome_figure,
-    genome_stats,
-    pyplot,
-)
+from .netdraw import draw_network
+from .report_figures import condition_figure, fitness_figure, genome_stats, pyplot
 from .report_runs import (
     LoadedRun,
     MixedRunsError,
@@ -57,11 +51,9 @@ __all__ = [
     "MixedRunsError",
     "check_comparable",
     "default_folder",
-    "draw_genome",
     "escape",
     "REPORT_FILES",
     "fitness_figure",
-    "genome_figure",
     "genome_stats",
     "load_runs",
     "reference_arm",
@@ -174,10 +166,10 @@ def _figures(runs: list[LoadedRun], arms: list[str], condition: dict | None, out
     best_run = min(runs, key=lambda r: r.generations[-1].best_cost)
     best = Genome.parse(best_run.generations[-1].best_genome)
     title = f"best network ({best_run.arm})"
-    draw_genome(best, out / "best_network.png", title=title)
+    draw_network(best, out / "best_network.png", title=title)
     figures.append("best_network.png")
     if condition is not None and "genome_before" in condition and "genome_after" in condition:
-        draw_genome(
+        draw_network(
             Genome.parse(condition["genome_before"]),
             out / "pruned_network.png",
             pruned=Genome.parse(condition["genome_after"]),

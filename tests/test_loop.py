@@ -761,7 +761,10 @@ def test_min_bucket_compiles_once_and_is_a_checked_option(tmp_path):
     from eant2_jax.app.parser import build_parser
 
     config = EANT2Config(
-        population=4, min_bucket=(8, 40, 4), exploit=ExploitConfig(max_iters=60, pruner="none")
+        population=4,
+        min_bucket=(8, 40, 4),
+        stop_when_solved=False,
+        exploit=ExploitConfig(max_iters=60, pruner="none"),
     )
     runs = [
         eant2_jax.run(

@@ -149,11 +149,10 @@ class GenerationRecord:
         times they depend on the process, not on the run: ``RUN_DEPENDENT`` names them.
       generation_evaluations: cost evaluations spent in this generation (``evaluations``
         minus the previous record's); a progress rate divides those of its own process by
-        its own time.
+        its own time. None in records written before it existed.
       mean_cost, cost_std: the population's cost after selection, its mean and standard
         deviation (ddof 0, as neat-python's StatisticsReporter), over the individuals whose
-        cost is finite (None if none is).
-      The last three are None in records written before they existed.
+        cost is finite (None if none is, and in records written before they existed).
     """
 
     generation: int

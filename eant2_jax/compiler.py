@@ -41,8 +41,8 @@ from collections.abc import Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
+from . import pytree
 from .genome import GeneKind, Genome
 from .kernels.network import Layout, Network, buffer_size, network
 
@@ -86,13 +86,13 @@ def batch_rows(
     return -(-rows // multiple_of) * multiple_of
 
 
-@struct.dataclass
+@pytree.dataclass
 class Bucket:
     """Padded sizes shared by every network of one compiled batch."""
 
-    neurons: int = struct.field(pytree_node=False)
-    genes: int = struct.field(pytree_node=False)
-    sweeps: int = struct.field(pytree_node=False)
+    neurons: int = pytree.field(pytree_node=False)
+    genes: int = pytree.field(pytree_node=False)
+    sweeps: int = pytree.field(pytree_node=False)
 
 
 def bucket_for(genomes: Sequence[Genome]) -> Bucket:
@@ -106,7 +106,7 @@ def bucket_for(genomes: Sequence[Genome]) -> Bucket:
     )
 
 
-@struct.dataclass
+@pytree.dataclass
 class CompiledBatch:
     """A batch of genomes compiled into one bucket.
 
@@ -119,8 +119,8 @@ class CompiledBatch:
 
     layout: Layout
     weights: jnp.ndarray
-    count: int = struct.field(pytree_node=False)
-    bucket: Bucket = struct.field(pytree_node=False)
+    count: int = pytree.field(pytree_node=False)
+    bucket: Bucket = pytree.field(pytree_node=False)
 
 
 def _slots(genome: Genome, n_neurons: int, n_inputs: int, n_outputs: int) -> tuple:

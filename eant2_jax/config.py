@@ -1,7 +1,7 @@
 """The configuration types: what a run is asked to do, as frozen values.
 
 * `ExploitConfig` — the exploitation engine's (CMA-ES and pruning). A
-  ``flax.struct`` pytree passed INTO the compiled program: fields that shape the program are
+  ``eant2_jax.pytree`` pytree passed INTO the compiled program: fields that shape the program are
   static (part of the pytree's structure), every number is a traced leaf, so changing a
   number never compiles again.
 * `EANT2Config` — the EANT2 loop's (host side only), holding an ``ExploitConfig``.
@@ -18,8 +18,8 @@ import dataclasses
 import math
 
 import numpy as np
-from flax import struct
 
+from . import pytree
 from .configspec import Check, Configured, above, at_least, between, document, one_of, option
 from .exploration import OPERATORS
 
@@ -51,7 +51,7 @@ def _plain_numbers(config) -> bool:
 
 
 @document
-@struct.dataclass
+@pytree.dataclass
 class ExploitConfig(Configured):
     """Hyper-parameters of the exploitation engine: a frozen pytree passed into the program.
 

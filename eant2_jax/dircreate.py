@@ -7,12 +7,13 @@ removed by the next creation of the same path (`remove_dead_creations`).
 
 from __future__ import annotations
 
-import fcntl
 import os
 import shutil
 import tempfile
 import time
 from pathlib import Path
+
+from .dirlock import fcntl
 
 __all__ = ["CREATING", "Vanished", "locked_temp_dir", "remove_dead_creations"]
 

@@ -15,9 +15,8 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
-from . import pruning
+from . import pruning, pytree
 from .config import ExploitConfig
 from .kernels import cmaes
 from .rows import where_rows
@@ -74,7 +73,7 @@ def smoothing_for(n):
     return 0.01 + 0.015 * jnp.minimum(1.0, 10.0 / n)
 
 
-@struct.dataclass
+@pytree.dataclass
 class ExploitState:
     """Batched state of S structures (every leaf has leading dim S, except ``tick``).
 
@@ -120,7 +119,7 @@ class ExploitState:
     attempt: pruning.Attempt | None = None
 
 
-@struct.dataclass
+@pytree.dataclass
 class StepRecord:
     """What one engine iteration records of every structure (``[S]`` leaves; after
     `run`, ``[iterations, S]`` NumPy arrays).

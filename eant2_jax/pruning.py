@@ -22,7 +22,8 @@ import functools
 
 import jax
 import jax.numpy as jnp
-from flax import struct
+
+from . import pytree
 
 # The host side (`eant2_jax.genomepruning`), named here too so that the stage is one import.
 from .genomepruning import PruneAttempt as PruneAttempt
@@ -65,7 +66,7 @@ REFERENCES = ("mean", "best")
 
 
 # ---------------------------------------------------------------------------------- device
-@struct.dataclass
+@pytree.dataclass
 class AttemptRecord:
     """What a step records of the pruning attempt of each of S structures (``[S]`` leaves).
 
@@ -115,7 +116,7 @@ class AttemptRecord:
 NORMAL, TRIAL, REFIT = 0, 1, 2
 
 
-@struct.dataclass
+@pytree.dataclass
 class Attempt:
     """The pruning attempts of S structures in progress (``[S]`` leading dims).
 

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import dataclasses
 import errno
-import fcntl
 import hashlib
 import os
 import shutil
@@ -41,6 +40,7 @@ from typing import Any
 
 from . import jsonio
 from .dircreate import Unlockable, Vanished, locked_temp_dir, remove_dead_creations
+from .dirlock import fcntl
 from .jsonio import as_float, dumps, fsync_dir, typed_fields, write_atomic
 from .jsonio import short as _short
 

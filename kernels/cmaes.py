@@ -35,10 +35,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 from jax.typing import DTypeLike
 
-from . import threefry
+from . import pytree, threefry
 from .eigen import eigen as eigen
 from .eigen import symmetrised as _symmetrised
 
@@ -60,7 +59,7 @@ __all__ = [
 _MAX_NUM_DIMS_SQ = float(np.floor(np.sqrt(np.iinfo(np.int32).max)))
 
 
-@struct.dataclass
+@pytree.dataclass
 class Params:
     """Hyper-parameters of one structure; a pytree, so it can be vmapped with the state.
 
@@ -84,7 +83,7 @@ class Params:
     max_condition: jax.Array  # [] bound on cond(C) over the valid axes
 
 
-@struct.dataclass
+@pytree.dataclass
 class State:
     """State of one masked CMA-ES over ``P`` padded coordinates.
 

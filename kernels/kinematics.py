@@ -31,7 +31,8 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
+
+from . import pytree
 
 __all__ = [
     "Chain",
@@ -116,7 +117,7 @@ def axis_angle_to_quat(axis: jax.Array, angle: jax.Array) -> jax.Array:
     return jnp.stack(_axis_angle_to_quat(components(axis), angle))
 
 
-@struct.dataclass
+@pytree.dataclass
 class Chain:
     """A serial chain of hinge joints ending in one site, as plain arrays (a pytree).
 

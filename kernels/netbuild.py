@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from flax import struct
+
+from . import pytree
 
 __all__ = ["Layout", "Network", "buffer_size", "network"]
 
@@ -31,7 +32,7 @@ def buffer_size(n_neurons: int, n_inputs: int, n_outputs: int) -> int:
     return h * n_inputs + h + 2 * h * h + n_outputs * h + 1
 
 
-@struct.dataclass
+@pytree.dataclass
 class Layout:
     """The structure of one compiled network (no weights).
 
@@ -49,12 +50,12 @@ class Layout:
     is_root: jax.Array
     neuron_mask: jax.Array
     depth: jax.Array
-    n_inputs: int = struct.field(pytree_node=False)
-    n_outputs: int = struct.field(pytree_node=False)
-    sweeps: int = struct.field(pytree_node=False)
+    n_inputs: int = pytree.field(pytree_node=False)
+    n_outputs: int = pytree.field(pytree_node=False)
+    sweeps: int = pytree.field(pytree_node=False)
 
 
-@struct.dataclass
+@pytree.dataclass
 class Network:
     """Dense tensors of one network, ready to run.
 
@@ -80,7 +81,7 @@ class Network:
     w_out: jax.Array
     is_root: jax.Array
     neuron_mask: jax.Array
-    sweeps: int = struct.field(pytree_node=False)
+    sweeps: int = pytree.field(pytree_node=False)
     reads: tuple[tuple[jax.Array, jax.Array], ...] | None = None
 
 

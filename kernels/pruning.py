@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from flax import struct
+
+from . import pytree
 
 __all__ = [
     "PRUNERS",
@@ -37,7 +38,7 @@ __all__ = [
 PRUNERS = ("covariance", "magnitude", "obd", "obs", "snr", "none")
 
 
-@struct.dataclass
+@pytree.dataclass
 class Tables:
     """The genome structure the pruner needs, per gene slot (padding: parent -1, leaf).
 

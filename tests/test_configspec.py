@@ -9,15 +9,14 @@ import math
 import jax
 import numpy as np
 import pytest
-from flax import struct
 
-from eant2_jax import jsonio
+from eant2_jax import jsonio, pytree
 from eant2_jax.config import EANT2Config, ExploitConfig
 from eant2_jax.configspec import INT32_MAX, above, at_least, document, option
 
 
 @document
-@struct.dataclass
+@pytree.dataclass
 class WiderExploit(ExploitConfig):
     """ExploitConfig with one more field: the one line below is all it takes."""
 
@@ -27,7 +26,7 @@ class WiderExploit(ExploitConfig):
 
 
 @document
-@struct.dataclass
+@pytree.dataclass
 class WiderStatic(ExploitConfig):
     """ExploitConfig with one more static field."""
 

@@ -24,10 +24,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from flax import struct
 
 import eant2_jax
-from eant2_jax import EANT2Config, ExploitConfig, tasks
+from eant2_jax import EANT2Config, ExploitConfig, pytree, tasks
 from eant2_jax.app.cli import main
 from eant2_jax.kernels import network as kn
 from eant2_jax.rundir import GENERATIONS, RunDirError
@@ -39,14 +38,14 @@ XOR_GENOME = "N0/4*1 N1/3*0.1 I0*0.1 I1*-0.1 B*0.05 I0*0.1 I1*0.1 B*0.0"
 TINY = EANT2Config(population=3, exploit=ExploitConfig(max_iters=20, pruner="none"))
 
 
-@struct.dataclass
+@pytree.dataclass
 class Constant:
     """A deterministic task: cost = sum of squared outputs on one input of ones."""
 
-    n_inputs: int = struct.field(pytree_node=False, default=2)
-    n_outputs: int = struct.field(pytree_node=False, default=1)
-    hidden: str = struct.field(pytree_node=False, default="tanh")
-    output: str = struct.field(pytree_node=False, default="identity")
+    n_inputs: int = pytree.field(pytree_node=False, default=2)
+    n_outputs: int = pytree.field(pytree_node=False, default=1)
+    hidden: str = pytree.field(pytree_node=False, default="tanh")
+    output: str = pytree.field(pytree_node=False, default="identity")
 
     def cost(self, key, nets):
         del key
@@ -67,29 +66,29 @@ class Plain:
         return jnp.zeros(nets.bias.shape[:-1])
 
 
-@struct.dataclass
+@pytree.dataclass
 class WrongShape(Constant):
     def cost(self, key, nets):
         return jnp.zeros(())
 
 
-@struct.dataclass
+@pytree.dataclass
 class IntCosts(Constant):
     def cost(self, key, nets):
         return jnp.zeros(nets.bias.shape[:-1], jnp.int32)
 
 
-@struct.dataclass
+@pytree.dataclass
 class NoKey(Constant):
     def cost(self, nets):  # forgot the key
         return jnp.zeros(nets.bias.shape[:-1])
 
 
-@struct.dataclass
+@pytree.dataclass
 class NoOutput:
-    n_inputs: int = struct.field(pytree_node=False, default=2)
-    n_outputs: int = struct.field(pytree_node=False, default=1)
-    hidden: str = struct.field(pytree_node=False, default="tanh")
+    n_inputs: int = pytree.field(pytree_node=False, default=2)
+    n_outputs: int = pytree.field(pytree_node=False, default=1)
+    hidden: str = pytree.field(pytree_node=False, default="tanh")
 
     def cost(self, key, nets):
         return jnp.zeros(nets.bias.shape[:-1])
@@ -123,17 +122,17 @@ def test_protocol_mistakes_are_one_line_and_run_agrees_with_optimize(task, phras
 
 def _write_task_file(path: Path, factory: str = "make_task") -> Path:
     path.write_text(
-        "from flax import struct\n"
+        "from eant2_jax import pytree\n"
         "import jax.numpy as jnp\n"
         "from eant2_jax.kernels import network as kn\n"
         "from eant2_jax.tasks import map_networks\n\n"
-        "@struct.dataclass\n"
+        "@pytree.dataclass\n"
         "class Reach:\n"
         "    target: float = 0.5\n"
-        "    n_inputs: int = struct.field(pytree_node=False, default=1)\n"
-        "    n_outputs: int = struct.field(pytree_node=False, default=1)\n"
-        "    hidden: str = struct.field(pytree_node=False, default='tanh')\n"
-        "    output: str = struct.field(pytree_node=False, default='identity')\n\n"
+        "    n_inputs: int = pytree.field(pytree_node=False, default=1)\n"
+        "    n_outputs: int = pytree.field(pytree_node=False, default=1)\n"
+        "    hidden: str = pytree.field(pytree_node=False, default='tanh')\n"
+        "    output: str = pytree.field(pytree_node=False, default='identity')\n\n"
         "    def cost(self, key, nets):\n"
         "        def one(net):\n"
         "            y, _ = kn.step(net, jnp.ones(1), jnp.zeros(net.bias.shape))\n"
@@ -273,15 +272,15 @@ def test_cli_task_spec_errors_are_one_line(tmp_path, capsys, monkeypatch):
         assert not out.exists()
 
 
-@struct.dataclass
+@pytree.dataclass
 class Coin:
     """A noisy task whose cost is one uniform draw of its key, whatever the network."""
 
-    n_inputs: int = struct.field(pytree_node=False, default=2)
-    n_outputs: int = struct.field(pytree_node=False, default=1)
-    hidden: str = struct.field(pytree_node=False, default="tanh")
-    output: str = struct.field(pytree_node=False, default="identity")
-    noisy: bool = struct.field(pytree_node=False, default=True)
+    n_inputs: int = pytree.field(pytree_node=False, default=2)
+    n_outputs: int = pytree.field(pytree_node=False, default=1)
+    hidden: str = pytree.field(pytree_node=False, default="tanh")
+    output: str = pytree.field(pytree_node=False, default="identity")
+    noisy: bool = pytree.field(pytree_node=False, default=True)
 
     def cost(self, key, nets):
         return jnp.broadcast_to(jax.random.uniform(key), nets.bias.shape[:-1])

@@ -6,24 +6,24 @@ Run it: ``python docs/examples/point_mass.py`` (CMA-ES on one network, then EANT
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
+from eant2_jax import pytree
 from eant2_jax.kernels import network as kn
 from eant2_jax.tasks import map_networks
 
 
-@struct.dataclass
+@pytree.dataclass
 class PointMass:
     """Push a unit mass on a line from a random start at rest to x = 0, and hold it there."""
 
     dt: float = 0.1  # a traced number: a new value runs the same compiled program
-    steps: int = struct.field(pytree_node=False, default=50)  # shapes the program: static
-    starts: int = struct.field(pytree_node=False, default=8)  # episodes per evaluation
-    n_inputs: int = struct.field(pytree_node=False, default=2)  # position, velocity
-    n_outputs: int = struct.field(pytree_node=False, default=1)  # force
-    hidden: str = struct.field(pytree_node=False, default="tanh")
-    output: str = struct.field(pytree_node=False, default="tanh")  # force in [-1, 1]
-    noisy: bool = struct.field(pytree_node=False, default=True)  # random starts
+    steps: int = pytree.field(pytree_node=False, default=50)  # shapes the program: static
+    starts: int = pytree.field(pytree_node=False, default=8)  # episodes per evaluation
+    n_inputs: int = pytree.field(pytree_node=False, default=2)  # position, velocity
+    n_outputs: int = pytree.field(pytree_node=False, default=1)  # force
+    hidden: str = pytree.field(pytree_node=False, default="tanh")
+    output: str = pytree.field(pytree_node=False, default="tanh")  # force in [-1, 1]
+    noisy: bool = pytree.field(pytree_node=False, default=True)  # random starts
 
     def episode(self, net: kn.Network, x0: jax.Array) -> jax.Array:
         """Mean of x^2 + 0.1 v^2 over one episode of ONE network from position x0."""

@@ -123,7 +123,7 @@ def _load_file(path: Path):
     if spec is None or spec.loader is None:
         raise ValueError(f"cannot import {path} as Python")
     module = importlib.util.module_from_spec(spec)
-    # Registered before it runs: dataclasses (flax.struct) look their module up by name.
+    # Registered before it runs: dataclasses (eant2_jax.pytree) look their module up by name.
     sys.modules[name] = module
     try:
         spec.loader.exec_module(module)

@@ -170,15 +170,15 @@ def check_task(task: Any, genomes: Sequence[Any] = (), *, what: str | None = Non
     leaves = jax.tree.leaves(task)
     if len(leaves) == 1 and leaves[0] is task:
         raise TaskError(
-            f"{what} is not a JAX pytree: declare its class with @flax.struct.dataclass "
-            f"(sizes and names as struct.field(pytree_node=False)); {_GUIDE}"
+            f"{what} is not a JAX pytree: declare its class with @eant2_jax.pytree.dataclass "
+            f"(sizes and names as pytree.field(pytree_node=False)); {_GUIDE}"
         )
     for leaf in leaves:
         if not isinstance(leaf, jax.Array | np.ndarray | np.generic | numbers.Number):
             raise TaskError(
                 f"{what}: a field holds a {type(leaf).__name__}, which cannot enter a jit-"
                 f"compiled function: make it an array or a static field "
-                f"(struct.field(pytree_node=False))"
+                f"(pytree.field(pytree_node=False))"
             )
     for i, g in enumerate(genomes):
         if g.n_outputs != task.n_outputs:

@@ -45,8 +45,8 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
+from .. import pytree
 from ..kernels import network as kn
 from .episodic import EpisodicTask, check_choice, check_episode_options, check_int, check_like
 from .episodic import returns as returns
@@ -167,7 +167,7 @@ def check_precision(where: str, precision: str) -> None:
     check_choice(where, "precision", precision, PRECISIONS)
 
 
-@struct.dataclass(kw_only=True)
+@pytree.dataclass(kw_only=True)
 class PipelineTask(EpisodicTask):
     """The base of the adapters for environments with brax's interface (``env.reset(key)``
     and ``env.step(state, action)`` returning a state with ``obs``, ``reward`` and ``done``:
@@ -178,7 +178,7 @@ class PipelineTask(EpisodicTask):
         keyword-only).
     """
 
-    precision: str = struct.field(pytree_node=False, default="highest")
+    precision: str = pytree.field(pytree_node=False, default="highest")
 
     @property
     def env(self) -> Any:
@@ -213,7 +213,7 @@ class PipelineTask(EpisodicTask):
         return self.play(net, key, reset, step)
 
 
-@struct.dataclass
+@pytree.dataclass
 class BraxTask(PipelineTask):
     """A brax environment as a task (module docstring). Build with `brax`.
 
@@ -228,11 +228,11 @@ class BraxTask(PipelineTask):
     ``chunk``, ``hidden``, ``output`` and ``noisy`` (keyword-only).
     """
 
-    env_name: str = struct.field(pytree_node=False)
-    backend: str = struct.field(pytree_node=False)
-    params: tuple[tuple[str, Any], ...] = struct.field(pytree_node=False)
-    n_inputs: int = struct.field(pytree_node=False)
-    n_outputs: int = struct.field(pytree_node=False)
+    env_name: str = pytree.field(pytree_node=False)
+    backend: str = pytree.field(pytree_node=False)
+    params: tuple[tuple[str, Any], ...] = pytree.field(pytree_node=False)
+    n_inputs: int = pytree.field(pytree_node=False)
+    n_outputs: int = pytree.field(pytree_node=False)
 
     @property
     def env(self):

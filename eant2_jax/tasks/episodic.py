@@ -31,8 +31,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
+from .. import pytree
 from ..kernels import network as kn
 from .base import map_networks
 
@@ -212,7 +212,7 @@ def rollout(
     return ret, t
 
 
-@struct.dataclass(kw_only=True)
+@pytree.dataclass(kw_only=True)
 class EpisodicTask:
     """A task made of episodes: the base of the environment adapters' task classes, which
     add their environment's fields and define ``inputs``, ``action`` and ``episode``
@@ -227,12 +227,12 @@ class EpisodicTask:
       noisy: costs depend on the key (static; see `eant2_jax.tuning.tune`).
     """
 
-    max_steps: int = struct.field(pytree_node=False)
-    output: str = struct.field(pytree_node=False)
-    episodes: int = struct.field(pytree_node=False, default=1)
-    chunk: int = struct.field(pytree_node=False, default=50)
-    hidden: str = struct.field(pytree_node=False, default="tanh")
-    noisy: bool = struct.field(pytree_node=False, default=True)
+    max_steps: int = pytree.field(pytree_node=False)
+    output: str = pytree.field(pytree_node=False)
+    episodes: int = pytree.field(pytree_node=False, default=1)
+    chunk: int = pytree.field(pytree_node=False, default=50)
+    hidden: str = pytree.field(pytree_node=False, default="tanh")
+    noisy: bool = pytree.field(pytree_node=False, default=True)
 
     def inputs(self, obs: Any) -> jax.Array:
         """Network inputs ``[n_inputs]`` of one observation."""

@@ -40,8 +40,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
+from .. import pytree
 from ..kernels import network as kn
 from .episodic import EpisodicTask, check_choice, check_episode_options, check_int, check_like
 from .episodic import returns as returns
@@ -84,7 +84,7 @@ def _environment(name: str) -> tuple[Any, Any]:
     return gx.make(name)
 
 
-@struct.dataclass
+@pytree.dataclass
 class GymnaxTask(EpisodicTask):
     """A gymnax environment as a task (module docstring). Build with `gymnax`.
 
@@ -108,12 +108,12 @@ class GymnaxTask(EpisodicTask):
     obs_scale: jax.Array
     act_low: jax.Array
     act_high: jax.Array
-    env_name: str = struct.field(pytree_node=False)
-    n_inputs: int = struct.field(pytree_node=False)
-    n_outputs: int = struct.field(pytree_node=False)
-    discrete: bool = struct.field(pytree_node=False)
-    action_shape: tuple[int, ...] = struct.field(pytree_node=False)
-    solved_cost: float | None = struct.field(pytree_node=False, default=None)
+    env_name: str = pytree.field(pytree_node=False)
+    n_inputs: int = pytree.field(pytree_node=False)
+    n_outputs: int = pytree.field(pytree_node=False)
+    discrete: bool = pytree.field(pytree_node=False)
+    action_shape: tuple[int, ...] = pytree.field(pytree_node=False)
+    solved_cost: float | None = pytree.field(pytree_node=False, default=None)
 
     @property
     def env(self):

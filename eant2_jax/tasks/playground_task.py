@@ -32,8 +32,8 @@ import math
 from typing import Any
 
 import jax
-from flax import struct
 
+from .. import pytree
 from .brax_task import PipelineTask, _hashable, calling_brax, check_precision
 from .episodic import check_choice, check_episode_options, check_int, check_like
 
@@ -63,7 +63,7 @@ def _environment(name: str, overrides: tuple[tuple[str, Any], ...]) -> Any:
         return _registry().load(name, config_overrides=dict(overrides))
 
 
-@struct.dataclass
+@pytree.dataclass
 class PlaygroundTask(PipelineTask):
     """A MuJoCo Playground environment as a task (module docstring). Build with
     `playground`.
@@ -79,11 +79,11 @@ class PlaygroundTask(PipelineTask):
     ``chunk``, ``hidden``, ``output`` and ``noisy`` (keyword-only).
     """
 
-    env_name: str = struct.field(pytree_node=False)
-    overrides: tuple[tuple[str, Any], ...] = struct.field(pytree_node=False)
-    obs_key: str = struct.field(pytree_node=False)
-    n_inputs: int = struct.field(pytree_node=False)
-    n_outputs: int = struct.field(pytree_node=False)
+    env_name: str = pytree.field(pytree_node=False)
+    overrides: tuple[tuple[str, Any], ...] = pytree.field(pytree_node=False)
+    obs_key: str = pytree.field(pytree_node=False)
+    n_inputs: int = pytree.field(pytree_node=False)
+    n_outputs: int = pytree.field(pytree_node=False)
 
     @property
     def env(self):

@@ -81,8 +81,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
+from .. import pytree
 from ..kernels import network as kn
 from .base import map_networks
 
@@ -136,7 +136,7 @@ class Trial(NamedTuple):
     jiggle_sum: jax.Array
 
 
-@struct.dataclass
+@pytree.dataclass
 class PoleTask:
     """Double pole balancing (module docstring). Build with `dpv` or `dpnv`.
 
@@ -153,12 +153,12 @@ class PoleTask:
 
     physics: Physics
     start: jax.Array
-    velocities: bool = struct.field(pytree_node=False, default=True)
-    fitness: str = struct.field(pytree_node=False, default="steps")
-    max_steps: int = struct.field(pytree_node=False, default=100_000)
-    chunk: int = struct.field(pytree_node=False, default=100)
-    hidden: str = struct.field(pytree_node=False, default="tanh")
-    output: str = struct.field(pytree_node=False, default="tanh")
+    velocities: bool = pytree.field(pytree_node=False, default=True)
+    fitness: str = pytree.field(pytree_node=False, default="steps")
+    max_steps: int = pytree.field(pytree_node=False, default=100_000)
+    chunk: int = pytree.field(pytree_node=False, default=100)
+    hidden: str = pytree.field(pytree_node=False, default="tanh")
+    output: str = pytree.field(pytree_node=False, default="tanh")
 
     @property
     def n_inputs(self) -> int:

@@ -10,7 +10,8 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
+
+from .. import pytree
 
 __all__ = [
     "FITNESSES",
@@ -47,7 +48,7 @@ _JIGGLE_WINDOW = 100  # Gruau et al.: the damping term sums the last 100 time st
 FITNESSES = ("steps", "damping")
 
 
-@struct.dataclass
+@pytree.dataclass
 class Physics:
     """Constants of the cart and poles (leaves, so they may be traced or vmapped).
 

@@ -7,16 +7,16 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 from numpy.typing import ArrayLike
 
+from .. import pytree
 from ..kernels import network as kn
 from .base import map_networks
 
 __all__ = ["XOR_SOLVED", "Regression", "regression", "xor"]
 
 
-@struct.dataclass
+@pytree.dataclass
 class Regression:
     """Mean squared error of the network outputs against targets.
 
@@ -31,9 +31,9 @@ class Regression:
 
     inputs: jax.Array
     targets: jax.Array
-    hidden: str = struct.field(pytree_node=False, default="tanh")
-    output: str = struct.field(pytree_node=False, default="identity")
-    solved_cost: float | None = struct.field(pytree_node=False, default=None)
+    hidden: str = pytree.field(pytree_node=False, default="tanh")
+    output: str = pytree.field(pytree_node=False, default="identity")
+    solved_cost: float | None = pytree.field(pytree_node=False, default=None)
 
     @property
     def n_inputs(self) -> int:

@@ -56,8 +56,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
+from .. import pytree
 from ..kernels import kinematics as kin
 from ..kernels import network as kn
 
@@ -118,7 +118,7 @@ from .servo_scene import (  # noqa: F401
 )
 
 
-@struct.dataclass
+@pytree.dataclass
 class Servo:
     """The visual servoing task (see the module docstring for every constant).
 
@@ -162,13 +162,13 @@ class Servo:
     q_lo: jax.Array
     q_hi: jax.Array
     max_step: jax.Array
-    camera_site: int = struct.field(pytree_node=False)
-    camera_body: int = struct.field(pytree_node=False)
-    mode: str = struct.field(pytree_node=False, default="kinematic")
-    moves_per_start: int = struct.field(pytree_node=False, default=1)
-    substeps: int = struct.field(pytree_node=False, default=SUBSTEPS)
-    hidden: str = struct.field(pytree_node=False, default="tanh")
-    output: str = struct.field(pytree_node=False, default="identity")
+    camera_site: int = pytree.field(pytree_node=False)
+    camera_body: int = pytree.field(pytree_node=False)
+    mode: str = pytree.field(pytree_node=False, default="kinematic")
+    moves_per_start: int = pytree.field(pytree_node=False, default=1)
+    substeps: int = pytree.field(pytree_node=False, default=SUBSTEPS)
+    hidden: str = pytree.field(pytree_node=False, default="tanh")
+    output: str = pytree.field(pytree_node=False, default="identity")
 
     @property
     def n_inputs(self) -> int:

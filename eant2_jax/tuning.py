@@ -419,7 +419,9 @@ class OptimizeResult(NamedTuple):
 
 
 def optimize(genome: Genome | str, task: Task, *, key: jax.Array, **options: Any) -> OptimizeResult:
-    """Tune one genome's weights on a task with CMA-ES, starting from its current weights.
+    """Tune one genome's weights on a task with CMA-ES, starting from its current weights,
+    and prune it with `ExploitConfig`'s default pruner (covariance); ``pruner="none"`` gives
+    plain CMA-ES.
 
     Args:
       genome: the structure (and its initial weights).

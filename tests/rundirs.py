@@ -1,10 +1,13 @@
-"""Run-directory edits the trust tests make as an attacker would (a test helper module)."""
+"""Test helpers: the command line run in-process, and run-directory edits the trust tests
+make as an attacker would."""
 
 from __future__ import annotations
 
 import hashlib
 import json
+import sys
 
+from eant2_jax.app.cli import main
 from eant2_jax.rundir import CHECKPOINT, CONFIG
 
 
@@ -18,3 +21,17 @@ def retask(out, task, options):
     ckpt = json.loads((out / CHECKPOINT).read_text())
     ckpt["sha256"][CONFIG] = hashlib.sha256(data).hexdigest()
     (out / CHECKPOINT).write_text(json.dumps(ckpt) + "\n")
+
+
+def run_main(argv, capsys, monkeypatch):
+    """``eant2 ARGV`` in this process: ``(exit code, stdout, the non-blank stderr lines)``,
+    with the compilation cache off and ``sys.path`` restored after (``--task`` appends the
+    working directory)."""
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as e:  # argparse's errors
+        rc = e.code
+    cap = capsys.readouterr()
+    return rc, cap.out, [x for x in cap.err.splitlines() if x.strip()]

@@ -7,28 +7,18 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 
 import pytest
-from rundirs import retask
+from rundirs import retask, run_main
 
 from eant2_jax import EANT2Config, ExploitConfig
-from eant2_jax.app.cli import main
 from eant2_jax.app.parser import build_parser, config_from
 from eant2_jax.rundir import RunDir
 
 TINY = ["--population", "3", "--max-iters", "20", "--generations", "0", "--no-prune"]
 
 
-def _main(argv, capsys, monkeypatch):
-    monkeypatch.setenv("EANT2_CACHE_DIR", "")
-    monkeypatch.setattr(sys, "path", list(sys.path))  # --task appends the working directory
-    try:
-        rc = main([str(a) for a in argv])
-    except SystemExit as e:  # argparse's errors
-        rc = e.code
-    cap = capsys.readouterr()
-    return rc, cap.out, [x for x in cap.err.splitlines() if x.strip()]
+_main = run_main
 
 
 @pytest.mark.parametrize(

@@ -17,11 +17,11 @@ from pathlib import Path
 
 import jax
 import pytest
+from rundirs import run_main
 from test_report import make_run
 
 import eant2_jax
 from eant2_jax import EANT2Config
-from eant2_jax.app.cli import main
 from eant2_jax.checkpoint import validate
 from eant2_jax.records import RUN_DEPENDENT
 from eant2_jax.rundir import CHECKPOINT
@@ -29,15 +29,7 @@ from eant2_jax.rundir import CHECKPOINT
 TINY = ["--population", "3", "--max-iters", "20", "--no-prune"]
 
 
-def _main(argv, capsys, monkeypatch):
-    monkeypatch.setenv("EANT2_CACHE_DIR", "")
-    monkeypatch.setattr(sys, "path", list(sys.path))
-    try:
-        rc = main([str(a) for a in argv])
-    except SystemExit as e:  # argparse's errors
-        rc = e.code
-    cap = capsys.readouterr()
-    return rc, cap.out, [x for x in cap.err.splitlines() if x.strip()]
+_main = run_main
 
 
 def test_report_refuses_to_overwrite_a_report_unless_forced(tmp_path, capsys, monkeypatch):

@@ -229,6 +229,8 @@ def _worker_eant2(env: Env, args: argparse.Namespace, log: _Log) -> None:
         reexploit=env.reexploit,
         inherit_search=env.reexploit,
         min_bucket=env.min_bucket,
+        # The field compares returns at equal budgets: both methods spend the whole budget.
+        stop_when_solved=False,
         exploit=eant2_jax.ExploitConfig(
             pruner="covariance",
             max_iters=args.max_iters or env.max_iters,

@@ -65,4 +65,8 @@ def _cache_setting_restored():
     yield
     if jax.config.jax_compilation_cache_dir != before:
         jax.config.update("jax_compilation_cache_dir", before)
-        compilation_cache.reset_cache()
+    # Always: a test that set the folder and put it back itself leaves JAX's decision "the
+    # cache is in use" behind, and every later compile of the worker then went through the
+    # cache's path to a folder that test removed (XLA's compiler aborted there, twice, in
+    # test_pruning). Resetting makes the next compile decide again from the setting.
+    compilation_cache.reset_cache()

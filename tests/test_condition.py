@@ -21,7 +21,7 @@ def test_evolved_branch_continues_the_original_run_exactly():
     genome = Genome.parse("N0/3*1 I0*0.7 I0*0.8 I1*0.5")
     pruned = Genome.parse("N0/2*1 I0*1.5 I1*0.01")  # genes 0, 1 and 3 kept
     config = ExploitConfig(sigma0=0.5, max_iters=40, chunk=20, patience=40, sigma_tol=0.0,
-                           sigma_up=1e30, bound_patience=41)  # fmt: skip
+                           sigma_up=1e30, bound_patience=41, pruner="none")  # fmt: skip
     key = jax.random.key(3)
     ev = from_evolved(genome, pruned, task, key, config, inits=2, warmup=30, sigma0=0.1)
     assert np.shape(ev["before"]) == np.shape(ev["after"]) == (2, 40)

@@ -77,7 +77,7 @@ def test_one_sharded_iteration_equals_unsharded():
     out = _python(
         """
         from eant2_jax import exploitation as ex
-        c1 = ex.ExploitConfig(max_iters=5, chunk=5)
+        c1 = ex.ExploitConfig(max_iters=5, chunk=5, pruner="none")
         prep = tuning.prepare(genomes, task, key=jax.random.key(0), config=c1, min_rows=8)
         assert prep.popsize == 10 and prep.batch.layout.slot.shape[0] == 8
         def go(mesh):

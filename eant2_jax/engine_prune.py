@@ -51,7 +51,7 @@ def prune_phase(new, st, normal, in_trial, in_refit, f, tables, config):
         # are rare (about one per structure in a 300-iteration servo run), a read per
         # iteration is not.
         a, c, p, record, decided = judge(a, c, p, f, in_trial)
-        a, c = _begin(a, c, p, trigger, tables, new.iteration, config)
+        a, c = _begin(a, c, p, trigger, tables, new.iteration, config, new.key)
         return a, c, p, record, decided
 
     def usual(a, c, p):
@@ -88,13 +88,14 @@ def prune_phase(new, st, normal, in_trial, in_refit, f, tables, config):
     return _started(new, trigger, config), record
 
 
-def _begin(att, cma, params, trigger, tables, iteration, config):
+def _begin(att, cma, params, trigger, tables, iteration, config, keys):
     """``(attempt, cma)`` with a pruning attempt proposed for the ``trigger`` structures
     (the next engine iteration evaluates their shifted means); the other rows unchanged."""
     if config.lazy_eigen > 0:
         # The candidate comes from the covariance as it is now, not as last decomposed.
         cma = decomposed(cma, params, trigger)
-    return pruning.propose(att, cma, trigger, tables, iteration, pruner=config.pruner), cma
+    att = pruning.propose(att, cma, trigger, tables, iteration, pruner=config.pruner, keys=keys)
+    return att, cma
 
 
 def _started(st, trigger, config):
@@ -116,7 +117,7 @@ def start_attempt(st, trigger, tables, config):
     predicate read) for the decomposition and the proposal, then `_started`."""
 
     def begin(att, cma):
-        return _begin(att, cma, st.params, trigger, tables, st.iteration, config)
+        return _begin(att, cma, st.params, trigger, tables, st.iteration, config, st.key)
 
     att, cma = cond_rare(jnp.any(trigger), begin, lambda a, c: (a, c), st.attempt, st.cma)
     return _started(st.replace(attempt=att, cma=cma), trigger, config)

@@ -44,6 +44,7 @@ __all__ = [
     "TRIAL",
     "Attempt",
     "AttemptRecord",
+    "attempt_key",
     "PruneAttempt",
     "attempt_records",
     "conclude",
@@ -186,6 +187,7 @@ def propose(
     iteration: jax.Array,
     *,
     pruner: str,
+    keys: jax.Array | None = None,
 ) -> Attempt:
     """Start an attempt for every triggered structure (paper eqs. 5-8, or a baseline's
     scores): its k best-scored parameters, their shifted means with their sub-genomes set to
@@ -195,14 +197,23 @@ def propose(
       att: the attempts in progress (none for the triggered structures).
       cma: the CMA-ES state; trigger: ``[S]`` the structures that attempt.
       tables: the pruner tables ``[S, P]``; iteration: ``[S]`` each one's CMA-ES iteration.
-      pruner: ``covariance``, ``magnitude``, ``obd``, ``obs`` or ``snr`` (static).
+      pruner: ``covariance``, ``magnitude``, ``obd``, ``obs``, ``snr`` or ``random``
+        (static).
+      keys: ``[S]`` each structure's PRNG key (the engine state's ``key``); read by the
+        ``random`` pruner alone, through `attempt_key`.
     """
     s_count, p = cma.mean.shape
     k = att.trial.shape[1]
     removable = jax.vmap(kp.removable)(tables, cma.mask)
-    score, shifted, axis, factor = jax.vmap(functools.partial(kp.scores, pruner))(
-        cma.mean, cma.sigma, cma.C, cma.B, cma.D, cma.valid_axes, removable
-    )
+    scores = functools.partial(kp.scores, pruner)
+    args = (cma.mean, cma.sigma, cma.C, cma.B, cma.D, cma.valid_axes, removable)
+    if pruner == "random":
+        if keys is None:
+            raise ValueError("the random pruner needs the structures' keys")
+        draw = jax.vmap(attempt_key)(keys, iteration)
+        score, shifted, axis, factor = jax.vmap(scores)(*args, draw)
+    else:
+        score, shifted, axis, factor = jax.vmap(scores)(*args)
     _, top = jax.lax.top_k(-score, k)  # [S, k] the k smallest scores
     rows = jnp.arange(s_count)[:, None]
     removed = jax.vmap(jax.vmap(kp.removal_set, in_axes=(None, None, 0)))(
@@ -219,6 +230,16 @@ def propose(
         record=att.record.replace(iteration=iteration.astype(jnp.int32)),
     )
     return where_rows(trigger, proposed, att)
+
+
+def attempt_key(key: jax.Array, iteration: jax.Array) -> jax.Array:
+    """The key of the random pruner's draw for a structure whose attempt starts at CMA-ES
+    ``iteration``: its key folded with the iteration with bit 31 set (as its re-fit keys
+    are, `eant2_jax.engine_step`) and then with ``2**32 - 1``, a count no re-fit reaches, so
+    the draw is apart from every CMA-ES and re-fit sample; the same key and iteration give
+    the same draw."""
+    first = jax.random.fold_in(key, iteration.astype(jnp.uint32) | jnp.uint32(1 << 31))
+    return jax.random.fold_in(first, jnp.uint32(0xFFFFFFFF))
 
 
 def trial_points(att: Attempt, mean: jax.Array, popsize: int) -> jax.Array:

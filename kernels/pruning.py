@@ -35,7 +35,7 @@ __all__ = [
     "scores",
 ]
 
-PRUNERS = ("covariance", "magnitude", "obd", "obs", "snr", "none")
+PRUNERS = ("covariance", "magnitude", "obd", "obs", "snr", "random", "none")
 
 
 @pytree.dataclass
@@ -98,16 +98,21 @@ def scores(
     D: jax.Array,
     valid_axes: jax.Array,
     candidates: jax.Array,
+    key: jax.Array | None = None,
 ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
     """Every parameter's pruning score and shifted mean, for one pruner.
 
     Args:
-      pruner: ``covariance``, ``magnitude``, ``obd``, ``obs`` or ``snr`` (static).
+      pruner: ``covariance``, ``magnitude``, ``obd``, ``obs``, ``snr`` or ``random``
+        (static).
       mean: ``[P]`` CMA-ES mean m.
       sigma: ``[]`` step size.
       C: ``[P, P]`` covariance; B ``[P, P]`` its eigenvectors (columns), D ``[P]`` the square
         roots of its eigenvalues (0 on padded axes), valid_axes ``[P]`` bool.
       candidates: ``[P]`` bool, parameters that may be removed.
+      key: the ``random`` pruner's PRNG key (the other pruners read none): its scores are
+        i.i.d. uniform draws, so the smallest among the candidates is a uniform choice of
+        one of them (a control: the rule's acceptance without any criterion's choice).
 
     Returns:
       ``(score [P], shifted [P, P], axis [P], factor [P])``: ``score[i]`` (+inf where not a
@@ -145,6 +150,11 @@ def scores(
         # the mean in units of the search distribution's own spread along i; no shift.
         spread = sigma * jnp.sqrt(jnp.maximum(jnp.diagonal(C), 0))
         score = jnp.where(spread > 0, jnp.abs(mean) / jnp.where(spread > 0, spread, 1), inf)
+        shifted = jnp.broadcast_to(mean, (p, p))
+    elif pruner == "random":
+        if key is None:
+            raise ValueError("the random pruner needs a PRNG key")
+        score = jax.random.uniform(key, (p,), mean.dtype)
         shifted = jnp.broadcast_to(mean, (p, p))
     elif pruner == "obs":
         # OBS with H^-1 ~ sigma^2 C: saliency m_i^2 / (2 sigma^2 C_ii), eq. (2);

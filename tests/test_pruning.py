@@ -700,8 +700,8 @@ def test_obd_and_magnitude_scores(seed, n):
 
 def test_scores_rejects_unknown_pruner():
     z = jnp.zeros(P)
-    with pytest.raises(ValueError, match="unknown pruner 'random'"):
-        kp.scores("random", z, 1.0, jnp.eye(P), jnp.eye(P), z, z > 0, z > 0)
+    with pytest.raises(ValueError, match="unknown pruner 'lottery'"):
+        kp.scores("lottery", z, 1.0, jnp.eye(P), jnp.eye(P), z, z > 0, z > 0)
 
 
 # --------------------------------------------------------------------------------------------

@@ -273,7 +273,9 @@ def show(args: argparse.Namespace) -> int:
     keep = outputs.exists(out) and not args.force  # a link or non-file: OutputError
     print(genome)
     if spec.has_header:
-        task = spec.task or "?"
+        # The header's strings are the file's: shown as JSON escapes them (a task name
+        # holding a newline or a terminal escape sequence shows as \n, \u001b).
+        task = json.dumps(spec.task)[1:-1] if spec.task else "?"
         if spec.task_options:
             task += " " + json.dumps(spec.task_options)
         print(f"{'activations':>14}: hidden {spec.hidden}, output {spec.output}")
@@ -336,17 +338,18 @@ def list_config(args: argparse.Namespace) -> int:
 
 def run_reproduction(args: argparse.Namespace) -> int:
     import eant2_jax
-    from eant2_jax.app.experiments import arm_config, reproduce
-    from eant2_jax.config import EANT2Config
+    from eant2_jax.app.arms import parse_arms
+    from eant2_jax.app.experiments import reproduce
 
     options = {"mode": args.mode} if args.task == "servo" else {}
     options.update(task_options(args.task_option, args.task))
     config = config_from(args)
-    if args.seed + args.runs > 2**32:
-        raise ValueError(f"--seed {args.seed} + --runs {args.runs} goes past 2**32")
-    pruners = [p.strip() for p in args.pruners.split(",") if p.strip()]
-    for arm in pruners:  # one clear line before anything runs
-        arm_config(EANT2Config(), arm)
+    arms = parse_arms(args.pruners, args.runs)  # one clear line before anything runs
+    most = max(n for _, n in arms)
+    if args.seed + most > 2**32:
+        raise ValueError(f"--seed {args.seed} + {most} runs goes past 2**32")
+    pruners = [a for a, _ in arms if a != "none"]  # reproduce adds it
+    arm_runs = {a: n for a, n in arms if n != args.runs}
     task = eant2_jax.tasks.make(args.task, **options)
     out = Path(args.out) if args.out else free_dir(f"reproduce-{args.task}", args.seed)
     args.out = str(out)  # for the interruption hint (eant2 resume OUT)
@@ -358,6 +361,7 @@ def run_reproduction(args: argparse.Namespace) -> int:
         runs=args.runs,
         generations=args.generations,
         pruners=pruners,
+        arm_runs=arm_runs,
         config=config,
         seed=args.seed,
         workers_per_device=args.workers,

@@ -13,7 +13,7 @@ import contextlib
 import json
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import jax
@@ -27,6 +27,7 @@ from ..multirun import chosen_devices, run_many
 from ..rundir import RunDirError
 from ..tasks.base import ReportingTask, Task
 from . import outputs
+from .arms import arm_overrides
 from .condition import condition_experiment
 from .manifest import (
     CONDITION,
@@ -34,6 +35,7 @@ from .manifest import (
     MANIFEST_VERSION,
     ManifestError,
     arm_config,
+    arm_order,
     check_condition,
     check_manifest,
     read_json,
@@ -61,6 +63,7 @@ def reproduce(
     runs: int = 10,
     generations: int = 15,
     pruners: Sequence[str] = ("covariance",),
+    arm_runs: Mapping[str, int] | None = None,
     config: EANT2Config | None = None,
     seed: int = 0,
     devices: int | str = "all",
@@ -87,8 +90,13 @@ def reproduce(
       task_meta: ``{"task": name, "task_options": {...}}`` stored with each run.
       runs: runs per arm (seeds ``seed .. seed+runs-1``; the same seeds in every arm).
       generations: generations per run.
-      pruners: the pruning arms; an arm without pruning (``none``) is always added.
-      config: base EANT2 configuration (its pruner is set per arm).
+      pruners: the arms, by name (`eant2_jax.app.arms`: the protocol's arms such as
+        ``default``, ``no-refit``, ``random``, or a pruner's name, or ``NAME-literal``); an
+        arm without pruning (``none``) is always added.
+      arm_runs: runs of the arms whose count is not ``runs`` (``{"none": 20}``); an arm of
+        ``n`` runs takes seeds ``seed .. seed+n-1``.
+      config: base EANT2 configuration (each arm sets its pruning fields,
+        `eant2_jax.app.arms.arm_overrides`).
       seed: first seed.
       devices: devices to spread the runs over (see `eant2_jax.run_many`).
       workers_per_device: concurrent runs per device (overlaps one run's host work with
@@ -137,6 +145,13 @@ def reproduce(
         "condition_inits": condition_inits,
         "condition_dtype": condition_dtype,
     }
+    arms = arm_order(list(pruners)) if isinstance(pruners, Sequence) else []
+    if arm_runs:
+        manifest["arm_runs"] = {**{a: runs for a in arms}, **dict(arm_runs)}
+    try:
+        manifest["arm_overrides"] = {a: arm_overrides(a) for a in arms}
+    except ValueError:
+        pass  # check_manifest names the unknown arm in its own words
     settings = check_manifest(manifest, "reproduce")  # one rule for a start and a resume
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise RunDirError(f"{out} already exists and is not an empty directory; not overwriting")
@@ -181,8 +196,8 @@ def _reproduce(task, out: Path, settings: dict, overlap, callback, *, resume: bo
     """The reproduction of checked ``settings`` (`check_manifest`'s) in ``out``, whose
     manifest is written: the arms, the condition experiment, the report."""
     s = settings
-    arms = [p for p in s["pruners"] if p != "none"] + ["none"]
-    jobs = [(arm, s["seed"] + i) for arm in arms for i in range(s["runs"])]
+    arms = arm_order(s["pruners"])
+    jobs = [(arm, s["seed"] + i) for arm in arms for i in range(s["arm_runs"][arm])]
     dirs = [out / f"{arm}-s{seed}" for arm, seed in jobs]
     t0 = time.perf_counter()
     if overlap is None:
@@ -226,7 +241,7 @@ def _run_arms(task, s: dict, jobs, dirs, callback, resume: bool, start_condition
         for arm in order[1:]:
             first = next(i for i, (a, _) in enumerate(jobs) if a == arm)
             key = jax.eval_shape(jax.random.key, jobs[first][1])
-            compile_first_ahead(task, key, configs[first], runs=s["runs"])
+            compile_first_ahead(task, key, configs[first], runs=s["arm_runs"][arm])
     results: list = [None] * len(jobs)
     for arm in order:  # one meta per arm
         idx = [i for i, (a, _) in enumerate(jobs) if a == arm]
@@ -372,14 +387,15 @@ def _claims(dirs: Sequence[Path], cond: dict | None) -> str:
     for arm, v in s.items():
         if arm == "none" or none is None:
             continue
-        same = v["p_fitness"] is None or v["p_fitness"] > 0.05
+        p = v["p_fitness"]
         lines.append(
-            f"- **Size reduction at equal fitness ({escape(arm)})**: size {v['size_mean']:.1f} "
+            f"- **Size and fitness ({escape(arm)})**: size {v['size_mean']:.1f} "
             f"vs {none['size_mean']:.1f} without pruning ({v['size_reduction_pct']:.1f}% "
             f"smaller; paper: 59.8 vs 73.6, 23%); fitness {v['fitness_mean']:.4g} vs "
-            f"{none['fitness_mean']:.4g} (paper: -0.2277 vs -0.2267); "
-            + ("no significant fitness difference" if same else "the fitness DIFFERS")
-            + (f" (p = {v['p_fitness']:.3g})." if v["p_fitness"] is not None else ".")
+            f"{none['fitness_mean']:.4g} (paper: -0.2277 vs -0.2267"
+            + (f"; Welch p = {p:.3g}" if p is not None else "")
+            + "). Whether the size is smaller and the fitness equivalent is decided by the "
+            "verdicts above (a p-value above 0.05 is not equality)."
         )
     if cond is not None:
         lines.append(_conditioning_claim(cond))

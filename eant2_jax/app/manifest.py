@@ -11,7 +11,6 @@ ever imported (docs/reliability.md, "Trust" and "Manifests").
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import stat
@@ -20,8 +19,8 @@ from typing import Any
 
 from ..config import EANT2Config
 from ..jsonio import loads, read_upto, short
-from ..kernels.pruning import PRUNERS
 from ..rundir import RunDirError
+from .arms import arm_config, arm_overrides
 
 __all__ = [
     "CONDITION",
@@ -30,6 +29,7 @@ __all__ = [
     "MANIFEST_VERSION",
     "ManifestError",
     "arm_config",
+    "arm_order",
     "check_condition",
     "check_manifest",
     "read_json",
@@ -58,26 +58,14 @@ _MAX_BYTES = {MANIFEST: 1 << 20, CONDITION: 1 << 29}
 _REQUIRED = ("task_meta", "runs", "generations", "pruners", "config", "seed", "devices",
              "workers_per_device", "condition", "condition_iters", "condition_inits",
              "condition_dtype")  # fmt: skip
-_OPTIONAL = ("version", "lockstep")
+# arm_runs: {arm: runs} where an arm's count differs from ``runs``; arm_overrides: {arm:
+# the fields it set}, checked against this version's registry (`eant2_jax.app.arms`).
+_OPTIONAL = ("version", "lockstep", "arm_runs", "arm_overrides")
 
 
 class ManifestError(RunDirError):
     """A reproduction's ``reproduce.json`` (or ``condition.json``) that is missing, not
     whole or not valid: one line naming the file and the field."""
-
-
-def arm_config(base: EANT2Config, arm: str) -> EANT2Config:
-    """The configuration of one arm of a reproduction: a pruner's name (``none``,
-    ``covariance``, ``obs``, ...) with the default tentative attempt, or ``NAME-literal``
-    for that pruner under the paper's rule as written (`ExploitConfig.literal`)."""
-    name, _, variant = arm.partition("-")
-    if name not in PRUNERS or variant not in ("", "literal") or (name == "none" and variant):
-        known = ", ".join(p for p in PRUNERS) + " (and NAME-literal)"
-        raise ValueError(f"unknown arm {arm!r}; arms are {known}")
-    options = {"pruner": name}
-    if variant == "literal":
-        options.update(prune_refit=0, prune_reference="mean", prune_at_stop=False)
-    return dataclasses.replace(base, exploit=dataclasses.replace(base.exploit, **options))
 
 
 def read_json(path: str | Path, *, strict: bool = True) -> Any:
@@ -153,6 +141,37 @@ def _pruners(pruners: Any, where: str) -> list[str]:
     return list(pruners)
 
 
+def _arm_runs(m: dict, arms: list[str], where: str) -> dict[str, int]:
+    """Each arm's run count: ``arm_runs``' where given, else ``runs``."""
+    given = m.get("arm_runs", {})
+    if not isinstance(given, dict):
+        raise ManifestError(f"{where}: arm_runs must be an object, got {short(given)}")
+    out = {arm: m["runs"] for arm in arms}
+    for arm, n in given.items():
+        if arm not in out:
+            raise ManifestError(f"{where}: arm_runs names {short(arm)}, not an arm of pruners")
+        out[arm] = _int({"runs": n}, "runs", f"{where}: arm_runs.{arm}")
+    if m["seed"] + max(out.values()) > 2**32:
+        raise ManifestError(f"{where}: seed + runs must be at most 2**32")
+    return out
+
+
+def _arm_recorded(m: dict, arms: list[str], where: str) -> None:
+    """``arm_overrides``, when recorded, must be what this version's registry sets for each
+    arm: a reproduction resumes with the arms it started with, or not at all."""
+    if "arm_overrides" not in m:
+        return
+    rec = m["arm_overrides"]
+    if not isinstance(rec, dict) or set(rec) != set(arms):
+        raise ManifestError(f"{where}: arm_overrides must be an object with one entry per arm")
+    for arm in arms:
+        if rec[arm] != arm_overrides(arm):
+            raise ManifestError(
+                f"{where}: arm_overrides.{arm} is {short(rec[arm])}, but this version's arm "
+                f"{arm} sets {short(arm_overrides(arm))}"
+            )
+
+
 def _config(config: Any, where: str) -> EANT2Config:
     try:
         return EANT2Config.from_dict(config, complete=True)
@@ -190,6 +209,9 @@ def check_manifest(m: Any, where: str) -> dict:
         raise ManifestError(f"{where}: seed + runs must be at most 2**32")
     out["devices"] = "all" if m["devices"] == "all" else _int(m, "devices", where)
     out["pruners"] = _pruners(m["pruners"], where)
+    arms = arm_order(out["pruners"])
+    out["arm_runs"] = _arm_runs(m, arms, where)
+    _arm_recorded(m, arms, where)
     out["condition"] = _bool(m, "condition", where)
     out["lockstep"] = _bool(m, "lockstep", where) if "lockstep" in m else False
     if m["condition_dtype"] not in ("float32", "float64"):
@@ -198,6 +220,12 @@ def check_manifest(m: Any, where: str) -> dict:
     out["condition_dtype"] = m["condition_dtype"]
     out["config"] = _config(m["config"], where)
     return out
+
+
+def arm_order(pruners: list[str]) -> list[str]:
+    """The arms of a manifest's ``pruners`` in the order they are reported: as given, then
+    ``none`` (always one of them)."""
+    return [p for p in pruners if p != "none"] + ["none"]
 
 
 def read_manifest(out: str | Path) -> dict:

@@ -384,11 +384,16 @@ def _reproduce_parser(rep: argparse.ArgumentParser) -> None:
         help="servo physics mode (default kinematic)",
     )
     rep.add_argument(
+        "--arms",
         "--pruners",
+        dest="pruners",
         default="covariance",
-        help="comma-separated pruning arms, e.g. covariance,covariance-literal,obs,obd,"
-        "magnitude,snr (NAME-literal: the paper's rule as written); an arm without pruning "
-        "is always added",
+        metavar="ARM[:RUNS],...",
+        help="comma-separated arms, each with its run count if not --runs: the protocol's "
+        "none, literal, default, no-refit, mean-reference, trigger-only, window-250, random, "
+        "magnitude, obs, obd, snr (docs/protocol.md), or a pruner's name, or NAME-literal "
+        "(the paper's rule as written); e.g. none:20,literal:20,default:20,no-refit:10. An "
+        "arm without pruning (none) is always added. --pruners: the older spelling",
     )
     add_config_options(rep, REPRODUCE_FLAGS, REPRODUCE_BASE)
     rep.add_argument("--task", default="servo", help="task (default: servo, the paper's)")

@@ -10,7 +10,10 @@ pruner:
 * a table per arm: final fitness and size (mean +- sd), size reduction, generations and
   evaluations to reach 99% of the final fitness, and Welch t-test p-values against the
   reference arm (``none``, the arm without pruning, unless another is named;
-  `report_stats`).
+  `report_stats`);
+* the protocol's verdicts (docs/protocol.md; `report_verdicts`, also ``verdicts.json``):
+  size difference with its 95% interval, cost equivalence by TOST at ±3%, evaluations to a
+  common target with a bootstrap interval, each claim held / not held / undecided.
 
 Runs are only compared when they ran the same task with the same options and the same
 configuration, pruning apart (`report_runs`): anything else raises `MixedRunsError` naming
@@ -45,6 +48,7 @@ from .report_runs import (
     upto,
 )
 from .report_stats import condition_peaks, reference_arm, summarise
+from .report_verdicts import protocol_verdicts, verdict_lines
 
 __all__ = [
     "LoadedRun",
@@ -95,6 +99,7 @@ def default_folder(dirs: Sequence[str | Path]) -> Path:
 REPORT_FILES = (
     "report.md",
     "summary.json",
+    "verdicts.json",
     "fitness_size.png",
     "condition.png",
     "best_network.png",
@@ -289,6 +294,18 @@ def _summary_json(summary: dict) -> str:
     )
 
 
+def _strict(value):
+    """``value`` with its non-finite numbers as None (``never`` for a target not reached):
+    strict JSON."""
+    if isinstance(value, dict):
+        return {k: _strict(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_strict(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
 def report(
     dirs: Sequence[str | Path],
     out: str | Path,
@@ -343,9 +360,16 @@ def report(
     figures = _figures(runs, list(summary), condition, out)
     lines = _header(runs, summary, mixed, upto, extra) + _table(summary)
     lines += ["", _reference_note(reference), ""]
+    verdicts = None
+    if len(summary) > 1:
+        verdicts = protocol_verdicts(runs, extra.get("generalisation"))
+        lines += [*verdict_lines(verdicts, escape), ""]
     lines += _sections(extra, condition)
     for f in figures:
         lines += [f"![{f}]({f})", ""]
     path = outputs.write_text(out / "report.md", "\n".join(lines) + "\n")
     outputs.write_text(out / "summary.json", _summary_json(summary))
+    if verdicts is not None:
+        text = json.dumps(_strict(verdicts), indent=2, allow_nan=False)
+        outputs.write_text(out / "verdicts.json", text + "\n")
     return path

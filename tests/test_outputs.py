@@ -148,3 +148,66 @@ def test_an_error_while_writing_leaves_no_temp_and_the_old_file(tmp_path):
         outputs.write_with(p, write)
     assert p.read_text() == "{}"
     assert [f.name for f in tmp_path.iterdir()] == ["s.json"]
+
+
+# Calls that create or write files, whatever their receiver (`Path.write_text`, `savefig`,
+# `shutil.copy`, `tempfile.mkstemp`, `os.rename`...).
+WRITERS = {
+    *("write_text", "write_bytes", "savefig", "save", "dump", "copyfile", "copy2", "copytree"),
+    *("mkstemp", "mkdtemp", "touch", "mkdir", "makedirs", "symlink_to", "hardlink_to"),
+    *("rename", "link", "symlink", "write_atomic", "saving", "tofile"),
+}
+# The one exception, and why: the animation writer needs a file name (ffmpeg, Pillow), so
+# it writes into a private `tempfile.TemporaryDirectory`; the result reaches its
+# destination through `outputs.write_bytes`.
+ALLOWED = {("draw.py", "writer.saving")}
+
+
+def _file_writes(path):
+    """``(module, line, call)`` for each call in ``path`` that writes a file other than
+    through `eant2_jax.app.outputs` (or a name imported from it)."""
+    import ast
+
+    tree = ast.parse(path.read_text())
+    from_outputs = {
+        a.asname or a.name
+        for node in ast.walk(tree)
+        if isinstance(node, ast.ImportFrom) and node.module == "outputs"
+        for a in node.names
+    }
+    hits = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        f, text, call = node.func, ast.unparse(node.func), ast.unparse(node)
+        name = f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", None)
+        receiver = ast.unparse(f.value) if isinstance(f, ast.Attribute) else None
+        if receiver == "outputs" or (receiver is None and name in from_outputs):
+            continue
+        if (path.name, text) in ALLOWED or "os.devnull" in call:  # no file of the user's
+            continue
+        if (
+            name in WRITERS
+            or (text == "open" and any(m in call for m in ("'w", "'a", "'x", "+'")))
+            or (text == "os.open" and any(m in call for m in ("O_WRONLY", "O_RDWR", "O_CREAT")))
+        ):
+            hits.append((path.name, node.lineno, call[:80]))
+    return hits
+
+
+def test_the_command_line_writes_files_only_through_outputs(tmp_path):
+    """Every file an ``eant2`` command writes outside a run directory (which `RunDir`
+    writes, docs/reliability.md) goes through `outputs`: whole, renamed into place, never
+    through a link. The scan itself finds each way of writing a file it looks for."""
+    from pathlib import Path
+
+    probe = tmp_path / "probe.py"
+    probe.write_text(
+        "from .outputs import write_text\nwrite_text(p, 'ok')\noutputs.write_bytes(p, b'')\n"
+        "p.write_text('x')\nfig.savefig(p)\nopen(p, 'w')\nopen(p, 'rb')\n"
+        "os.open(p, os.O_WRONLY | os.O_CREAT)\nos.open(p, os.O_RDONLY)\nshutil.copyfile(a, b)\n"
+    )
+    assert [line for _, line, _ in _file_writes(probe)] == [4, 5, 6, 8, 10]
+    app = Path(outputs.__file__).parent
+    hits = [h for p in sorted(app.glob("*.py")) if p.name != "outputs.py" for h in _file_writes(p)]
+    assert hits == []

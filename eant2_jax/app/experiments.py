@@ -29,6 +29,7 @@ from ..tasks.base import ReportingTask, Task
 from . import outputs
 from .arms import arm_overrides
 from .condition import condition_experiment
+from .heldout import held_out_costs
 from .manifest import (
     CONDITION,
     MANIFEST,
@@ -219,6 +220,9 @@ def _reproduce(task, out: Path, settings: dict, overlap, callback, *, resume: bo
     if reporting:
         extra["baselines"] = task.baselines() if baselines is None else baselines.result()
         extra["generalisation"] = _generalisation(task, jobs, results)
+    fresh = _held_out(task, jobs, results)
+    if fresh is not None:
+        extra["held_out"] = fresh
     cond = None
     if cond_cached:
         cond = check_condition(read_json(done, strict=False), str(done))
@@ -326,6 +330,19 @@ def _generalisation(task, jobs, results) -> dict[str, list[float]]:
     for (arm, _), c in zip(jobs, costs, strict=True):
         gen.setdefault(arm, []).append(float(c))
     return gen
+
+
+def _held_out(task, jobs, results) -> dict[str, list[float]] | None:
+    """Each run's best network's cost on new start poses from the protocol's key, per arm
+    (`eant2_jax.app.heldout`); None where the task has no rule for them."""
+    nets = networks([r.best for r in results], task.n_inputs)
+    costs = held_out_costs(task, nets)
+    if costs is None:
+        return None
+    out: dict[str, list[float]] = {}
+    for (arm, _), c in zip(jobs, costs, strict=True):
+        out.setdefault(arm, []).append(float(c))
+    return out
 
 
 def _best_unpruned(jobs: Sequence[tuple[str, int]], results: Sequence) -> Genome:

@@ -48,7 +48,7 @@ from .report_runs import (
     upto,
 )
 from .report_stats import condition_peaks, reference_arm, summarise
-from .report_verdicts import protocol_verdicts, verdict_lines
+from .report_verdicts import protocol_verdicts, target_figure, verdict_lines
 
 __all__ = [
     "LoadedRun",
@@ -101,6 +101,7 @@ REPORT_FILES = (
     "summary.json",
     "verdicts.json",
     "fitness_size.png",
+    "cost_evaluations.png",
     "condition.png",
     "best_network.png",
     "pruned_network.png",
@@ -265,6 +266,16 @@ def _sections(extra: dict, condition: dict | None) -> list[str]:
             ),
             "",
         ]
+    if "held_out" in extra:
+        lines += [
+            "Held-out cost (each run's best on new start poses from `jax.random.key(7000)`, "
+            "docs/protocol.md; mean ± sd): "
+            + ", ".join(
+                f"{escape(k)} {_fmt(float(np.mean(v)))} ± {_fmt(float(np.std(v)), 2)}"
+                for k, v in extra["held_out"].items()
+            ),
+            "",
+        ]
     if condition is not None:
         peaks = {k: condition_peaks(condition, k) for k in ("before", "after")}
         lines += [
@@ -328,8 +339,10 @@ def report(
         inside a run directory (one of ``dirs`` or any other), are refused
         (`eant2_jax.app.outputs`).
       extra: optional sections: ``baselines`` (dict name -> cost), ``generalisation`` (dict
-        arm -> list of held-out costs), ``wall_s``, ``device``, ``notes`` (markdown, written
-        as given: the caller escapes what it read from files).
+        arm -> list of costs on the task's held-out set), ``held_out`` (the same on new
+        start poses, `eant2_jax.app.heldout`; the verdicts' held-out test reads it, else
+        ``generalisation``), ``wall_s``, ``device``, ``notes`` (markdown, written as given:
+        the caller escapes what it read from files).
       condition: optional V.A experiment result: ``{"before": [cond...], "after": [...],
         "size_before": n, "size_after": m}``.
       allow_mixed: report runs of different tasks or configurations together (the report
@@ -362,8 +375,17 @@ def report(
     lines += ["", _reference_note(reference), ""]
     verdicts = None
     if len(summary) > 1:
-        verdicts = protocol_verdicts(runs, extra.get("generalisation"))
+        held = extra.get("held_out", extra.get("generalisation"))
+        verdicts = protocol_verdicts(runs, held)
+        verdicts["held_out_set"] = "new" if "held_out" in extra else "task" if held else None
         lines += [*verdict_lines(verdicts, escape), ""]
+        plt = pyplot()
+        fig = target_figure(runs, list(summary), verdicts["target_cost"])
+        try:
+            outputs.save_figure(fig, out / "cost_evaluations.png", dpi=110)
+        finally:
+            plt.close(fig)
+        lines += ["![cost_evaluations.png](cost_evaluations.png)", ""]
     lines += _sections(extra, condition)
     for f in figures:
         lines += [f"![{f}]({f})", ""]

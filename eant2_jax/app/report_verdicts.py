@@ -25,7 +25,7 @@ import numpy as np
 
 from .report_stats import bootstrap_interval, first_within, median, tost, verdict, welch_interval
 
-__all__ = ["MARGIN", "comparisons", "protocol_verdicts", "verdict_lines"]
+__all__ = ["MARGIN", "comparisons", "protocol_verdicts", "target_figure", "verdict_lines"]
 
 MARGIN = 0.03  # the equivalence margin, relative to the none arm's mean cost
 
@@ -138,6 +138,10 @@ def verdict_lines(v: dict, escape) -> list[str]:
             f"{'—' if cost is None else '**' + cost['verdict'] + '**'} | {_interval(held)} | "
             f"{'—' if held is None else '**' + held['verdict'] + '**'} |"
         )
+    where = {"new": "new start poses from `jax.random.key(7000)`", "task": "the task's "
+             "held-out set"}.get(v.get("held_out_set"))  # fmt: skip
+    if where:
+        lines += ["", f"Held-out: the final champions' costs on {where}, the same TOST."]
     lines += [
         "",
         f"Evaluations until a run's best cost first came within 1% of "
@@ -154,3 +158,26 @@ def verdict_lines(v: dict, escape) -> list[str]:
             f"[{_num(t['low'])}, {_num(t['high'])}] |"
         )
     return lines
+
+
+def target_figure(runs: Sequence, arms: Sequence[str], target: float):
+    """The protocol's curves: each run's best cost against evaluations (log scale), one
+    colour per arm, and the common target (1% above ``target``, the reference arm's median
+    final cost) as a dashed line."""
+    from .report_figures import pyplot
+
+    plt = pyplot()
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for k, arm in enumerate(arms):
+        colour = colours[k % len(colours)]
+        for i, r in enumerate(x for x in runs if x.arm == arm):
+            ax.plot([g.evaluations for g in r.generations], [g.best_cost for g in r.generations],
+                    color=colour, lw=0.8, alpha=0.6, label=arm if i == 0 else None)  # fmt: skip
+    ax.axhline(target + 0.01 * abs(target), color="0.2", lw=1, ls="--", label="target")
+    ax.set(xlabel="evaluations", ylabel="best cost", title="best cost against evaluations")
+    ax.set_xscale("log")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig

@@ -110,6 +110,11 @@ def test_cli_runs_and_resumes_a_playground_task(tmp_path, capsys, monkeypatch):
     out = tmp_path / "cp"
     argv = ["run", "playground:CartpoleBalance", "--task-option", "max_steps=30"]
     argv += ["--generations", "0", "--population", "3", "--max-iters", "5", "--no-prune"]
+    # Generation 0 compiles into the bucket generation 1 needs (neurons, genes, sweeps), so
+    # that the resume reuses the run's program: with the physics in it, each compilation
+    # takes minutes on a 2-core CPU. (A resume that compiles a new bucket is the same path on
+    # any task: docs/quickstart.md's XOR resume, checked by test_docs_outputs.)
+    argv += ["--set", "min_bucket=[4,12,3]"]
     assert main([*argv, "--out", str(out)]) == 0
     meta = json.loads((out / "config.json").read_text())
     assert meta["task"] == "playground:CartpoleBalance"

@@ -12,7 +12,8 @@
   command line.
 
 The default backend, ``generalized``, compiles fastest on a CPU; ``mjx`` is checked against
-the plain loop as well, in the slow lane (its compilation takes longer).
+the plain loop as well. Every test that compiles an episode program is in the slow lane (tens of
+seconds each on a 2-core CPU); the fast lane keeps the option checks.
 """
 
 from __future__ import annotations
@@ -41,7 +42,8 @@ def _nets(task, *genomes):
     return networks([eant2_jax.Genome.parse(g) for g in genomes], task.n_inputs)
 
 
-@pytest.mark.parametrize("backend", ["generalized", pytest.param("mjx", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["generalized", "mjx"])
 def test_returns_equal_a_plain_loop_over_brax_steps(backend):
     task = tasks.make("brax:inverted_pendulum", backend=backend, max_steps=60, chunk=16)
     assert (task.n_inputs, task.n_outputs, task.backend) == (4, 1, backend)
@@ -59,17 +61,12 @@ def test_returns_equal_a_plain_loop_over_brax_steps(backend):
     assert np.all(got[1] < 60) and np.all(got[2] < got[1]), got
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "name,options,n_in,n_out",
     [
         ("inverted_pendulum", {"max_steps": 30, "episodes": 2, "backend": "generalized"}, 4, 1),
-        pytest.param(
-            "hopper",
-            {"max_steps": 10, "backend": "spring"},
-            11,
-            3,
-            marks=pytest.mark.slow,
-        ),
+        ("hopper", {"max_steps": 10, "backend": "spring"}, 11, 3),
     ],
 )
 def test_a_batch_of_networks_gets_one_cost_each(name, options, n_in, n_out):

@@ -6,6 +6,9 @@
   controller, so the carried state is checked too);
 * a batch of networks gets one cost each, and a second task built alike compiles nothing;
 * options are checked with one line; an EANT2 run resumes from the command line.
+
+The tests that compile an episode program (a minute or more each on a 2-core CPU) are in the
+slow lane; the fast lane keeps the option checks.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ PUSH = "N0/5*1 I0*0.5 I2*4 I3*0.5 I4*1 R0*0.1"
 NOTHING = "N0/1*1 I0*0"
 
 
+@pytest.mark.slow
 def test_returns_equal_a_plain_loop_over_playground_steps():
     task = tasks.make("playground:CartpoleBalance", max_steps=40, chunk=16)
     assert (task.n_inputs, task.n_outputs, task.overrides) == (5, 1, (("impl", "jax"),))
@@ -44,6 +48,7 @@ def test_returns_equal_a_plain_loop_over_playground_steps():
     assert not np.allclose(got[0], got[1])
 
 
+@pytest.mark.slow
 def test_a_batch_of_networks_gets_one_cost_each():
     task, nets, cost = batch_costs(
         "playground:CartpoleBalance", {"max_steps": 20, "episodes": 2}, 5, 1

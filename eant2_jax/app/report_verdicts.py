@@ -167,13 +167,17 @@ def target_figure(runs: Sequence, arms: Sequence[str], target: float):
     from .report_figures import pyplot
 
     plt = pyplot()
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    # Up to 20 arms in colours apart (the protocol has 11); the best cost holds between
+    # the generations that record it (steps).
+    tab20 = plt.get_cmap("tab20").colors
+    colours = tab20[::2] + tab20[1::2]  # the ten strong colours first, then their pale pairs
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for k, arm in enumerate(arms):
         colour = colours[k % len(colours)]
         for i, r in enumerate(x for x in runs if x.arm == arm):
             ax.plot([g.evaluations for g in r.generations], [g.best_cost for g in r.generations],
-                    color=colour, lw=0.8, alpha=0.6, label=arm if i == 0 else None)  # fmt: skip
+                    color=colour, lw=0.8, alpha=0.6, drawstyle="steps-post",
+                    label=arm if i == 0 else None)  # fmt: skip
     ax.axhline(target + 0.01 * abs(target), color="0.2", lw=1, ls="--", label="target")
     ax.set(xlabel="evaluations", ylabel="best cost", title="best cost against evaluations")
     ax.set_xscale("log")

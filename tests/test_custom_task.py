@@ -184,6 +184,7 @@ def test_a_factory_that_returns_no_task(tmp_path):
         tasks.make(str(f))
 
 
+@pytest.mark.slow  # the command line's resume of a user task, named again: the fast lane
 def test_python_run_of_a_made_task_resumes_with_the_task_named_again(user_dir, tmp_path):
     """A user's task is code: resume rebuilds it only when the caller names it again
     (docs/reliability.md, "Trust"), and then it must be the recorded one."""
@@ -286,7 +287,7 @@ class Coin:
         return jnp.broadcast_to(jax.random.uniform(key), nets.bias.shape[:-1])
 
 
-@pytest.mark.parametrize("noisy", [True, False])
+@pytest.mark.parametrize("noisy", [True, pytest.param(False, marks=pytest.mark.slow)])
 def test_noisy_costs_are_reevaluated_on_fresh_episodes(noisy):
     """Legacy settings (``recommend="best"``, ``rescore=1``): one fresh draw, of the key
     ``split(key, 3)[2]``, one more evaluation."""

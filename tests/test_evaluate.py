@@ -180,7 +180,7 @@ def _vmapped_rollout(hidden: str, output: str):
 
 @fewer_examples(0.1)
 @given(
-    g=genomes(),
+    g=genomes(n_outputs=2),  # one program (numbers of outputs: the tests above)
     w=hnp.arrays(np.float32, (5, MAX_GENES), elements=st.floats(-2, 2, width=32)),
     x=inputs(4, 2),
 )
@@ -250,8 +250,8 @@ def test_same_bucket_does_not_compile_again():
 LOOPED_SWEEPS = 96
 
 
-@fewer_examples(0.1)  # two programs in all
-@given(batch=genome_batches(max_size=ROWS), x=inputs(4, 2))
+@fewer_examples(0.1)  # two programs in all (one number of outputs; the others: above)
+@given(batch=genome_batches(max_size=ROWS, n_outputs=2), x=inputs(4, 2))
 def test_sweeps_as_a_loop_match_reference_and_the_written_out_program(batch, x):
     """Genomes run in a bucket of 96 sweeps, past `kn.SWEEPS_UNROLLED`, where the sweeps
     are one loop: the reference's values; and on a CPU the bits of the program that writes

@@ -1,0 +1,67 @@
+"""The program store through the command itself (issue 40's Done when): a pickle planted at
+every entry (and at the older store's ``.pkl`` names), then every entry replaced by another
+program's valid entry, each leave ``eant2 run`` exit 0 with the records of the run on a cold
+cache, and the pickle's code never runs. (One flipped byte in every XLA and store entry:
+tests/test_cache_damage.py; the same cases in-process: tests/test_programstore.py.)"""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from eant2_jax.loop import RUN_DEPENDENT
+from eant2_jax.programs import store as programstore
+
+
+def _run(out: Path, cache: Path, *extra: str) -> list[dict]:
+    env = {**os.environ, "EANT2_CACHE_DIR": str(cache)}
+    cmd = [sys.executable, "-m", "eant2_jax.app.cli", "run", "xor", "--generations", "1",
+           "--population", "3", "--max-iters", "60", "--seed", "5", "--out", str(out),
+           *extra]  # fmt: skip
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    records = [json.loads(line) for line in (out / "generations.jsonl").read_text().splitlines()]
+    return [{k: v for k, v in r.items() if k not in RUN_DEPENDENT} for r in records]
+
+
+class _Plant:
+    """A pickle that creates a file when it is unpickled."""
+
+    def __init__(self, marker: str):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+@pytest.mark.slow
+def test_planted_pickles_and_foreign_entries_leave_eant2_run_as_it_was(tmp_path):
+    cache = tmp_path / "cache"
+    cold = _run(tmp_path / "cold", cache)
+    store = cache / programstore.DIRNAME
+    entries = sorted(store.glob(f"*{programstore.SUFFIX}"))
+    assert entries
+    # Another program's valid entries (another CMA-ES population size), for the foreign case.
+    _run(tmp_path / "other", cache, "--set", "exploit.popsize=9")
+    others = sorted(set(store.glob(f"*{programstore.SUFFIX}")) - set(entries))
+    assert others
+    marker = tmp_path / "the pickle ran"
+    planted = pickle.dumps(_Plant(str(marker)))
+    for p in entries:
+        p.write_bytes(planted)
+        p.with_suffix(".pkl").write_bytes(planted)
+    assert _run(tmp_path / "pickled", cache) == cold
+    assert not marker.exists()
+    assert all(p.read_bytes() != planted for p in entries)  # each replaced by a good entry
+    foreign = {p: others[i % len(others)].read_bytes() for i, p in enumerate(entries)}
+    for p, data in foreign.items():  # another program's entry under each of this run's keys
+        p.write_bytes(data)
+    assert _run(tmp_path / "foreign", cache) == cold
+    assert all(p.read_bytes() != data for p, data in foreign.items())  # replaced, not used

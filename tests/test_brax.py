@@ -125,11 +125,6 @@ def test_cli_runs_and_resumes_a_brax_task(tmp_path, capsys, monkeypatch):
     argv = ["run", "brax:inverted_pendulum", "--task-option", "max_steps=40"]
     argv += ["--task-option", "backend=spring", "--generations", "0"]
     argv += ["--population", "3", "--max-iters", "5", "--no-prune", "--out", str(out)]
-    # Generation 0 compiles into the bucket generation 1 needs (neurons, genes, sweeps), so
-    # that the resume reuses the run's program: with the physics in it, each compilation is
-    # the most of this test. (A resume that compiles a new bucket is the same path on any
-    # task: docs/quickstart.md's XOR resume, checked by test_docs_outputs.)
-    argv += ["--set", "min_bucket=[4,12,3]"]
     assert main(argv) == 0
     meta = json.loads((out / "config.json").read_text())
     assert meta["task"] == "brax:inverted_pendulum"

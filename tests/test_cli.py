@@ -31,7 +31,7 @@ _main = run_main
         (["run", "xor", "--pop", "3"], "unrecognized arguments: --pop 3"),  # no abbreviations
         (["run", "xor", "--set", "exploit.sigma=1"], "did you mean 'exploit.sigma0'"),
         (["run", "xor", "--set", "sigma0"], "expected NAME=VALUE"),
-        (["run", "xor", "--pruner", "random"], "pruner must be one of covariance"),
+        (["run", "xor", "--pruner", "lottery"], "pruner must be one of covariance"),
         (["run", "xor", "--min-bucket", "8,40"], "min_bucket must be None or three integers"),
         (["run", "xor", "--generations", "-1"], "argument --generations: must be in [0, "),
     ],

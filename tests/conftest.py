@@ -12,6 +12,7 @@ otherwise trip hypothesis' per-example deadline.
 
 from __future__ import annotations
 
+import gc
 import os
 import tempfile
 import warnings
@@ -60,13 +61,65 @@ settings.load_profile(
 def _cache_setting_restored():
     """The eant2 command turns JAX's persistent compilation cache on for its process (as
     an application may); run in-process by a test, it would stay on for every later test
-    of this worker, in a folder that test removed. Turn it back as it was."""
+    of this worker, in a folder that test removed. Turn it back as it was, and let the next
+    compile decide again from the setting (a test that set the folder and put it back
+    itself leaves JAX's cache object behind)."""
     before = jax.config.jax_compilation_cache_dir
     yield
     if jax.config.jax_compilation_cache_dir != before:
         jax.config.update("jax_compilation_cache_dir", before)
-    # Always: a test that set the folder and put it back itself leaves JAX's decision "the
-    # cache is in use" behind, and every later compile of the worker then went through the
-    # cache's path to a folder that test removed (XLA's compiler aborted there, twice, in
-    # test_pruning). Resetting makes the next compile decide again from the setting.
     compilation_cache.reset_cache()
+
+
+def _memory_maps() -> int:
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f)
+    except OSError:  # not Linux: no such limit to watch
+        return 0
+
+
+def _max_map_count() -> int:
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            return int(f.read())
+    except (OSError, ValueError):
+        return 65530  # Linux's default
+
+
+_MAPS_LIMIT = _max_map_count()
+
+
+def _free_compiled_programs() -> None:
+    from eant2_jax.programs import REGISTRY
+
+    with REGISTRY.lock:
+        REGISTRY.ahead.clear()
+        REGISTRY.ran.clear()
+    jax.clear_caches()
+    gc.collect()
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _compiled_programs_bounded():
+    """Free the worker's compiled programs before it runs out of memory mappings.
+
+    Every program XLA compiles for the CPU stays mapped while JAX's caches hold it (about a
+    thousand mappings for one engine program). A worker that runs several hundred tests
+    reached the kernel's limit (vm.max_map_count, 65,530 by default); XLA's compiler then
+    failed to map the next program ("LLVM compilation error: Cannot allocate memory") and
+    the worker died with SIGSEGV or SIGABRT, in CI inside test_pruning. After a test file,
+    past half the limit, empty JAX's caches and the programs compiled ahead: later files
+    compile again (within a file, tests may count on programs its fixtures compiled).
+    docs/reliability.md: Long-lived processes."""
+    yield
+    if _memory_maps() > _MAPS_LIMIT // 2:
+        _free_compiled_programs()
+
+
+@pytest.fixture(autouse=True)
+def _compiled_programs_bounded_within_a_file():
+    """The same, within a file whose programs alone fill most of the limit."""
+    yield
+    if _memory_maps() > _MAPS_LIMIT * 4 // 5:
+        _free_compiled_programs()

@@ -139,8 +139,8 @@ class ExploitConfig(Configured):
     pruner: str = option(
         "covariance",
         "``covariance`` (the paper's, the default wherever a config is built), "
-        "``magnitude``, ``obd``, ``obs``, ``snr`` (signal-to-noise) or ``none`` (no "
-        "pruning: plain CMA-ES).",
+        "``magnitude``, ``obd``, ``obs``, ``snr`` (signal-to-noise), ``random`` (a control: "
+        "the connection tried is drawn at random) or ``none`` (no pruning: plain CMA-ES).",
         check=one_of(*PRUNERS),
         static=True,
         # Before pruning existed nothing pruned; every run directory since writes the field.

@@ -18,6 +18,7 @@ from pathlib import Path
 import jax
 import pytest
 from rundirs import run_main
+from test_reproduce_resume import SETTINGS  # the reproduction those tests resume
 
 import eant2_jax
 from eant2_jax import EANT2Config, ExploitConfig, rundir, tasks
@@ -299,20 +300,6 @@ def test_two_runs_on_one_cold_cache_and_two_runs_with_one_out(tmp_path):
     assert _records(shared) == _records(alone)
     assert any(p.parent == cache for p in cache.iterdir() if p.is_file())
     assert list((cache / programstore.DIRNAME).glob("*.program"))
-
-
-SETTINGS = dict(
-    task_meta={"task": "xor", "task_options": {}},
-    runs=2,
-    generations=2,
-    pruners=("covariance",),
-    config=EANT2Config(population=5),
-    devices=1,
-    condition=True,
-    condition_iters=60,
-    condition_inits=2,
-    condition_dtype="float64",
-)
 
 
 @pytest.mark.slow

@@ -293,6 +293,9 @@ def read_entry(path: Path, key: str, leaves) -> export.Exported | None:
             return None
         exported = export.deserialize(bytearray(payload))
         exported.mlir_module()  # deserialize parses lazily: damaged StableHLO fails here
+        # Calling it lowers the module into the caller's: bytes that parse but do not lower
+        # (a forged entry whose entry function lost its name) fail here, not in the run.
+        jax.jit(exported.call).lower(*leaves)
     except Exception:  # noqa: BLE001 - traced again and replaced
         return None
     if not (

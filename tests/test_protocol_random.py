@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_pruning import attempt_task
 
 import eant2_jax
 from eant2_jax import exploitation as ex
@@ -19,7 +20,6 @@ from eant2_jax.compiler import compile_genomes
 from eant2_jax.genome import Genome
 from eant2_jax.kernels import pruning as kp
 from eant2_jax.pruning import tables_for
-from eant2_jax.tasks import regression
 
 P = 8
 # Genes 1..5 are removable (every input of the root but one may go; the root's own weight may
@@ -113,12 +113,7 @@ def test_acceptance_is_the_pruner_independent_code_path():
         assert "pruner" not in inspect.signature(stage).parameters
 
 
-@functools.cache
-def _task():
-    rng = np.random.default_rng(3)
-    x = rng.normal(size=(256, 2))
-    y = 0.9 * np.tanh(1.5 * x[:, :1] - 0.8 * x[:, 1:] + 0.3) + 0.1 * rng.normal(size=(256, 1))
-    return regression(x, y, hidden="tanh", output="tanh")
+_task = attempt_task  # the pruning tests' problem for one attempt
 
 
 @pytest.mark.slow

@@ -11,6 +11,8 @@ of the task whose training poses are these.
 
 from __future__ import annotations
 
+import itertools
+
 import jax
 import numpy as np
 
@@ -23,27 +25,16 @@ def fresh_servo_poses(key: jax.Array, n: int = 1023) -> tuple[np.ndarray, np.nda
     """``(q [n, 3] rad, s [n, 5, 2])``: ``n`` start poses drawn from ``key`` and their marker
     images (host side, float64), by the task's rule (the module's docstring). The same key
     gives the same poses; a smaller ``n`` gives a prefix."""
-    import mujoco
-
     from ..tasks import servo_scene as sc
 
-    arm = sc.arm_scene()
-    d = mujoco.MjData(arm.mj)
     half = np.asarray(sc.START_HALF_WIDTH, np.float64)
-    qs, ss = [], []
-    batch = 0
-    while len(qs) < n:
-        u = jax.random.uniform(jax.random.fold_in(key, batch), (1024, 3), minval=-1, maxval=1)
-        for row in np.asarray(u, np.float64):
-            q = arm.q_goal + row * half
-            s = sc.features_host(arm, d, q)
-            if not np.any(sc.outside_image(s[:, 0], s[:, 1])):
-                qs.append(q)
-                ss.append(s)
-                if len(qs) == n:
-                    break
-        batch += 1
-    return np.stack(qs), np.stack(ss)
+
+    def offsets():
+        for batch in itertools.count():
+            u = jax.random.uniform(jax.random.fold_in(key, batch), (1024, 3), minval=-1, maxval=1)
+            yield from np.asarray(u, np.float64) * half
+
+    return sc.poses_inside(offsets(), n)
 
 
 def fresh_servo_task(task, key: jax.Array, n: int = 1023):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import itertools
 import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
@@ -225,21 +226,29 @@ def features_host(arm: _Arm, d: mujoco.MjData, q: np.ndarray) -> np.ndarray:
     return project(d.site_xpos[c].copy(), d.site_xmat[c].reshape(3, 3).copy(), arm.markers)
 
 
-@functools.cache
-def draw_start_poses(n: int, held_out: bool) -> tuple[np.ndarray, np.ndarray]:
+def poses_inside(offsets, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(q [n, 3], s [n, 5, 2])``: the first ``n`` poses ``q* + offset`` (``offsets``: an
+    iterator of ``[3]`` offsets in radians) at which every marker lies inside the image, with
+    their marker images (host side, float64): the task's rule for start poses."""
     arm = arm_scene()
-    rng = np.random.default_rng([SEED, int(held_out)])
     d = mujoco.MjData(arm.mj)
-    half = np.asarray(START_HALF_WIDTH)
     qs, ss = [], []
-    while len(qs) < n:
-        q = arm.q_goal + rng.uniform(-half, half)
+    for offset in offsets:
+        if len(qs) == n:
+            break
+        q = arm.q_goal + offset
         s = features_host(arm, d, q)
         if not np.any(_outside(s)):
             qs.append(q)
             ss.append(s)
-    q = np.stack(qs)
-    s = np.stack(ss)
+    return np.stack(qs), np.stack(ss)
+
+
+@functools.cache
+def draw_start_poses(n: int, held_out: bool) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng([SEED, int(held_out)])
+    half = np.asarray(START_HALF_WIDTH)
+    q, s = poses_inside((rng.uniform(-half, half) for _ in itertools.count()), n)
     q.flags.writeable = False
     s.flags.writeable = False
     return q, s

@@ -40,4 +40,5 @@ def test_the_ends_of_the_valid_sigma0_range(sigma0):
 @settings(max_examples=8)
 @given(st.floats(math.log10(TINY), math.log10(LARGEST)))
 def test_any_valid_sigma0_never_returns_worse_than_the_start(exponent):
-    _check(10.0**exponent)
+    # 10**log10(TINY) rounds a few ulps below TINY: keep the draw inside the valid range.
+    _check(min(max(10.0**exponent, TINY), LARGEST))

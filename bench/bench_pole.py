@@ -32,9 +32,22 @@ LAPACK map; `eant2_jax.run_many` runs one at a time on CPUs for that reason): tw
 on the 2-core machine ran the pole suite fine, but for many seeds on a large CPU prefer
 several processes (``--first-seed``) and ``--merge``.
 
+**The protocol's runs** (docs/protocol.md, section 4): ``--protocol`` runs six variants on
+seeds 5000-5019 (``--first-seed``/``--seeds`` move them), with the settings above: dpv, dpnv
+from the recurrent-ready start and dpnv from the paper's minimal start, each under two rules
+of the solution test (``EANT2Config.solution_rule``): ``champion``, the generation's champion
+alone once per generation, as the published methods test, and ``structure``, the library's
+test of every structure's improved best. Evaluations are counted alike (every network run
+during evolution; the test not counted). Reported per variant: solved runs with a Wilson 95%
+interval, the median evaluations to solve over all seeds (an unsolved run never reaches a
+solution) with its percentile bootstrap interval (`eant2_jax.app.report_stats`, key
+``jax.random.key(0)``, 10,000 resamples), the mean over solved runs, the solutions found in
+generation 0 and the solution tests called per run. Default output
+``bench/results/pole-protocol-<device tag>.json``.
+
 Run: ``python -m bench pole [--quick] [--seeds N] [--first-seed K] [--tasks dpv dpnv]
-[--workers W] [--out PATH]``, then ``python -m bench pole --merge A.json B.json ... --out
-PATH``.
+[--solution-rule RULE] [--workers W] [--out PATH]``, then ``python -m bench pole --merge
+A.json B.json ... --out PATH``; ``python -m bench pole --protocol [--variants V ...]``.
 """
 
 from __future__ import annotations
@@ -43,6 +56,7 @@ import argparse
 import concurrent.futures
 import contextlib
 import json
+import math
 import statistics
 import threading
 import time
@@ -51,16 +65,27 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import numpy as np
 
 from bench import harness
-from bench.common import BenchInputError, Column, environment, markdown_table
+from bench.common import BenchInputError, Column, default_out, environment, markdown_table
 from eant2_jax import exploitation as ex
 from eant2_jax import loop
+from eant2_jax.app.report_stats import bootstrap_interval, median
 from eant2_jax.compiler import networks
 from eant2_jax.genome import Genome
 from eant2_jax.tasks import pole
 
-__all__ = ["PUBLISHED", "main", "solution_test", "solve_once", "test_device"]
+__all__ = [
+    "PROTOCOL",
+    "PUBLISHED",
+    "main",
+    "protocol_row",
+    "solution_test",
+    "solve_once",
+    "test_device",
+    "wilson_interval",
+]
 
 # Gomez, Schmidhuber & Miikkulainen (2008), JMLR 9: table 3 (DPV) and table 4 (DPNV, damping
 # fitness); mean evaluations to solve.
@@ -76,6 +101,30 @@ ACCOUNTING = (
     "lock-step with the solving one), up to the iteration after which the solution test "
     "passed; the test's own runs (100,000 steps, 625 starts) are not counted (Gomez et al. "
     "2008's rule)"
+)
+
+
+# docs/protocol.md, section 4: variant -> (task, recurrent-ready start, solution rule).
+PROTOCOL = {
+    "dpnv-rr-champion": ("dpnv", True, "champion"),
+    "dpnv-rr-structure": ("dpnv", True, "structure"),
+    "dpnv-champion": ("dpnv", False, "champion"),
+    "dpnv-structure": ("dpnv", False, "structure"),
+    "dpv-champion": ("dpv", False, "champion"),
+    "dpv-structure": ("dpv", False, "structure"),
+}
+PROTOCOL_SEEDS = (5000, 20)  # first seed, count (docs/protocol.md: 5000-5019)
+Z95 = 1.959963984540054  # the standard normal's 97.5% quantile
+
+
+PROTOCOL_ACCOUNTING = (
+    "one evaluation = one network run by the task's cost during evolution (every CMA-ES "
+    "candidate and every network a pruning attempt evaluates, of every structure of the "
+    "generation); the solution test's own runs are not counted. Rule champion: the test runs "
+    "once per generation on the champion after selection, and a solved run counts the whole "
+    "generation whose champion passed. Rule structure: the test runs on every structure's "
+    "improved best after every CMA-ES iteration, and a solved run counts up to the iteration "
+    "after which a network passed"
 )
 
 
@@ -132,6 +181,12 @@ def solve_once(
     t0 = time.perf_counter()
     info: dict[str, Any] = {"seed": seed, "solved": False, "evaluations": None, "generations": 0}
     passed: list[tuple[Genome, dict]] = []
+    check = solution_test(task, passed, device)
+    info["tests"] = 0
+
+    def counted(genome: Genome) -> bool:
+        info["tests"] += 1
+        return check(genome)
 
     def on_event(event):
         if event["event"] != "generation":
@@ -149,15 +204,15 @@ def solve_once(
             config=config,
             generations=10**6,
             callback=on_event,
-            solution_test=solution_test(task, passed, device),
+            solution_test=counted,
         )
     except _OverBudget:
         result = None
     if result is not None and result.solution is not None and info["evaluations"] <= budget:
         genome = result.solution.genome
         # The solution is the genome that passed the test, which checked it in full.
-        check = next(c for g, c in passed if str(g) == str(genome))
-        info.update(solved=True, genome=str(genome), check=check)
+        found = next(c for g, c in passed if str(g) == str(genome))
+        info.update(solved=True, genome=str(genome), check=found)
         info["solution_cost"] = result.solution.cost
     info["wall_s"] = time.perf_counter() - t0
     return info
@@ -185,6 +240,68 @@ def _row(name: str, runs: list[dict], budget: int) -> dict:
     }
 
 
+def wilson_interval(solved: int, runs: int, z: float = Z95) -> tuple[float, float]:
+    """The Wilson score interval of a proportion ``solved / runs`` (95% for the default
+    ``z``): ``(low, high)``, within [0, 1] also at 0 and ``runs`` successes."""
+    if runs < 1 or not 0 <= solved <= runs:
+        raise ValueError(
+            f"wilson_interval needs 0 <= solved <= runs and runs >= 1, got {solved}/{runs}"
+        )
+    p, z2 = solved / runs, z * z
+    centre = (p + z2 / (2 * runs)) / (1 + z2 / runs)
+    half = z * math.sqrt(p * (1 - p) / runs + z2 / (4 * runs * runs)) / (1 + z2 / runs)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def protocol_row(variant: str, runs: list[dict], budget: int) -> dict:
+    """One variant's line of the protocol's table (docs/protocol.md, section 4)."""
+    task, recurrent, rule = PROTOCOL[variant]
+    ok = [r for r in runs if r["solved"]]
+    low, high = wilson_interval(len(ok), len(runs))
+    # An unsolved run never reaches a solution: infinite evaluations in the median.
+    reached = np.array([r["evaluations"] if r["solved"] else np.inf for r in runs], np.float64)
+    est, m_low, m_high = bootstrap_interval([reached], median)
+    evals = [r["evaluations"] for r in ok]
+    return {
+        "variant": variant,
+        "task": task,
+        "start": "recurrent-ready" if recurrent else "minimal",
+        "solution_rule": rule,
+        "seeds": len(runs),
+        "solved": len(ok),
+        "solved_text": f"{len(ok)}/{len(runs)} [{low:.2f}, {high:.2f}]",
+        "solved_low": low,
+        "solved_high": high,
+        "median_evals": est,
+        "median_low": m_low,
+        "median_high": m_high,
+        "median_text": " ".join([_count(est), f"[{_count(m_low)}, {_count(m_high)}]"]),
+        "mean_evals_solved": statistics.mean(evals) if evals else None,
+        "mean_evals_failures_as_budget": statistics.mean(
+            r["evaluations"] if r["solved"] else budget for r in runs
+        ),
+        "solved_in_generation_0": sum(r["generations"] == 0 for r in ok),
+        "tests_per_run": statistics.mean(r.get("tests", 0) for r in runs),
+        "published_mean": PUBLISHED[task],
+    }
+
+
+def _count(x: float) -> str:
+    return "never" if math.isinf(x) else f"{x:,.0f}"
+
+
+PROTOCOL_COLUMNS = [
+    Column("variant", "variant"),
+    Column("seeds", "seeds"),
+    Column("solved_text", "solved [Wilson 95%]"),
+    Column("median_text", "median evals to solve [bootstrap 95%]"),
+    Column("mean_evals_solved", "mean evals (solved)", "{:,.0f}"),
+    Column("mean_evals_failures_as_budget", "mean evals (fail = budget)", "{:,.0f}"),
+    Column("solved_in_generation_0", "solved in gen. 0"),
+    Column("tests_per_run", "tests / run", "{:.1f}"),
+]
+
+
 COLUMNS = [
     Column("task", "task"),
     Column("seeds", "seeds"),
@@ -203,7 +320,7 @@ COLUMNS = [
 
 
 def _options(p: argparse.ArgumentParser) -> None:
-    harness.run_options(p, seeds=20, first_seed=0, population=10)
+    harness.run_options(p, seeds=None, first_seed=None, population=10)
     p.add_argument("--tasks", nargs="+", default=["dpv", "dpnv"], choices=["dpv", "dpnv"])
     p.add_argument("--budget", type=int, default=40_000, help="evaluations before failure")
     p.add_argument(
@@ -216,6 +333,27 @@ def _options(p: argparse.ArgumentParser) -> None:
         choices=["dpv", "dpnv"],
         help="tasks that start from the recurrent-ready minimal network "
         "(EANT2Config.init_recurrent; default: dpnv)",
+    )
+    p.add_argument(
+        "--solution-rule",
+        choices=["structure", "champion"],
+        default="structure",
+        help="which networks the solution test tests (EANT2Config.solution_rule): every "
+        "structure's improved best (default) or the generation's champion alone",
+    )
+    p.add_argument(
+        "--protocol",
+        action="store_true",
+        help="the protocol's six variants (docs/protocol.md, section 4) on seeds 5000-5019 "
+        "unless --first-seed/--seeds say otherwise; --tasks, --recurrent-start and "
+        "--solution-rule are then the variants'",
+    )
+    p.add_argument(
+        "--variants",
+        nargs="+",
+        choices=list(PROTOCOL),
+        default=None,
+        help="with --protocol: run only these variants (default all, dpnv first)",
     )
     p.add_argument(
         "--inherit-search",
@@ -255,6 +393,16 @@ def _options(p: argparse.ArgumentParser) -> None:
 
 
 def _prepare(args: argparse.Namespace) -> None:
+    first, count = PROTOCOL_SEEDS if args.protocol else (0, 20)
+    args.first_seed = first if args.first_seed is None else args.first_seed
+    args.seeds = count if args.seeds is None else args.seeds
+    if args.variants is not None and not args.protocol:
+        raise BenchInputError("--variants needs --protocol")
+    if args.protocol:
+        args.variants = list(args.variants or PROTOCOL)
+        args.tasks = sorted({PROTOCOL[v][0] for v in args.variants})
+        if args.out is None and not args.render and not args.merge:
+            args.out = str(default_out("pole-protocol"))
     if args.merge:
         if args.out is None:
             raise BenchInputError("--merge needs --out (the merged file)")
@@ -323,14 +471,29 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     if args.merge:
         first, merged = merge(args.merge)
         args = argparse.Namespace(**{**first["config"], "merge": args.merge})
-        args.seeds, args.tasks = sum(len(r) for r in merged.values()), list(merged)
+        args.seeds = sum(len(r) for r in merged.values())
+        if getattr(args, "protocol", False):
+            args.variants = list(merged)
+        else:
+            args.tasks = list(merged)
     else:
         merged = None
     rows, runs = [], {}
+    protocol = getattr(args, "protocol", False)
+    row = protocol_row if protocol else _row
 
     # A merge keeps the environment (device, versions, date) of the runs it merges.
     env = environment() if merged is None else {k: first[k] for k in environment()}
-    configs = {name: task_config(args, name) for name in args.tasks}
+    # The groups of runs: the protocol's variants, or the tasks.
+    groups = (
+        {
+            v: (PROTOCOL[v][0], task_config(args, PROTOCOL[v][0], PROTOCOL[v][1:]))
+            for v in args.variants
+        }
+        if protocol
+        else {name: (name, task_config(args, name)) for name in args.tasks}
+    )
+    configs = {name: config for name, (_, config) in groups.items()}
 
     def payload() -> dict:
         return {
@@ -341,31 +504,31 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
                 "eant2": {name: c.to_dict() for name, c in configs.items()},
             },
             "published_source": "Gomez, Schmidhuber & Miikkulainen 2008 (JMLR 9), tables 3-4",
-            "accounting": ACCOUNTING,
+            "accounting": PROTOCOL_ACCOUNTING if protocol else ACCOUNTING,
             "rows": rows,
             "runs": runs,
         }
 
     if merged is not None:
         runs.update(merged)
-        rows[:] = [_row(n, r, args.budget) for n, r in runs.items()]
+        rows[:] = [row(n, r, args.budget) for n, r in runs.items()]
         return payload()
     # Results are saved after every run, so a run cut off by a time limit keeps them.
     seeds = range(args.first_seed, args.first_seed + args.seeds)
-    jobs = [(name, s) for name in args.tasks for s in seeds]
-    tasks = {name: pole.dpv() if name == "dpv" else pole.dpnv() for name in args.tasks}
-    for name in args.tasks:
+    jobs = [(name, s) for name in groups for s in seeds]
+    made = {t: pole.dpv() if t == "dpv" else pole.dpnv() for t, _ in groups.values()}
+    for name in groups:
         runs[name] = []
     lock = threading.Lock()
     device = test_device(args.test_device)
 
     def one(job):
         name, s = job
-        info = solve_once(tasks[name], s, configs[name], args.budget, device)
+        info = solve_once(made[groups[name][0]], s, configs[name], args.budget, device)
         with lock:
             runs[name].append(info)
             runs[name].sort(key=lambda r: r["seed"])
-            rows[:] = [_row(n, r, args.budget) for n, r in runs.items() if r]
+            rows[:] = [row(n, r, args.budget) for n, r in runs.items() if r]
             save(payload())
 
     t0 = time.perf_counter()
@@ -376,12 +539,20 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     return payload()
 
 
-def task_config(args: argparse.Namespace, name: str) -> loop.EANT2Config:
-    """The EANT2 configuration of one task from the suite's options."""
+def task_config(
+    args: argparse.Namespace, name: str, variant: tuple[bool, str] | None = None
+) -> loop.EANT2Config:
+    """The EANT2 configuration of one task from the suite's options; ``variant``: a
+    protocol variant's ``(recurrent-ready start, solution rule)`` in place of the options'."""
+    recurrent, rule = variant or (
+        name in args.recurrent_start,
+        getattr(args, "solution_rule", "structure"),
+    )
     return loop.EANT2Config(
         population=args.population,
         offspring=args.offspring,
-        init_recurrent=name in args.recurrent_start,
+        init_recurrent=recurrent,
+        solution_rule=rule,
         inherit_search=getattr(args, "inherit_search", False),
         reexploit=getattr(args, "reexploit", False),
         exploit=ex.ExploitConfig(
@@ -397,6 +568,8 @@ def task_config(args: argparse.Namespace, name: str) -> loop.EANT2Config:
 
 
 def render(payload: dict[str, Any]) -> str:
+    if payload["config"].get("protocol"):
+        return render_protocol(payload)
     seeds = ", ".join(f"{k} {len(v)}" for k, v in payload["runs"].items())
     return (
         f"EANT2 (covariance pruning) to solve double pole balancing; seeds per task: {seeds}; "
@@ -412,6 +585,30 @@ def render(payload: dict[str, Any]) -> str:
         )
         + "\n\n"
         + markdown_table(payload["rows"], COLUMNS)
+    )
+
+
+def render_protocol(payload: dict[str, Any]) -> str:
+    """The protocol's table (docs/protocol.md, section 4)."""
+    config = payload["config"]
+    first = config["first_seed"]
+    return (
+        f"The protocol's double pole runs (docs/protocol.md, section 4): seeds {first}-"
+        f"{first + config['seeds'] - 1}, budget {config['budget']} evaluations. Variant: task, "
+        "rr = recurrent-ready start (else the paper's minimal start), the solution test's rule "
+        "(champion: the generation's champion once per generation, the published protocol; "
+        "structure: every structure's improved best after every CMA-ES iteration). Median "
+        "over all seeds, an unsolved run never reaching a solution ('never': half or more "
+        "unsolved); percentile bootstrap, key jax.random.key(0), 10,000 resamples. "
+        f"Accounting: {payload['accounting']}."
+        + (
+            f" Whole suite: {payload['wall_total_s']:.0f} s wall with "
+            f"{config.get('workers', 1)} run(s) in flight."
+            if "wall_total_s" in payload
+            else ""
+        )
+        + "\n\n"
+        + markdown_table(payload["rows"], PROTOCOL_COLUMNS)
     )
 
 

@@ -436,6 +436,17 @@ class EANT2Config(Configured):
         added="0.1.0 (cce5ad3)",
         old=None,
     )
+    solution_rule: str = option(
+        "structure",
+        "Which networks a run's ``solution_test`` (`eant2_jax.run`) tests: ``structure``, the "
+        "best network of every structure being tuned whenever it improves (after each "
+        "``exploit.chunk`` CMA-ES iterations; the first that passes halts the tuning), or "
+        "``champion``, the generation's champion alone, once per generation after selection "
+        "(the published protocol of ESP, NEAT and CoSyNE; docs/pole.md).",
+        check=one_of("structure", "champion"),
+        added="0.1.0 (issue 42)",
+        old="structure",
+    )
     devices: int | str | None = option(
         None,
         "Where exploitation runs: None (the default device), ``all`` or a count N: the "

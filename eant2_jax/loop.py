@@ -179,7 +179,10 @@ def run(
         The first that passes stops the exploitation and the run after that generation is
         completed (selected, committed, reported); it is `RunResult.solution`, and a
         ``solution`` event follows the generation's. The generation's evaluations are
-        those spent until then; the test's own work is not counted.
+        those spent until then; the test's own work is not counted. With
+        ``config.solution_rule="champion"`` it is called once per generation instead, on
+        the champion after selection, and a run it passes stops there (all the
+        generation's evaluations counted).
 
     Returns:
       `RunResult`.
@@ -354,10 +357,13 @@ def _drive(task, members, config, callback, mesh, solution_test=None, grouped=Tr
     if mesh is None and all(m.state is None for m in members):
         # Generation 0's program, from shapes, while its keys and start are made.
         guesses.compile_first_ahead(task, members[0].key, config, runs=len(members))
+    # The solution test's rule (EANT2Config.solution_rule): every structure's improved best
+    # during its tuning, or the generation's champion alone after selection.
+    champion = config.solution_rule == "champion"
     if solution_test is not None:  # resumed: test what it holds
         for m in members:
             if m.state is not None:
-                m.solution = next((i for i in m.state.population if solution_test(i.genome)), None)
+                m.solution = _passed(m.state, solution_test, champion)
     while True:
         active = [m for m in members if not m.done(config)]
         if not active:
@@ -371,12 +377,13 @@ def _drive(task, members, config, callback, mesh, solution_test=None, grouped=Tr
             else strategy.ask(m.key, m.state, task, config)
             for m in group
         ]
-        tuned = _exploit(
-            task, group, broods, config, bucket, callback, mesh, solution_test, grouped
-        )
+        during = None if champion else solution_test
+        tuned = _exploit(task, group, broods, config, bucket, callback, mesh, during, grouped)
         bucket = tuned[0].bucket
         for m, brood, part in zip(group, broods, tuned, strict=True):
             m.state, record, prune, m.solution = strategy.tell(m.key, m.state, brood, part, config)
+            if champion and solution_test is not None:
+                m.solution = _passed(m.state, solution_test, champion)
             m.records.append(record)
             m.pruning.extend(prune)
             commit(m.rundir, task, m.meta, m.state, record, prune)
@@ -394,6 +401,13 @@ def _drive(task, members, config, callback, mesh, solution_test=None, grouped=Tr
                         **m.solution.to_json(),
                     }
                 )
+
+
+def _passed(state, solution_test, champion) -> Individual | None:
+    """The individual of ``state`` that passes ``solution_test``: its champion alone
+    (``champion``), or the first of its population that does, best first."""
+    tested = [state.best()] if champion else state.population
+    return next((i for i in tested if solution_test(i.genome)), None)
 
 
 def _exploit(

@@ -415,7 +415,7 @@ def _prepare(args: argparse.Namespace) -> None:
 
 
 # Settings that may differ between the files of one merge.
-_PER_PART = ("seeds", "first_seed", "tasks", "out", "merge", "workers")
+_PER_PART = ("seeds", "first_seed", "tasks", "variants", "out", "merge", "workers")
 
 
 def merge(paths: Sequence[str]) -> tuple[dict, dict[str, list[dict]]]:

@@ -7,11 +7,22 @@ every iteration: :func:`eant2_jax.app.experiments.condition_experiment`. The CMA
 float64 (JAX's x64 mode), with cond(C) bounded at ``--max-condition``.
 
 Run: ``python -m bench condition --genome-file runs/.../best.genome [--iters 10000]``.
+
+``--protocol``: the experiment docs/protocol.md, section 2 fixes
+(:func:`eant2_jax.app.condition_protocol.protocol_experiment`): the five champions of the
+protocol's default arm (``bench/inputs/protocol-1/default-s2000..s2004.genome``, networks
+3000-3004) on the task their header names, each before pruning, after the covariance
+pruner's rounds and after as many removals at random and by magnitude, x initialisations
+3100-3104, float64 CMA-ES state and evaluation, 10,000 iterations, one batch; a positive
+control (network 3000 with an exact duplicate connection); endpoints, paired verdicts and the
+flat directions' share; written to ``bench/results/condition-protocol-<device>.{json,md}``.
+Run: ``python -m bench condition --protocol``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 from typing import Any
@@ -22,13 +33,27 @@ import numpy as np
 from bench import harness
 from bench.common import BenchInputError, Column, environment, markdown_table
 
+PROTOCOL_FILES = [f"bench/inputs/protocol-1/default-s{s}.genome" for s in range(2000, 2005)]
+# docs/protocol.md's seeds: networks 3000-3004 (the files in order), initialisations 3100-3104.
+NETWORK_SEED, INIT_SEED = 3000, 3100
+TRACE_EVERY = 100  # iterations between the points of a trace kept in the JSON
+
 
 def _options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--genome-file", required=True)
+    p.add_argument("--genome-file", default=None, help="the network (not with --protocol)")
+    p.add_argument("--protocol", action="store_true", help="docs/protocol.md, section 2")
+    p.add_argument(
+        "--networks", type=int, default=5,
+        help="--protocol: the first N of the five networks (fewer: a trial, not the protocol)",
+    )  # fmt: skip
+    p.add_argument("--chunk", type=int, default=1000, help="--protocol: iterations per call")
     harness.run_options(p, task="servo", seed=0)
     p.add_argument("--iters", type=int, default=10_000)
     p.add_argument("--inits", type=int, default=5)
-    p.add_argument("--max-condition", type=float, default=1e17)
+    p.add_argument(
+        "--max-condition", type=float, default=None,
+        help="the bound on cond(C) (default 1e17; --protocol: 1e14, the protocol's)",
+    )  # fmt: skip
     p.add_argument("--prune-iters", type=int, default=2000)
     p.add_argument(
         "--evolved-warmup", type=int, default=0,
@@ -39,14 +64,23 @@ def _options(p: argparse.ArgumentParser) -> None:
 
 
 def _prepare(args: argparse.Namespace) -> None:
+    if args.protocol:
+        _prepare_protocol(args)
+        return
+    if args.genome_file is None:
+        raise BenchInputError("name a --genome-file, or run --protocol")
     if not Path(args.genome_file).is_file():
         raise BenchInputError(f"--genome-file {args.genome_file}: no such file")
+    if args.max_condition is None:
+        args.max_condition = 1e17
     if args.quick:
         args.iters, args.inits, args.prune_iters, args.n_starts = 50, 2, 50, 16
         args.evolved_warmup = min(args.evolved_warmup, 30)
 
 
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
+    if args.protocol:
+        return run_protocol(args, save)
     import eant2_jax
     from eant2_jax.app.experiments import condition_experiment
 
@@ -111,6 +145,8 @@ COLUMNS = [
 
 
 def render(payload: dict[str, Any]) -> str:
+    if payload.get("protocol"):
+        return render_protocol(payload)
     return (
         markdown_table(payload["rows"], COLUMNS)
         + f"\nRatio of the medians: {payload['ratio']:.3g}x"
@@ -121,6 +157,174 @@ def render(payload: dict[str, Any]) -> str:
         )  # fmt: skip
         + f"; wall {payload['wall_s']:.0f} s.\n"
     )
+
+
+# ------------------------------------------------------------------------ the protocol's
+def _prepare_protocol(args: argparse.Namespace) -> None:
+    if args.genome_file is not None:
+        raise BenchInputError("--protocol takes the protocol's five networks, not --genome-file")
+    if not 1 <= args.networks <= len(PROTOCOL_FILES):
+        raise BenchInputError(f"--networks must be 1 to {len(PROTOCOL_FILES)}")
+    if args.max_condition is None:
+        args.max_condition = 1e14
+    if args.quick:
+        args.iters, args.inits, args.prune_iters, args.n_starts = 40, 2, 50, 16
+        args.networks, args.chunk = 1, 20
+    args.chunk = min(args.chunk, args.iters)
+    if args.iters % args.chunk:
+        raise BenchInputError(f"--iters {args.iters} is not a multiple of --chunk {args.chunk}")
+
+
+def _protocol_inputs(args: argparse.Namespace):
+    """The networks and the task their headers name (all five must name the same)."""
+    import eant2_jax
+
+    files = [eant2_jax.GenomeFile.read(p) for p in PROTOCOL_FILES[: args.networks]]
+    specs = {(f.task, json.dumps(f.task_options, sort_keys=True)) for f in files}
+    if len(specs) != 1 or files[0].task is None:
+        raise BenchInputError(f"the protocol's genome files name different tasks: {specs}")
+    options = dict(files[0].task_options or {})
+    if args.n_starts is not None:
+        options["n_starts"] = args.n_starts
+    task = eant2_jax.tasks.make(files[0].task, **options)
+    if (task.hidden, task.output) != (files[0].hidden, files[0].output):
+        raise BenchInputError("the task's activations differ from the genome files' headers")
+    return [f.genome for f in files], task, {"task": files[0].task, "task_options": options}
+
+
+def run_protocol(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
+    import eant2_jax
+    from eant2_jax.app.condition_protocol import protocol_experiment
+
+    eant2_jax.enable_x64()
+    genomes, task, spec = _protocol_inputs(args)
+    payload: dict[str, Any] = {
+        "protocol": True,
+        "environment": environment(),
+        "config": harness.settings(args),
+        **spec,
+        "files": PROTOCOL_FILES[: args.networks],
+    }
+    t0 = time.perf_counter()
+    stamps: list[float] = []
+
+    def on_chunk(done: int, partial: dict) -> None:
+        stamps.append(time.perf_counter() - t0)
+        harness.log(f"condition protocol: {done} of {args.iters} iterations, {stamps[-1]:.0f} s")
+        save(dict(payload, **_protocol_payload(partial), chunk_s=list(stamps)))
+
+    result = protocol_experiment(
+        genomes,
+        task,
+        network_keys=[jax.random.key(NETWORK_SEED + n) for n in range(len(genomes))],
+        init_keys=[jax.random.key(INIT_SEED + j) for j in range(args.inits)],
+        iters=args.iters,
+        chunk=args.chunk,
+        max_condition=args.max_condition,
+        prune={"iters": args.prune_iters},
+        on_chunk=on_chunk,
+    )
+    wall = time.perf_counter() - t0
+    return dict(payload, **_protocol_payload(result), wall_s=wall, chunk_s=stamps)
+
+
+def _protocol_payload(result: dict) -> dict[str, Any]:
+    """The payload's results: per run its endpoints, flat share and a trace thinned to
+    every `TRACE_EVERY` iterations; the summary (`condition_protocol.summarise`)."""
+    from eant2_jax.app.condition_protocol import summarise
+
+    summary = summarise(result)
+    rows = []
+    for r in result["rows"]:
+        trace = np.asarray(r["log10_cond"])
+        keep = {k: v for k, v in r.items() if k != "log10_cond"}
+        keep["trace"] = [round(float(v), 4) for v in trace[TRACE_EVERY - 1 :: TRACE_EVERY]]
+        rows.append(keep)
+    return {"rows": rows, "summary": summary, "done": summary["done"],
+            **{k: v for k, v in result.items() if k != "rows"}}  # fmt: skip
+
+
+def _median(rows: list[dict], get) -> float | None:
+    values = [get(r) for r in rows]
+    values = [v for v in values if v is not None]
+    return float(np.median(values)) if values else None
+
+
+def _network_table(rows: list[dict], done: int) -> str:
+    at = [k for k in (1000, 5000, 10000) if k <= done]
+    table = []
+    for version in ("original", "pruned", "random", "magnitude", "duplicate"):
+        rs = [r for r in rows if r["version"] == version]
+        if not rs:
+            continue
+        row = {"version": version, "size": rs[0]["size"], "runs": len(rs)}
+        for k in at:
+            row[f"at_{k}"] = _median(rs, lambda r, k=k: r["endpoints"][f"at_{k}"])
+        row["slope"] = _median(rs, lambda r: r["endpoints"]["slope"])
+        row["plateaued"] = sum(r["endpoints"]["plateau"] is not None for r in rs)
+        row["share"] = _median(rs, lambda r: r.get("flat", {}).get("share"))
+        row["cost"] = _median(rs, lambda r: r.get("best_cost"))
+        table.append(row)
+    columns = [Column("version", "version"), Column("size", "weights")]
+    columns += [Column(f"at_{k}", f"log10 cond at {k:,}", "{:.2f}") for k in at]
+    columns += [
+        Column("slope", "slope, last half (/1,000 it.)", "{:.3f}"),
+        Column("plateaued", "plateaued"),
+        Column("share", "flat directions' share", "{:.2f}"),
+        Column("cost", "best cost", "{:.4g}"),
+    ]
+    return markdown_table(table, columns)
+
+
+def _claim_line(c: dict) -> str:
+    return (
+        f"* **{c['claim']}** at {c['iteration']:,} iterations ({c['pairs']} pairs): "
+        f"{c['difference']:+.2f} decades, 95% t interval [{c['low']:+.2f}, {c['high']:+.2f}] "
+        f"(bootstrap [{c['bootstrap_low']:+.2f}, {c['bootstrap_high']:+.2f}]): "
+        f"**{c['verdict']}**"
+    )
+
+
+def render_protocol(payload: dict[str, Any]) -> str:
+    done, iters = payload["done"], payload["iters"]
+    rows, summary = payload["rows"], payload["summary"]
+    out = []
+    if done < iters:
+        out.append(f"**Partial: {done:,} of {iters:,} iterations.**\n")
+    for n in sorted({r["network"] for r in rows}):
+        net = payload.get("networks", [{}] * (n + 1))[n] if payload.get("networks") else {}
+        removed = len(net.get("removed", [])) if net else None
+        out.append(
+            f"### Network {NETWORK_SEED + n} (`{payload['files'][n]}`), "
+            f"{removed if removed is not None else '?'} removals accepted\n"
+        )
+        out.append(_network_table([r for r in rows if r["network"] == n], done))
+    out.append("### Verdicts (log10 cond(C), paired: same network, same initialisation)\n")
+    out += [_claim_line(c) for c in summary["claims"]]
+    pc = summary["positive_control"]
+    reached, stayed = pc["duplicate_reached_bound"], pc["without_duplicate_below_bound"]
+    out.append(
+        f"\n**Positive control** (network {NETWORK_SEED} with an exact duplicate of gene "
+        f"{payload.get('duplicate_gene', '?')}): reached the bound "
+        f"{payload.get('max_condition', 0):.0e} in {sum(reached)} of {len(reached)} runs; "
+        f"without the duplicate below it in {sum(stayed)} of {len(stayed)}: the experiment "
+        + ("**can**" if pc["detects"] else "**cannot**")
+        + " detect an exactly flat direction in this budget."
+    )
+    flat = summary["flat"]
+    if flat:
+        out.append(
+            "\n**Flat directions** (each identity output neuron's scaling symmetry, and shared "
+            "entries): median share of log10 cond(C) at the end that compressing C off them "
+            "removes, and the top eigenvector's alignment with them: "
+            + "; ".join(
+                f"{v} {f['share']:.2f} ({f['top_alignment']:.2f})" for v, f in sorted(flat.items())
+            )
+            + "."
+        )
+    if payload.get("wall_s"):
+        out.append(f"\nWall {payload['wall_s']:.0f} s; popsize {payload.get('popsize')}.")
+    return "\n".join(out) + "\n"
 
 
 SUITE = harness.Suite(

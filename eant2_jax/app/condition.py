@@ -17,7 +17,7 @@ from ..pruning import kept_genes, reduce, where_rows
 from ..tasks.base import Task
 from ..tuning import optimize, prepare, tune
 
-__all__ = ["condition_experiment"]
+__all__ = ["condition_experiment", "from_evolved", "prune_rounds", "recording_config"]
 
 
 def condition_experiment(
@@ -77,7 +77,7 @@ def condition_experiment(
       ``genome_after``; ``removed``: accepted pruning records.
     """
     k_prune, k_init, k_run = jax.random.split(key, 3)
-    current, removed = _prune_rounds(
+    current, removed = prune_rounds(
         genome, task, k_prune, rounds=rounds, iters=prune_iters, window=prune_window,
         sigma0=prune_sigma0, candidates=prune_candidates,
     )  # fmt: skip
@@ -88,7 +88,7 @@ def condition_experiment(
         starts_a.append(genome.with_weights(w))
         # The pruned network starts from the same draw on the genes it kept.
         starts_b.append(current.with_weights(w[_kept_genes(genome, current)]))
-    config = _recording_config(sigma0, iters, max_condition, dtype)
+    config = recording_config(sigma0, iters, max_condition, dtype)
     res = tune(starts_a + starts_b, task, key=k_run, config=config, pad_count=False)
     cond = np.asarray(res.history.cond, np.float64).T  # [runs, iters]
     before, after = cond[:inits], cond[inits:]
@@ -116,7 +116,7 @@ def condition_experiment(
     }
 
 
-def _prune_rounds(genome, task, key, *, rounds, iters, window, sigma0, candidates):
+def prune_rounds(genome, task, key, *, rounds, iters, window, sigma0, candidates):
     """Prune ``genome`` in rounds, each a CMA-ES run from its current weights, until a
     round removes nothing: (the pruned genome, the accepted pruning records)."""
     current, removed = genome, []
@@ -140,7 +140,7 @@ def _prune_rounds(genome, task, key, *, rounds, iters, window, sigma0, candidate
     return current, removed
 
 
-def _recording_config(sigma0, iters, max_condition, dtype) -> ExploitConfig:
+def recording_config(sigma0, iters, max_condition, dtype) -> ExploitConfig:
     """CMA-ES runs of ``iters`` iterations with nothing that stops or prunes them, cond(C)
     recorded every iteration."""
     return ExploitConfig(

@@ -1,0 +1,328 @@
+"""The condition experiment as docs/protocol.md, section 2 fixes it: several evolved
+networks, each before pruning, after the covariance pruner's removals and after as many
+removals at random and by magnitude (`eant2_jax.app.condition_controls`), each from the
+same random initialisations; float64 CMA-ES state and float64 evaluation, no pruning, cond(C)
+recorded every iteration; a positive control (an injected exact duplicate); the endpoints and
+paired verdicts of `eant2_jax.app.condition_endpoints`; and whether exactly flat directions
+(scaling symmetries, shared entries) account for the growth.
+
+Every run of the experiment goes in ONE batch (`iterate`): its rows are padded to one gene
+count, and the masked CMA-ES (`eant2_jax.kernels.cmaes`) computes cond(C) over each row's
+own coordinates only, so padding adds no eigenvalue. The engine (`eant2_jax.exploitation`)
+evaluates networks in float32 whatever its state's dtype; `iterate` is its CMA-ES iteration
+without pruning or stop rules (the same keys, `cmaes.ask`/`tell` and cost call), with the
+networks and the task in a dtype of the caller's choice (tests/test_condition_protocol.py
+checks it against the engine in float32, to the bit).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..compiler import compile_genomes
+from ..engine_state import default_popsize
+from ..exploitation import init as engine_init
+from ..genome import GeneKind, Genome
+from ..kernels import cmaes, threefry
+from ..kernels import network as kn
+from ..pruning import kept_genes
+from ..tasks.base import Task
+from .condition import prune_rounds, recording_config
+from .condition_controls import flat_directions, remove_like, with_duplicate
+from .condition_endpoints import endpoints, paired_claim
+
+__all__ = ["VERSIONS", "cast_task", "flat_share", "iterate", "protocol_experiment", "summarise"]
+
+VERSIONS = ("original", "pruned", "random", "magnitude")
+
+
+def cast_task(task: Task, dtype) -> Task:
+    """``task`` with every floating-point array of it in ``dtype`` (its constants: start
+    poses, the arm's chain, ...), so that a cost is computed in that dtype throughout."""
+
+    def cast(a):
+        if isinstance(a, (jax.Array, np.ndarray)) and jnp.issubdtype(a.dtype, jnp.floating):
+            return jnp.asarray(a, dtype)
+        return a
+
+    return jax.tree.map(cast, task)
+
+
+@functools.partial(jax.jit, static_argnames=("length", "eval_dtype"))
+def _chunk(cma, params, keys, start, layout, task, task_key, *, length, eval_dtype):
+    """``length`` CMA-ES iterations of every row from iteration ``start``: the engine's
+    iteration without pruning (`eant2_jax.engine_step.step`: row keys fold the iteration,
+    the task's key the tick), networks in ``eval_dtype``: ``(cma, cond [length, rows])``."""
+
+    def body(cma, t):
+        it = (start + t).astype(jnp.uint32)
+        row_keys = jax.vmap(threefry.fold_in, in_axes=(0, None))(keys, it)
+        x, _ = jax.vmap(cmaes.ask)(row_keys, cma, params)
+        nets = jax.vmap(jax.vmap(kn.network, in_axes=(None, 0)))(layout, x.astype(eval_dtype))
+        f = task.cost(threefry.fold_in(task_key, it), nets)
+        cma = jax.vmap(cmaes.tell)(cma, x, f, params)
+        return cma, cma.cond
+
+    return jax.lax.scan(body, cma, jnp.arange(length, dtype=jnp.int32))
+
+
+def iterate(
+    state,
+    layout: kn.Layout,
+    task: Task,
+    task_key: jax.Array,
+    *,
+    iters: int,
+    chunk: int,
+    eval_dtype="float64",
+    on_chunk: Callable[[int, np.ndarray], None] | None = None,
+):
+    """``iters`` CMA-ES iterations of every row of an engine state (`eant2_jax.exploitation.
+    init`), none stopped or pruned, cond(C) recorded after each.
+
+    Args:
+      state: the engine's `ExploitState` ``[rows]`` (its ``cma``, ``params``, ``key``).
+      layout: the rows' batched layout; task: the task (cast it with `cast_task`).
+      task_key: the task's key (folded with the iteration).
+      iters, chunk: iterations in all, and per compiled call (``iters`` a multiple of it).
+      eval_dtype: the dtype the networks are evaluated in.
+      on_chunk: called with the iterations done and the ``cond [done, rows]`` so far.
+
+    Returns:
+      ``(cma, cond)``: the final CMA-ES state and ``cond [iters, rows]`` (NumPy float64).
+    """
+    if iters % chunk:
+        raise ValueError(f"iters {iters} is not a multiple of the chunk {chunk}")
+    cma, parts = state.cma, []
+    for start in range(0, iters, chunk):
+        cma, cond = _chunk(
+            cma,
+            state.params,
+            state.key,
+            jnp.int32(start),
+            layout,
+            task,
+            task_key,
+            length=chunk,
+            eval_dtype=jnp.dtype(eval_dtype).name,
+        )
+        parts.append(np.asarray(cond, np.float64))
+        if on_chunk is not None:
+            on_chunk(start + chunk, np.concatenate(parts))
+    return cma, np.concatenate(parts)
+
+
+def flat_share(genome: Genome, mean, C, *, hidden: str, output: str, n_inputs: int) -> dict:
+    """How much of cond(C) the exactly flat directions of ``genome`` at ``mean`` account for
+    (`eant2_jax.app.condition_controls.flat_directions`): ``directions`` (their rank),
+    ``top_alignment`` (the norm of C's top eigenvector's projection on their span, 0 to 1),
+    ``log10_cond`` and ``log10_cond_off_flat`` (cond of C compressed to their orthogonal
+    complement, which is at most cond(C)) and ``share``: the fraction of log10 cond(C) the
+    compression removes."""
+    n = len(genome)
+    c = np.asarray(C, np.float64)[:n, :n]
+    lam, vec = np.linalg.eigh(0.5 * (c + c.T))
+    log_cond = float(np.log10(lam[-1] / lam[0]))
+    v = flat_directions(
+        genome, np.asarray(mean)[:n], hidden=hidden, output=output, n_inputs=n_inputs
+    )
+    rank, top, off = 0, 0.0, log_cond
+    if len(v):
+        u, s, _ = np.linalg.svd(v.T, full_matrices=True)
+        rank = int(np.sum(s > s[0] * 1e-10))
+        span, rest = u[:, :rank], u[:, rank:]
+        top = float(np.linalg.norm(span.T @ vec[:, -1]))
+        lam_rest = np.linalg.eigvalsh(rest.T @ c @ rest)
+        off = float(np.log10(lam_rest[-1] / lam_rest[0]))
+    share = (log_cond - off) / log_cond if log_cond > 0 else 0.0
+    return {
+        "directions": rank,
+        "top_alignment": top,
+        "log10_cond": log_cond,
+        "log10_cond_off_flat": off,
+        "share": share,
+    }
+
+
+def _versions(genome, task, net_key, prune) -> tuple[dict, list]:
+    """A network's versions ``{name: (genome, kept indices)}`` and the pruner's records."""
+    pruned, removed = prune_rounds(genome, task, jax.random.fold_in(net_key, 0), **prune)
+    kept = np.asarray(kept_genes(genome, pruned), np.int64)
+    if len(kept) != len(pruned):
+        raise ValueError("the pruned genome is not a sub-sequence of the original")
+    count = len(genome) - len(pruned)
+    versions = {"original": (genome, np.arange(len(genome))), "pruned": (pruned, kept)}
+    versions["random"] = remove_like(
+        genome, count, rule="random", key=jax.random.fold_in(net_key, 1)
+    )
+    versions["magnitude"] = remove_like(genome, count, rule="magnitude")
+    return versions, removed
+
+
+def protocol_experiment(
+    genomes: Sequence[Genome],
+    task: Task,
+    *,
+    network_keys: Sequence[jax.Array],
+    init_keys: Sequence[jax.Array],
+    iters: int = 10_000,
+    chunk: int = 1000,
+    sigma0: float = 0.5,
+    weight_scale: float = 0.5,
+    max_condition: float = 1e14,
+    prune: dict | None = None,
+    on_chunk: Callable[[int, dict], None] | None = None,
+) -> dict:
+    """docs/protocol.md, section 2 (JAX's x64 mode must be on).
+
+    Network ``n`` (key ``network_keys[n]``: its pruning rounds from ``fold_in(key, 0)``, as
+    `eant2_jax.app.condition.prune_rounds` prunes; its random control from ``fold_in(key,
+    1)``) gives four versions (`VERSIONS`); initialisation ``j`` of it draws ``weight_scale *
+    N(0, 1)`` weights from ``fold_in(fold_in(init_keys[j], n), 0)`` and its CMA-ES key
+    ``fold_in(..., 1)``, the same for the four versions (each takes the draws on the genes
+    it kept). The positive control is network 0 with an exact duplicate of its first input
+    connection (the duplicate's weight equal to its twin's), from network 0's draws and keys.
+    All rows run as one batch: `iterate`, ``iters`` iterations, float64, step size
+    ``sigma0``, cond(C) bounded at ``max_condition``, one popsize (the CMA-ES default of the
+    largest network).
+
+    Returns:
+      ``rows`` (per run: network, version, init, size, ``log10_cond [iters]``, best cost,
+      `flat_share` at the end), ``networks`` (sizes, genomes, pruning records), ``popsize``,
+      ``iters`` and the settings.
+    """
+    prune = {
+        "rounds": 10,
+        "iters": 2000,
+        "window": 100,
+        "sigma0": 0.1,
+        "candidates": 4,
+        **(prune or {}),
+    }
+    rows, starts, keys = [], [], []
+    networks = []
+    for n, (genome, net_key) in enumerate(zip(genomes, network_keys, strict=True)):
+        versions, removed = _versions(genome, task, net_key, prune)
+        if n == 0:
+            dup = next(i for i, g in enumerate(genome.genes) if g.kind == GeneKind.INPUT)
+            versions["duplicate"] = (with_duplicate(genome, dup), None)
+        networks.append(
+            {
+                "size": len(genome),
+                "removed": removed,
+                **{f"genome_{v}": str(g) for v, (g, _) in versions.items()},
+            }
+        )
+        for j, init_key in enumerate(init_keys):
+            k = jax.random.fold_in(init_key, n)
+            w = weight_scale * np.asarray(
+                jax.random.normal(jax.random.fold_in(k, 0), (len(genome),), jnp.float64)
+            )
+            for name, (g, kept) in versions.items():
+                x = np.insert(w, dup + 1, w[dup]) if kept is None else w[kept]
+                rows.append({"network": n, "version": name, "init": j, "size": len(g)})
+                starts.append(g.with_weights(x))
+                keys.append(jax.random.fold_in(k, 1))
+    config = recording_config(sigma0, iters, max_condition, "float64")
+    popsize = default_popsize(max(len(g) for g in genomes))
+    batch = compile_genomes(starts, task.n_inputs, pad_count=False)
+    means = np.zeros(batch.weights.shape, np.float64)
+    for i, g in enumerate(starts):
+        means[i, : len(g)] = g.weights
+    state = engine_init(
+        jnp.stack(keys), jnp.asarray(means), batch.layout.gene_mask, config, popsize=popsize
+    )
+    task64 = cast_task(task, jnp.float64)
+    meta = {
+        "networks": networks,
+        "popsize": popsize,
+        "iters": iters,
+        "sigma0": sigma0,
+        "weight_scale": weight_scale,
+        "max_condition": max_condition,
+        "prune": prune,
+        "duplicate_gene": dup,
+    }
+
+    def progress(done, cond):
+        if on_chunk is not None:
+            on_chunk(done, dict(meta, rows=_rows(rows, cond)))
+
+    cma, cond = iterate(
+        state,
+        batch.layout,
+        task64,
+        jax.random.key(0),
+        iters=iters,
+        chunk=min(chunk, iters),
+        on_chunk=progress,
+    )
+    out_rows = _rows(rows, cond)
+    mean, C, best = (np.asarray(a, np.float64) for a in (cma.mean, cma.C, cma.best_cost))
+    for i, (r, g) in enumerate(zip(out_rows, starts, strict=True)):
+        r["best_cost"] = float(best[i])
+        r["flat"] = flat_share(
+            g, mean[i], C[i], hidden=task.hidden, output=task.output, n_inputs=task.n_inputs
+        )
+    return dict(meta, rows=out_rows)
+
+
+def _rows(rows: list[dict], cond: np.ndarray) -> list[dict]:
+    """The rows with their ``log10_cond`` traces (``cond [done, rows]``)."""
+    log_cond = np.log10(np.maximum(cond, 1.0)).T
+    return [dict(r, log10_cond=log_cond[i]) for i, r in enumerate(rows)]
+
+
+def summarise(result: dict, at=(1000, 5000, 10000)) -> dict:
+    """Endpoints per run, and the paired claims at each iteration of ``at`` reached:
+    ``pruned``, ``random`` and ``magnitude`` each lower than ``original``; ``pruned`` lower
+    than ``random`` and than ``magnitude``; the positive control (``duplicate`` against
+    ``original`` on network 0) and the flat directions' share per version."""
+    rows = result["rows"]
+    for r in rows:
+        e = endpoints(np.asarray(r["log10_cond"])[None], at)
+        r["endpoints"] = {k: v[0] for k, v in e.items()}
+    by = {(r["network"], r["version"], r["init"]): r for r in rows}
+    done = len(rows[0]["log10_cond"])
+    claims = []
+    pairs = [
+        ("pruned", "original"),
+        ("random", "original"),
+        ("magnitude", "original"),
+        ("pruned", "random"),
+        ("pruned", "magnitude"),
+    ]
+    keys = sorted({(n, j) for n, v, j in by if v == "original"})
+    for k in [k for k in at if k <= done]:
+        for a, b in pairs:
+            va = [by[n, a, j]["endpoints"][f"at_{k}"] for n, j in keys]
+            vb = [by[n, b, j]["endpoints"][f"at_{k}"] for n, j in keys]
+            claims.append({"claim": f"{a} lower than {b}", "iteration": k, **paired_claim(va, vb)})
+    bound = np.log10(result["max_condition"])
+    dup = [r for r in rows if r["version"] == "duplicate"]
+    orig0 = [by[0, "original", r["init"]] for r in dup]
+    reached = [bool(np.max(r["log10_cond"]) >= bound - 1e-3) for r in dup]
+    stayed = [bool(np.max(r["log10_cond"]) < bound - 1e-3) for r in orig0]
+    positive = {
+        "duplicate_reached_bound": reached,
+        "without_duplicate_below_bound": stayed,
+        "detects": all(reached) and all(stayed),
+    }
+    if done >= at[-1] and len(dup) > 1:
+        positive["claim"] = paired_claim(
+            [r["endpoints"][f"at_{at[-1]}"] for r in orig0],
+            [r["endpoints"][f"at_{at[-1]}"] for r in dup],
+        )
+    flat = {}
+    for v in {r["version"] for r in rows if "flat" in r}:
+        fs = [r["flat"] for r in rows if r["version"] == v]
+        flat[v] = {
+            k: float(np.median([f[k] for f in fs]))
+            for k in ("share", "top_alignment", "log10_cond", "log10_cond_off_flat")
+        }
+    return {"claims": claims, "positive_control": positive, "flat": flat, "done": done}

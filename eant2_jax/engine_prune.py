@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from . import pruning
-from .engine_state import PRUNE_AT, RESUME_AFTER, RUNNING, cond_rare, decomposed
+from .engine_state import PRUNE_AT, RESUME_AFTER, RUNNING, cond_rare, decomposed, is_lazy
 from .kernels import pruning as kp
 from .rows import where_rows
 
@@ -26,6 +26,7 @@ def prune_phase(new, st, normal, in_trial, in_refit, f, tables, config):
     judge = functools.partial(
         pruning.judge,
         tolerance=config.prune_tolerance,
+        atol=config.improve_atol,
         refit=config.prune_refit,
         refit_scale=config.prune_refit_scale,
         # The re-fit gets what is left of the budget (at least one iteration: an attempt
@@ -61,13 +62,12 @@ def prune_phase(new, st, normal, in_trial, in_refit, f, tables, config):
         jnp.any(in_trial) | jnp.any(trigger), rare, usual, att, cma, params
     )
     if config.prune_refit:
-        att = att.replace(
-            refit_left=att.refit_left - in_refit, refit_done=att.refit_done + in_refit
-        )
-        finishing = in_refit & (att.refit_left <= 0)
-        att, cma, params, refit_record = pruning.conclude(
-            att, cma, params, finishing, tolerance=config.prune_tolerance
-        )
+        limits = dict(tolerance=config.prune_tolerance, atol=config.improve_atol)
+        att, finishing = pruning.refit_progress(
+            att, cma, in_refit, refit=config.prune_refit,
+            budget_left=config.max_iters - new.iteration, **limits,
+        )  # fmt: skip
+        att, cma, params, refit_record = pruning.conclude(att, cma, params, finishing, **limits)
         record = where_rows(finishing, refit_record, record)
         decided |= finishing
     accepted = decided & record.accepted
@@ -91,7 +91,7 @@ def prune_phase(new, st, normal, in_trial, in_refit, f, tables, config):
 def _begin(att, cma, params, trigger, tables, iteration, config, keys):
     """``(attempt, cma)`` with a pruning attempt proposed for the ``trigger`` structures
     (the next engine iteration evaluates their shifted means); the other rows unchanged."""
-    if config.lazy_eigen > 0:
+    if is_lazy(config):
         # The candidate comes from the covariance as it is now, not as last decomposed.
         cma = decomposed(cma, params, trigger)
     att = pruning.propose(att, cma, trigger, tables, iteration, pruner=config.pruner, keys=keys)
@@ -101,7 +101,7 @@ def _begin(att, cma, params, trigger, tables, iteration, config, keys):
 def _started(st, trigger, config):
     """The engine's bookkeeping of the attempts `_begin` started: a stop that fired with
     one waits for its decision."""
-    if config.lazy_eigen > 0:
+    if is_lazy(config):
         st = st.replace(eigen_age=jnp.where(trigger, 0, st.eigen_age))
     return st.replace(
         attempt=st.attempt.replace(

@@ -8,7 +8,7 @@ Mutation operators make new structures from a parent genome:
 * ``remove_subnetwork``: a random hidden neuron leaves with its whole sub-genome;
 * ``add_connection``: an input, bias, forward jumper or recurrent jumper into a random neuron;
 * ``remove_connection``: a random input, bias or jumper gene leaves;
-* ``add_bias``: a bias into a random neuron.
+* ``add_bias``: a bias into a random neuron that has none (None when every neuron has one).
 
 The gene that joins new material to the network starts at weight 0 (the new neuron's own
 gene, or the new connection gene), while the new neuron's inner weights are random: a new
@@ -196,7 +196,13 @@ def mutate(
         i = leaves[int(rng.integers(len(leaves)))]
         return _remove_range(genome, i, i + 1)
     if operator == "add_bias":
-        target = neurons[int(rng.integers(len(neurons)))]
+        # A second bias on one neuron is an exact duplicate (two weights on one constant
+        # input: a flat direction of the cost that adds nothing), as `add_connection` rules
+        # out; only neurons without a bias are targets.
+        free = [i for i in neurons if all(g.kind != GeneKind.BIAS for g in _children(genome, i))]
+        if not free:
+            return None
+        target = free[int(rng.integers(len(free)))]
         return _insert_child(genome, target, [Gene(GeneKind.BIAS, -1, 0.0)])
     if operator == "add_connection":
         target = neurons[int(rng.integers(len(neurons)))]

@@ -51,6 +51,7 @@ __all__ = [
     "judge",
     "propose",
     "reduce",
+    "refit_progress",
     "trial_count",
     "trial_points",
     "inert_tables",
@@ -130,7 +131,9 @@ class Attempt:
       record: the attempt's record so far (completed when it is decided).
       picked_scored: the re-fitted candidate's score was finite.
       saved_cma, saved_params: the state before the attempt, restored on rejection.
-      refit_left, refit_done: re-fit iterations still to do, and done.
+      refit_left, refit_done: re-fit iterations left (of this stretch), and done.
+      refit_mid, refit_mark: the ``refit_left`` at the current stretch's midpoint, and the
+        re-fit's best cost there (`refit_progress`).
       deferred_stop: the stop an attempt at a stop postponed (0 = none).
     """
 
@@ -147,6 +150,8 @@ class Attempt:
     saved_params: cmaes.Params
     refit_left: jax.Array
     refit_done: jax.Array
+    refit_mid: jax.Array
+    refit_mark: jax.Array
     deferred_stop: jax.Array
 
     @classmethod
@@ -169,6 +174,8 @@ class Attempt:
             saved_params=params,
             refit_left=zeros,
             refit_done=zeros,
+            refit_mid=zeros,
+            refit_mark=jnp.full(s_count, jnp.inf, cma.best_cost.dtype),
             deferred_stop=zeros,
         )
 
@@ -258,6 +265,7 @@ def judge(
     active: jax.Array,
     *,
     tolerance: float | jax.Array,
+    atol: float | jax.Array = 0.0,
     refit: int,
     refit_scale: float | jax.Array,
     refit_limit: int | jax.Array,
@@ -267,7 +275,8 @@ def judge(
     `trial_points` (IV.B.3).
 
     Without a re-fit (the paper): accept iff the lowest shifted cost that passes rises by
-    less than ``tolerance`` over the reference (the mean's cost ``e``, or the best cost
+    less than ``tolerance`` (relative) plus ``atol`` (absolute, `kernels.pruning.accept`)
+    over the reference (the mean's cost ``e``, or the best cost
     before the attempt with ``reference="best"``); the attempt is decided here. With one, the
     lowest shifted cost goes on to ``min(refit, refit_limit)`` CMA-ES iterations of the
     reduced structure (phase ``REFIT``; its step size is ``max(sigma, refit_scale *
@@ -283,7 +292,7 @@ def judge(
     s_count, k, _ = att.trial.shape
     e, e_trial = costs[:, 0], costs[:, 1 : 1 + k]
     e_ref = cma.best_cost if reference == "best" else e
-    ok = kp.accept(e_ref[:, None], e_trial, tolerance) & att.scored
+    ok = kp.accept(e_ref[:, None], e_trial, tolerance, atol) & att.scored
     if refit:
         # The lowest shifted cost goes on to the re-fit (the best-scored if none is finite).
         pick = jnp.argmin(jnp.where(att.scored & jnp.isfinite(e_trial), e_trial, jnp.inf), 1)
@@ -347,16 +356,18 @@ def _start_refit(att, cma, params, pruned, record, mean, picked, refit, refit_sc
     step = jnp.linalg.norm(jnp.where(pruned.mask, mean - cma.mean, 0), axis=-1)
     sigma = jnp.maximum(cma.sigma, refit_scale * step / jnp.sqrt(n_keep))
     pruned = pruned.replace(sigma=sigma.astype(cma.sigma.dtype))
+    left = jnp.broadcast_to(jnp.maximum(jnp.minimum(refit, refit_limit), 1), att.refit_left.shape)
+    left = left.astype(jnp.int32)
     started = att.replace(
         phase=jnp.full_like(att.phase, REFIT),
         record=record,
         picked_scored=att.scored[picked],
         saved_cma=cma,
         saved_params=params,
-        refit_left=jnp.broadcast_to(
-            jnp.maximum(jnp.minimum(refit, refit_limit), 1), att.refit_left.shape
-        ).astype(jnp.int32),
+        refit_left=left,
         refit_done=jnp.zeros_like(att.refit_done),
+        refit_mid=left // 2,
+        refit_mark=jnp.full_like(att.refit_mark, jnp.inf),
     )
     return started, pruned
 
@@ -374,14 +385,14 @@ def reduce(
     mean and best set to ``mean`` (0 on the removed coordinates) and ``best_cost``."""
     keep = cma.mask & ~remove
     conditioned = jax.vmap(kp.condition)(cma.C, keep, remove)
-    C, B, D, valid_axes, cond, bounded = jax.vmap(cmaes.eigen)(
-        conditioned, keep, params.max_condition
-    )
+    C, B, D, valid_axes, cond, bounded = jax.vmap(cmaes.spectrum)(conditioned, keep, params)
     n = jnp.sum(keep, axis=-1, dtype=jnp.int32)
     popsize = params.weights.shape[-1]
-    new_params = jax.vmap(lambda n, bound: cmaes.default_params(n, popsize, max_condition=bound))(
-        jnp.maximum(n, 1), params.max_condition
-    )
+    new_params = jax.vmap(
+        lambda n, bound: cmaes.default_params(
+            n, popsize, max_condition=bound, diagonal=params.diagonal
+        )
+    )(jnp.maximum(n, 1), params.max_condition)
     new_params = jax.tree.map(lambda a, b: a.astype(b.dtype), new_params, params)
     reduced = cma.replace(
         mean=jnp.where(keep, mean, 0).astype(cma.mean.dtype),
@@ -401,6 +412,45 @@ def reduce(
     return reduced, new_params
 
 
+def refit_progress(
+    att: Attempt,
+    cma: cmaes.State,
+    in_refit: jax.Array,
+    *,
+    refit: int,
+    budget_left: jax.Array,
+    tolerance: float | jax.Array,
+    atol: float | jax.Array = 0.0,
+) -> tuple[Attempt, jax.Array]:
+    """Count one re-fit iteration of the ``in_refit`` structures; returns ``(attempt,
+    finishing [S])``, the structures whose re-fit ends now (`conclude` decides them).
+
+    A re-fit runs in stretches of ``refit`` iterations (`judge` starts the first). Its best
+    cost is marked at a stretch's midpoint; at the stretch's end the re-fit goes on for
+    another stretch (within ``budget_left``, what ``max_iters`` leaves) while it is still
+    closing in on the acceptance limit (`kernels.pruning.acceptance_limit`): above it, by at
+    most half what it was above it at the midpoint. The acceptance compares the re-fit with
+    a converged search's best, fair only once the re-fit has converged too (docs/pruning.md,
+    "Plain cases"); a re-fit that levels off above the limit ends with its stretch.
+    """
+    left = att.refit_left - in_refit
+    best = cma.best_cost
+    mark = jnp.where(in_refit & (left == att.refit_mid), best, att.refit_mark)
+    end = in_refit & (left <= 0)
+    limit = kp.acceptance_limit(att.record.e_reference, tolerance, atol)
+    gap, gap_mid = best - limit, mark - limit
+    closing = jnp.isfinite(gap) & jnp.isfinite(gap_mid) & (gap > 0) & (gap <= 0.5 * gap_mid)
+    more = jnp.minimum(refit, budget_left).astype(jnp.int32)
+    extend = end & closing & att.picked_scored & (more > 0)
+    att = att.replace(
+        refit_left=jnp.where(extend, more, left),
+        refit_done=att.refit_done + in_refit,
+        refit_mid=jnp.where(extend, more // 2, att.refit_mid),
+        refit_mark=mark,
+    )
+    return att, end & ~extend
+
+
 def conclude(
     att: Attempt,
     cma: cmaes.State,
@@ -408,13 +458,14 @@ def conclude(
     finishing: jax.Array,
     *,
     tolerance: float | jax.Array,
+    atol: float | jax.Array = 0.0,
 ) -> tuple[Attempt, cmaes.State, cmaes.Params, AttemptRecord]:
     """The end of the re-fit of the ``finishing`` structures: accept iff the re-fit's best
     cost (the shifted mean's own included) passes against the attempt's reference; on
     rejection restore the state from before the attempt exactly."""
     rec = att.record
     e_after = cma.best_cost
-    accepted = finishing & kp.accept(rec.e_reference, e_after, tolerance) & att.picked_scored
+    accepted = finishing & kp.accept(rec.e_reference, e_after, tolerance, atol) & att.picked_scored
     rejected = finishing & ~accepted
     record = rec.replace(
         attempted=finishing,

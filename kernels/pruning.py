@@ -6,7 +6,8 @@ It imports nothing from the rest of eant2_jax.
 * `removable`: which parameters may go alone (structural rules, below).
 * `scores`: each pruner's score for every parameter (smaller = prune first) and the
   shifted mean that would put that parameter at 0.
-* `accept`: the acceptance rule, eq. ``e~ < 1.001 e``.
+* `accept`: the acceptance rule, eq. ``e~ < 1.001 e`` (plus an absolute resolution,
+  `acceptance_limit`).
 * `condition`: the covariance after a removal, conditioned on the removed
   coordinates (Schur complement).
 
@@ -29,6 +30,7 @@ __all__ = [
     "PRUNERS",
     "Tables",
     "accept",
+    "acceptance_limit",
     "condition",
     "removable",
     "removal_set",
@@ -171,14 +173,34 @@ def scores(
     return score, shifted, axis, factor
 
 
-def accept(cost: jax.Array, cost_shifted: jax.Array, tolerance: float = 1e-3) -> jax.Array:
-    """The acceptance rule (IV.B.3): accept iff the cost rises by less than ``tolerance``.
+def acceptance_limit(
+    cost: jax.Array, tolerance: float | jax.Array = 1e-3, atol: float | jax.Array = 0.0
+) -> jax.Array:
+    """The cost a removal must stay under (IV.B.3): ``cost + tolerance |cost| + atol``.
 
-    For a positive cost ``e`` this is the paper's ``e~ < (1 + tolerance) e``. Costs that can
-    be zero or negative use ``e~ <= e + tolerance |e|`` (so a perfect ``e = 0`` accepts a
+    ``atol`` is the absolute resolution of costs (the engine passes ``improve_atol``, the
+    margin under which it counts no improvement either): near a perfect fit, a cost at the
+    float resolution (about 1e-15 for a mean squared error of targets of order 1 in
+    float32) makes any relative band empty. For a float32 cost above about 3e-5 adding
+    1e-12 rounds away: the limit is the paper's to the bit.
+    """
+    return cost + tolerance * jnp.abs(cost) + atol
+
+
+def accept(
+    cost: jax.Array,
+    cost_shifted: jax.Array,
+    tolerance: float | jax.Array = 1e-3,
+    atol: float | jax.Array = 0.0,
+) -> jax.Array:
+    """The acceptance rule (IV.B.3): accept iff the cost rises by less than ``tolerance``
+    (relative) plus ``atol`` (absolute, see `acceptance_limit`).
+
+    For a positive cost ``e`` and ``atol = 0`` this is the paper's ``e~ < (1 + tolerance) e``.
+    Costs that can be zero or negative use ``e~ <= limit`` (so a perfect ``e = 0`` accepts a
     removal that keeps it at 0). A non-finite ``e~`` is always rejected.
     """
-    limit = cost + tolerance * jnp.abs(cost)
+    limit = acceptance_limit(cost, tolerance, atol)
     ok = jnp.where(cost > 0, cost_shifted < limit, cost_shifted <= limit)
     return ok & jnp.isfinite(cost_shifted) & jnp.isfinite(cost)
 

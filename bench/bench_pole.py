@@ -463,7 +463,8 @@ def merge(paths: Sequence[str]) -> tuple[dict, dict[str, list[dict]]]:
             runs.setdefault(name, []).extend(task_runs)
     for task_runs in runs.values():
         task_runs.sort(key=lambda r: r["seed"])
-    return first, runs
+    # A file cut off before a group's first run holds it empty: nothing to merge.
+    return first, {name: r for name, r in runs.items() if r}
 
 
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
@@ -591,10 +592,11 @@ def render(payload: dict[str, Any]) -> str:
 def render_protocol(payload: dict[str, Any]) -> str:
     """The protocol's table (docs/protocol.md, section 4)."""
     config = payload["config"]
-    first = config["first_seed"]
+    seeds = sorted({r["seed"] for runs in payload["runs"].values() for r in runs})
+    span = f"{seeds[0]}-{seeds[-1]}" if seeds else "none yet"
     return (
-        f"The protocol's double pole runs (docs/protocol.md, section 4): seeds {first}-"
-        f"{first + config['seeds'] - 1}, budget {config['budget']} evaluations. Variant: task, "
+        f"The protocol's double pole runs (docs/protocol.md, section 4): seeds {span}, "
+        f"budget {config['budget']} evaluations. Variant: task, "
         "rr = recurrent-ready start (else the paper's minimal start), the solution test's rule "
         "(champion: the generation's champion once per generation, the published protocol; "
         "structure: every structure's improved best after every CMA-ES iteration). Median "

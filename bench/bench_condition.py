@@ -43,23 +43,39 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--genome-file", default=None, help="the network (not with --protocol)")
     p.add_argument("--protocol", action="store_true", help="docs/protocol.md, section 2")
     p.add_argument(
-        "--networks", type=int, default=5,
+        "--networks",
+        type=int,
+        default=5,
         help="--protocol: the first N of the five networks (fewer: a trial, not the protocol)",
-    )  # fmt: skip
+    )
     p.add_argument("--chunk", type=int, default=1000, help="--protocol: iterations per call")
+    p.add_argument(
+        "--checkpoint",
+        default=None,
+        help="--protocol: after each chunk, keep what a resumed run needs in this .npz",
+    )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="--protocol: go on from --checkpoint (same settings; no pruning rounds again)",
+    )
     harness.run_options(p, task="servo", seed=0)
     p.add_argument("--iters", type=int, default=10_000)
     p.add_argument("--inits", type=int, default=5)
     p.add_argument(
-        "--max-condition", type=float, default=None,
+        "--max-condition",
+        type=float,
+        default=None,
         help="the bound on cond(C) (default 1e17; --protocol: 1e14, the protocol's)",
-    )  # fmt: skip
+    )
     p.add_argument("--prune-iters", type=int, default=2000)
     p.add_argument(
-        "--evolved-warmup", type=int, default=0,
+        "--evolved-warmup",
+        type=int,
+        default=0,
         help="also continue from an evolved C: CMA-ES iterations of the original before the "
         "branch (0: only the restart at C = I)",
-    )  # fmt: skip
+    )
     p.add_argument("--n-starts", type=int, default=None, help="servo start poses (default all)")
 
 
@@ -154,7 +170,7 @@ def render(payload: dict[str, Any]) -> str:
             f" (from the evolved C: {payload['ratio_evolved']:.3g}x)"
             if payload.get("ratio_evolved")
             else ""
-        )  # fmt: skip
+        )
         + f"; wall {payload['wall_s']:.0f} s.\n"
     )
 
@@ -171,6 +187,8 @@ def _prepare_protocol(args: argparse.Namespace) -> None:
         args.iters, args.inits, args.prune_iters, args.n_starts = 40, 2, 50, 16
         args.networks, args.chunk = 1, 20
     args.chunk = min(args.chunk, args.iters)
+    if args.resume and not (args.checkpoint and Path(args.checkpoint).is_file()):
+        raise BenchInputError("--resume needs the --checkpoint file of the run it goes on")
     if args.iters % args.chunk:
         raise BenchInputError(f"--iters {args.iters} is not a multiple of --chunk {args.chunk}")
 
@@ -205,12 +223,19 @@ def run_protocol(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]
         **spec,
         "files": PROTOCOL_FILES[: args.networks],
     }
+    settings = json.dumps(harness.settings(args, "checkpoint", "resume"), sort_keys=True)
+    resume = _read_checkpoint(args.checkpoint, settings) if args.resume else None
+    if resume is not None:
+        payload["resumed_at"] = int(resume["done"])
     t0 = time.perf_counter()
     stamps: list[float] = []
 
     def on_chunk(done: int, partial: dict) -> None:
         stamps.append(time.perf_counter() - t0)
         harness.log(f"condition protocol: {done} of {args.iters} iterations, {stamps[-1]:.0f} s")
+        point = partial.pop("checkpoint")
+        if args.checkpoint:
+            _write_checkpoint(args.checkpoint, point, settings)
         save(dict(payload, **_protocol_payload(partial), chunk_s=list(stamps)))
 
     result = protocol_experiment(
@@ -223,9 +248,39 @@ def run_protocol(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]
         max_condition=args.max_condition,
         prune={"iters": args.prune_iters},
         on_chunk=on_chunk,
+        resume=resume,
     )
     wall = time.perf_counter() - t0
     return dict(payload, **_protocol_payload(result), wall_s=wall, chunk_s=stamps)
+
+
+def _write_checkpoint(path: str, point: dict, settings: str) -> None:
+    """The state a resumed run needs, as plain arrays (read back without pickle)."""
+    arrays = {f"cma_{k}": v for k, v in point["cma"].items()}
+    tmp = Path(path).with_suffix(".tmp.npz")
+    np.savez(
+        tmp,
+        cond=point["cond"],
+        done=point["done"],
+        settings=np.array(settings),
+        networks=np.array(json.dumps(point["networks"])),
+        **arrays,
+    )
+    tmp.replace(path)
+
+
+def _read_checkpoint(path: str, settings: str) -> dict:
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            data = {k: f[k] for k in f.files}
+        saved = str(data["settings"])
+        networks = json.loads(str(data["networks"]))
+    except (OSError, ValueError, KeyError) as e:
+        raise BenchInputError(f"--checkpoint {path}: cannot read it ({e})") from None
+    if saved != settings:
+        raise BenchInputError(f"--checkpoint {path} was written with other settings: {saved}")
+    cma = {k[4:]: v for k, v in data.items() if k.startswith("cma_")}
+    return {"networks": networks, "done": int(data["done"]), "cond": data["cond"], "cma": cma}
 
 
 def _protocol_payload(result: dict) -> dict[str, Any]:
@@ -240,8 +295,12 @@ def _protocol_payload(result: dict) -> dict[str, Any]:
         keep = {k: v for k, v in r.items() if k != "log10_cond"}
         keep["trace"] = [round(float(v), 4) for v in trace[TRACE_EVERY - 1 :: TRACE_EVERY]]
         rows.append(keep)
-    return {"rows": rows, "summary": summary, "done": summary["done"],
-            **{k: v for k, v in result.items() if k != "rows"}}  # fmt: skip
+    return {
+        "rows": rows,
+        "summary": summary,
+        "done": summary["done"],
+        **{k: v for k, v in result.items() if k != "rows"},
+    }
 
 
 def _median(rows: list[dict], get) -> float | None:

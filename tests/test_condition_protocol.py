@@ -242,26 +242,32 @@ def test_paired_claim_verdicts_and_bootstrap():
 
 
 @pytest.mark.slow
-def test_protocol_experiment_end_to_end():
-    """Two tiny networks: the controls remove as many genes as the pruner's rounds did, the
-    versions of one initialisation start from the same draws, every row reports."""
-    task = _task(n=64)
+def test_protocol_experiment_end_to_end_and_resumed():
+    """Two tiny networks: the controls remove as many genes as the pruner's rounds did,
+    every row reports, and a run resumed from its first chunk's checkpoint (no pruning
+    rounds again) ends with the uninterrupted run's records."""
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(64, 2))
+    task = regression(x, np.tanh(1.5 * x[:, :1]) + 0.5 * x[:, 1:2])
     genomes = [
         Genome.parse("N0/3*1 N1/2*0.5 I0*0.7 I1*0.2 I0*0.8 I1*0.5"),
         Genome.parse("N0/3*1 I0*0.7 B*0.3 I1*0.5"),
     ]
+    points = []
+    options = dict(
+        network_keys=[jax.random.key(3000), jax.random.key(3001)],
+        init_keys=[jax.random.key(3100), jax.random.key(3101)],
+        iters=40,
+        chunk=20,
+        prune={"iters": 60, "window": 20},
+    )
     with jax.enable_x64(True):
         res = protocol_experiment(
-            genomes,
-            task,
-            network_keys=[jax.random.key(3000), jax.random.key(3001)],
-            init_keys=[jax.random.key(3100), jax.random.key(3101)],
-            iters=40,
-            chunk=20,
-            prune={"iters": 60, "window": 20},
+            genomes, task, on_chunk=lambda done, p: points.append(p["checkpoint"]), **options
         )
         s = summarise(res, at=(10, 40))
-    assert len(res["rows"]) == 2 * 2 * 4 + 2
+        again = protocol_experiment(genomes, task, resume=points[0], **options)
+    assert len(res["rows"]) == 2 * 2 * 4 + 2 and [p["done"] for p in points] == [20, 40]
     for net in res["networks"]:
         sizes = {len(Genome.parse(net[f"genome_{v}"])) for v in ("pruned", "random", "magnitude")}
         assert len(sizes) == 1 and sizes.pop() <= net["size"]
@@ -269,3 +275,6 @@ def test_protocol_experiment_end_to_end():
     assert all(np.shape(r["log10_cond"]) == (40,) for r in res["rows"])
     assert {c["iteration"] for c in s["claims"]} == {10, 40} and len(s["claims"]) == 10
     assert set(s["positive_control"]) >= {"duplicate_reached_bound", "detects"}
+    for a, b in zip(res["rows"], again["rows"], strict=True):
+        np.testing.assert_array_equal(a["log10_cond"], b["log10_cond"])
+        assert a["best_cost"] == b["best_cost"]

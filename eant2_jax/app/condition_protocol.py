@@ -17,6 +17,7 @@ checks it against the engine in float32, to the bit).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Callable, Sequence
 
@@ -80,7 +81,9 @@ def iterate(
     iters: int,
     chunk: int,
     eval_dtype="float64",
-    on_chunk: Callable[[int, np.ndarray], None] | None = None,
+    on_chunk: Callable[[int, np.ndarray, object], None] | None = None,
+    start: int = 0,
+    cond: np.ndarray | None = None,
 ):
     """``iters`` CMA-ES iterations of every row of an engine state (`eant2_jax.exploitation.
     init`), none stopped or pruned, cond(C) recorded after each.
@@ -91,29 +94,35 @@ def iterate(
       task_key: the task's key (folded with the iteration).
       iters, chunk: iterations in all, and per compiled call (``iters`` a multiple of it).
       eval_dtype: the dtype the networks are evaluated in.
-      on_chunk: called with the iterations done and the ``cond [done, rows]`` so far.
+      on_chunk: called with the iterations done, the ``cond [done, rows]`` so far and the
+        CMA-ES state.
+      start, cond: go on from iteration ``start``, ``state.cma`` being the state after it
+        and ``cond [start, rows]`` the record so far (a resumed run).
 
     Returns:
       ``(cma, cond)``: the final CMA-ES state and ``cond [iters, rows]`` (NumPy float64).
     """
     if iters % chunk:
         raise ValueError(f"iters {iters} is not a multiple of the chunk {chunk}")
-    cma, parts = state.cma, []
-    for start in range(0, iters, chunk):
-        cma, cond = _chunk(
+    if start % chunk or (cond is not None and len(cond) != start):
+        raise ValueError(f"cannot go on from iteration {start} with chunks of {chunk}")
+    cma = state.cma
+    parts = [] if cond is None else [np.asarray(cond, np.float64)]
+    for first in range(start, iters, chunk):
+        cma, c = _chunk(
             cma,
             state.params,
             state.key,
-            jnp.int32(start),
+            jnp.int32(first),
             layout,
             task,
             task_key,
             length=chunk,
             eval_dtype=jnp.dtype(eval_dtype).name,
         )
-        parts.append(np.asarray(cond, np.float64))
+        parts.append(np.asarray(c, np.float64))
         if on_chunk is not None:
-            on_chunk(start + chunk, np.concatenate(parts))
+            on_chunk(first + chunk, np.concatenate(parts), cma)
     return cma, np.concatenate(parts)
 
 
@@ -149,9 +158,13 @@ def flat_share(genome: Genome, mean, C, *, hidden: str, output: str, n_inputs: i
     }
 
 
-def _versions(genome, task, net_key, prune) -> tuple[dict, list]:
-    """A network's versions ``{name: (genome, kept indices)}`` and the pruner's records."""
-    pruned, removed = prune_rounds(genome, task, jax.random.fold_in(net_key, 0), **prune)
+def _versions(genome, task, net_key, prune, saved=None) -> tuple[dict, list]:
+    """A network's versions ``{name: (genome, kept indices)}`` and the pruner's records
+    (those of ``saved``, a resumed run's network record, without pruning again)."""
+    if saved is None:
+        pruned, removed = prune_rounds(genome, task, jax.random.fold_in(net_key, 0), **prune)
+    else:
+        pruned, removed = Genome.parse(saved["genome_pruned"]), saved["removed"]
     kept = np.asarray(kept_genes(genome, pruned), np.int64)
     if len(kept) != len(pruned):
         raise ValueError("the pruned genome is not a sub-sequence of the original")
@@ -161,6 +174,8 @@ def _versions(genome, task, net_key, prune) -> tuple[dict, list]:
         genome, count, rule="random", key=jax.random.fold_in(net_key, 1)
     )
     versions["magnitude"] = remove_like(genome, count, rule="magnitude")
+    if saved is not None and any(str(g) != saved[f"genome_{v}"] for v, (g, _) in versions.items()):
+        raise ValueError("the resumed run's networks are not these networks' versions")
     return versions, removed
 
 
@@ -177,6 +192,7 @@ def protocol_experiment(
     max_condition: float = 1e14,
     prune: dict | None = None,
     on_chunk: Callable[[int, dict], None] | None = None,
+    resume: dict | None = None,
 ) -> dict:
     """docs/protocol.md, section 2 (JAX's x64 mode must be on).
 
@@ -189,7 +205,12 @@ def protocol_experiment(
     connection (the duplicate's weight equal to its twin's), from network 0's draws and keys.
     All rows run as one batch: `iterate`, ``iters`` iterations, float64, step size
     ``sigma0``, cond(C) bounded at ``max_condition``, one popsize (the CMA-ES default of the
-    largest network).
+    largest network). Versions that are the same network from the same draws run once.
+
+    ``on_chunk(done, partial)`` gets after each chunk the result so far and, under
+    ``"checkpoint"``, what ``resume`` takes to go on from there: ``networks`` (the versions,
+    so the pruning rounds are not run again), ``done``, ``cond`` and ``cma`` (the CMA-ES
+    state's arrays by field).
 
     Returns:
       ``rows`` (per run: network, version, init, size, ``log10_cond [iters]``, best cost,
@@ -204,10 +225,92 @@ def protocol_experiment(
         "candidates": 4,
         **(prune or {}),
     }
-    rows, starts, keys = [], [], []
-    networks = []
+    saved = None if resume is None else resume["networks"]
+    rows, starts, keys, networks, dup = _plan(
+        genomes, task, network_keys, init_keys, weight_scale, prune, saved
+    )
+    # Versions that are the same network (the pruner removed nothing, or a control chose
+    # the pruner's genes) from the same draws and key run once: the same trajectory.
+    unique: dict[tuple, int] = {}
+    source = np.array(
+        [
+            unique.setdefault((r["network"], r["init"], str(g)), len(unique))
+            for r, g in zip(rows, starts, strict=True)
+        ]
+    )
+    first = [source.tolist().index(u) for u in range(len(unique))]
+    config = recording_config(sigma0, iters, max_condition, "float64")
+    popsize = default_popsize(max(len(g) for g in genomes))
+    batch = compile_genomes([starts[i] for i in first], task.n_inputs, pad_count=False)
+    means = np.zeros(batch.weights.shape, np.float64)
+    for u, i in enumerate(first):
+        means[u, : len(starts[i])] = starts[i].weights
+    state = engine_init(
+        jnp.stack([keys[i] for i in first]),
+        jnp.asarray(means),
+        batch.layout.gene_mask,
+        config,
+        popsize=popsize,
+    )
+    meta = {
+        "networks": networks,
+        "popsize": popsize,
+        "iters": iters,
+        "sigma0": sigma0,
+        "weight_scale": weight_scale,
+        "max_condition": max_condition,
+        "prune": prune,
+        "duplicate_gene": dup,
+        "distinct_runs": len(unique),
+    }
+
+    def progress(done, cond, cma):
+        if on_chunk is not None:
+            point = {
+                "networks": networks,
+                "done": done,
+                "cond": cond,
+                "cma": {f.name: np.asarray(getattr(cma, f.name)) for f in dataclasses.fields(cma)},
+            }
+            on_chunk(done, dict(meta, rows=_rows(rows, cond[:, source]), checkpoint=point))
+
+    start, cond = 0, None
+    if resume is not None:
+        start, cond = int(resume["done"]), np.asarray(resume["cond"], np.float64)
+        cma = state.cma.replace(**{k: jnp.asarray(v) for k, v in resume["cma"].items()})
+        if jax.tree.map(jnp.shape, cma) != jax.tree.map(jnp.shape, state.cma):
+            raise ValueError("the resumed run's state does not fit these runs")
+        state = state.replace(cma=cma)
+
+    cma, cond = iterate(
+        state,
+        batch.layout,
+        cast_task(task, jnp.float64),
+        jax.random.key(0),
+        iters=iters,
+        chunk=min(chunk, iters),
+        on_chunk=progress,
+        start=start,
+        cond=cond,
+    )
+    out_rows = _rows(rows, cond[:, source])
+    mean, C, best = (np.asarray(a, np.float64)[source] for a in (cma.mean, cma.C, cma.best_cost))
+    for i, (r, g) in enumerate(zip(out_rows, starts, strict=True)):
+        r["best_cost"] = float(best[i])
+        r["flat"] = flat_share(
+            g, mean[i], C[i], hidden=task.hidden, output=task.output, n_inputs=task.n_inputs
+        )
+    return dict(meta, rows=out_rows)
+
+
+def _plan(genomes, task, network_keys, init_keys, weight_scale, prune, saved=None):
+    """Every run of the experiment (`protocol_experiment`'s rule): ``(rows, starts, keys,
+    networks, duplicate gene)``, a row, start genome and CMA-ES key per run."""
+    rows, starts, keys, networks = [], [], [], []
     for n, (genome, net_key) in enumerate(zip(genomes, network_keys, strict=True)):
-        versions, removed = _versions(genome, task, net_key, prune)
+        versions, removed = _versions(
+            genome, task, net_key, prune, None if saved is None else saved[n]
+        )
         if n == 0:
             dup = next(i for i, g in enumerate(genome.genes) if g.kind == GeneKind.INPUT)
             versions["duplicate"] = (with_duplicate(genome, dup), None)
@@ -228,48 +331,7 @@ def protocol_experiment(
                 rows.append({"network": n, "version": name, "init": j, "size": len(g)})
                 starts.append(g.with_weights(x))
                 keys.append(jax.random.fold_in(k, 1))
-    config = recording_config(sigma0, iters, max_condition, "float64")
-    popsize = default_popsize(max(len(g) for g in genomes))
-    batch = compile_genomes(starts, task.n_inputs, pad_count=False)
-    means = np.zeros(batch.weights.shape, np.float64)
-    for i, g in enumerate(starts):
-        means[i, : len(g)] = g.weights
-    state = engine_init(
-        jnp.stack(keys), jnp.asarray(means), batch.layout.gene_mask, config, popsize=popsize
-    )
-    task64 = cast_task(task, jnp.float64)
-    meta = {
-        "networks": networks,
-        "popsize": popsize,
-        "iters": iters,
-        "sigma0": sigma0,
-        "weight_scale": weight_scale,
-        "max_condition": max_condition,
-        "prune": prune,
-        "duplicate_gene": dup,
-    }
-
-    def progress(done, cond):
-        if on_chunk is not None:
-            on_chunk(done, dict(meta, rows=_rows(rows, cond)))
-
-    cma, cond = iterate(
-        state,
-        batch.layout,
-        task64,
-        jax.random.key(0),
-        iters=iters,
-        chunk=min(chunk, iters),
-        on_chunk=progress,
-    )
-    out_rows = _rows(rows, cond)
-    mean, C, best = (np.asarray(a, np.float64) for a in (cma.mean, cma.C, cma.best_cost))
-    for i, (r, g) in enumerate(zip(out_rows, starts, strict=True)):
-        r["best_cost"] = float(best[i])
-        r["flat"] = flat_share(
-            g, mean[i], C[i], hidden=task.hidden, output=task.output, n_inputs=task.n_inputs
-        )
-    return dict(meta, rows=out_rows)
+    return rows, starts, keys, networks, dup
 
 
 def _rows(rows: list[dict], cond: np.ndarray) -> list[dict]:

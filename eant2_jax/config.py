@@ -231,6 +231,20 @@ class ExploitConfig(Configured):
         added="0.1.0 (d81513d)",
         old=0.0,
     )
+    covariance: str = option(
+        "full",
+        "``full`` (CMA-ES, the paper's) or ``diagonal``: separable CMA-ES (Ros & Hansen 2008, "
+        "`kernels.sepcmaes`), which adapts only the diagonal of C, with its learning rates "
+        "times (n + 2) / 3, and never decomposes C: sampling costs O(n) per candidate, not "
+        "O(n^2), and ``lazy_eigen`` has nothing to do. For large networks whose weights "
+        "matter nearly independently; it learns no correlations. The covariance pruner then "
+        "shifts along coordinate axes only: it sets the candidate weight i to 0 and moves no "
+        "other (docs/algorithm.md, Separable CMA-ES). No size switches to it by default.",
+        check=one_of("full", "diagonal"),
+        static=True,
+        added="0.1.0 (issue 41)",
+        old="full",
+    )
     recommend: str = option(
         "both",
         "On a noisy task (``task.noisy``), which point of each search becomes the tuned "

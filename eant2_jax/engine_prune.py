@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from . import pruning
-from .engine_state import PRUNE_AT, RESUME_AFTER, RUNNING, cond_rare, decomposed
+from .engine_state import PRUNE_AT, RESUME_AFTER, RUNNING, cond_rare, decomposed, is_lazy
 from .kernels import pruning as kp
 from .rows import where_rows
 
@@ -91,7 +91,7 @@ def prune_phase(new, st, normal, in_trial, in_refit, f, tables, config):
 def _begin(att, cma, params, trigger, tables, iteration, config, keys):
     """``(attempt, cma)`` with a pruning attempt proposed for the ``trigger`` structures
     (the next engine iteration evaluates their shifted means); the other rows unchanged."""
-    if config.lazy_eigen > 0:
+    if is_lazy(config):
         # The candidate comes from the covariance as it is now, not as last decomposed.
         cma = decomposed(cma, params, trigger)
     att = pruning.propose(att, cma, trigger, tables, iteration, pruner=config.pruner, keys=keys)
@@ -101,7 +101,7 @@ def _begin(att, cma, params, trigger, tables, iteration, config, keys):
 def _started(st, trigger, config):
     """The engine's bookkeeping of the attempts `_begin` started: a stop that fired with
     one waits for its decision."""
-    if config.lazy_eigen > 0:
+    if is_lazy(config):
         st = st.replace(eigen_age=jnp.where(trigger, 0, st.eigen_age))
     return st.replace(
         attempt=st.attempt.replace(

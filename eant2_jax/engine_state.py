@@ -32,6 +32,7 @@ __all__ = [
     "default_popsize",
     "halted",
     "init",
+    "is_lazy",
     "lazy_decompose",
     "record",
     "smoothing_for",
@@ -215,7 +216,11 @@ def _init(
 ) -> ExploitState:
     n = jnp.sum(mask, axis=-1)
     make_params = functools.partial(
-        cmaes.default_params, popsize=popsize, max_condition=config.max_condition, dtype=mean.dtype
+        cmaes.default_params,
+        popsize=popsize,
+        max_condition=config.max_condition,
+        dtype=mean.dtype,
+        diagonal=config.covariance == "diagonal",
     )
     # Padding rows have n = 0; give them n = 1 so their (unused) constants stay finite.
     params = jax.vmap(make_params)(jnp.maximum(n, 1))
@@ -321,6 +326,12 @@ def decomposed(cma: cmaes.State, params: cmaes.Params, rows: jax.Array) -> cmaes
 def decompose_rows(cma: cmaes.State, params: cmaes.Params, rows: jax.Array) -> cmaes.State:
     """`decomposed`, run only when a row asks for it."""
     return cond_rare(jnp.any(rows), lambda c: decomposed(c, params, rows), lambda c: c, cma)
+
+
+def is_lazy(config: ExploitConfig) -> bool:
+    """Whether the engine runs the lazy update: ``lazy_eigen`` > 0 with a full covariance (a
+    diagonal run's spectrum costs O(P) and is always fresh: `kernels.sepcmaes`)."""
+    return config.lazy_eigen > 0 and config.covariance == "full"
 
 
 def lazy_decompose(

@@ -23,6 +23,7 @@ from .engine_state import (
     TARGET,
     ExploitState,
     StepRecord,
+    is_lazy,
     lazy_decompose,
     record,
 )
@@ -109,7 +110,7 @@ def _evaluate_and_tell(st, layout, task, task_key, config, normal, in_trial, in_
     if att is not None:
         x = jnp.where(in_trial[:, None, None], pruning.trial_points(att, st.cma.mean, popsize), x)
     f = costs(task, key, layout, x)  # the task's one call site in the program
-    lazy = config.lazy_eigen > 0
+    lazy = is_lazy(config)
     told = jax.vmap(functools.partial(cmaes.tell, decompose=not lazy))(asked, x, f, st.params)
     # The structures whose CMA-ES state this iteration updates (a re-fit iteration is a
     # CMA-ES iteration of the reduced structure).

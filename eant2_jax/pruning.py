@@ -385,14 +385,14 @@ def reduce(
     mean and best set to ``mean`` (0 on the removed coordinates) and ``best_cost``."""
     keep = cma.mask & ~remove
     conditioned = jax.vmap(kp.condition)(cma.C, keep, remove)
-    C, B, D, valid_axes, cond, bounded = jax.vmap(cmaes.eigen)(
-        conditioned, keep, params.max_condition
-    )
+    C, B, D, valid_axes, cond, bounded = jax.vmap(cmaes.spectrum)(conditioned, keep, params)
     n = jnp.sum(keep, axis=-1, dtype=jnp.int32)
     popsize = params.weights.shape[-1]
-    new_params = jax.vmap(lambda n, bound: cmaes.default_params(n, popsize, max_condition=bound))(
-        jnp.maximum(n, 1), params.max_condition
-    )
+    new_params = jax.vmap(
+        lambda n, bound: cmaes.default_params(
+            n, popsize, max_condition=bound, diagonal=params.diagonal
+        )
+    )(jnp.maximum(n, 1), params.max_condition)
     new_params = jax.tree.map(lambda a, b: a.astype(b.dtype), new_params, params)
     reduced = cma.replace(
         mean=jnp.where(keep, mean, 0).astype(cma.mean.dtype),

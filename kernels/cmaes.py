@@ -27,6 +27,10 @@ arXiv:1604.00772. Deviations from evosax, all deliberate:
   with no finite cost leaves the distribution unchanged. Ties rank by index (evosax averages
   tied ranks and truncates).
 
+``Params.diagonal`` (static) selects the separable variant instead, sep-CMA-ES
+(`eant2_jax.kernels.sepcmaes`): only the diagonal of ``C`` is adapted, ``B`` stays the
+identity and no eigendecomposition runs.
+
 Minimisation throughout.
 """
 
@@ -37,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import DTypeLike
 
-from . import pytree, threefry
+from . import pytree, sepcmaes, threefry
 from .eigen import eigen as eigen
 from .eigen import symmetrised as _symmetrised
 
@@ -50,6 +54,7 @@ __all__ = [
     "eigen",
     "eigen_interval",
     "init",
+    "spectrum",
     "sqrt_cov",
     "tell",
 ]
@@ -65,7 +70,8 @@ class Params:
 
     All leaves are 0-d except ``weights`` ``[popsize]``. They depend on the structure's own
     dimension ``n`` (not on the padded size), so removing a coordinate means recomputing them
-    with ``default_params(n - 1, popsize)``.
+    with ``default_params(n - 1, popsize, diagonal=params.diagonal)``. ``diagonal`` is a
+    static field (part of the tree's structure): True runs sep-CMA-ES.
     """
 
     n: jax.Array  # [] the structure's dimension, as a float
@@ -81,6 +87,7 @@ class Params:
     sigma_min: jax.Array  # [] step-size clip (evosax std_min)
     sigma_max: jax.Array  # [] step-size clip (evosax std_max)
     max_condition: jax.Array  # [] bound on cond(C) over the valid axes
+    diagonal: bool = pytree.field(pytree_node=False, default=False)  # sep-CMA-ES (static)
 
 
 @pytree.dataclass
@@ -121,6 +128,7 @@ def default_params(
     *,
     max_condition: float = 1e14,
     dtype: DTypeLike | None = None,
+    diagonal: bool = False,
 ) -> Params:
     """Hyper-parameters of evosax ``CMA_ES._default_params`` for dimension ``n``.
 
@@ -130,6 +138,9 @@ def default_params(
       max_condition: bound on cond(C) over the valid axes; eigenvalues below
         ``lambda_max / max_condition`` are clipped up (the paper, sec. V, limits it too).
       dtype: float dtype of the leaves; default float32, or float64 under jax_enable_x64.
+      diagonal: sep-CMA-ES (static): ``c_1`` and ``c_mu`` times ``(n + 2) / 3`` (Ros &
+        Hansen 2008; `kernels.sepcmaes.rate_scale`), ``c_mu`` capped at ``1 - c_1``, and the
+        negative weights' bounds, Eq. (50)-(52), taken with those rates.
 
     Returns:
       ``Params`` with ``weights`` of shape ``[popsize]`` and 0-d leaves otherwise.
@@ -156,6 +167,11 @@ def default_params(
         1 - c_1 - 1e-8,  # 1e-8 is for large population size (as evosax)
         alpha_cov * (mu_eff + 1 / mu_eff - 2) / ((n_sq + 2) ** 2 + alpha_cov * mu_eff / 2),
     )  # Eq. (58)
+    if diagonal:
+        scale = sepcmaes.rate_scale(n)
+        c_1 = scale * c_1
+        mu_rate = (mu_eff + 1 / mu_eff - 2) / ((n_sq + 2) ** 2 + alpha_cov * mu_eff / 2)
+        c_mu = jnp.minimum(1 - c_1 - 1e-8, scale * alpha_cov * mu_rate)
 
     min_alpha = jnp.minimum(
         1 + c_1 / c_mu,  # Eq. (50)
@@ -191,6 +207,7 @@ def default_params(
         sigma_min=scalar(0.0),
         sigma_max=scalar(1e8),
         max_condition=scalar(max_condition),
+        diagonal=bool(diagonal),
     )
 
 
@@ -203,8 +220,19 @@ def decompose(state: State, params: Params) -> State:
     """``state`` with ``B``, ``D``, ``valid_axes``, ``cond`` and ``cond_bounded`` of its
     ``C`` (clipped to ``params.max_condition``, as in `tell`)."""
     p = _cast_params(params, state.C.dtype)
-    C, B, D, valid_axes, cond, bounded = eigen(state.C, state.mask, p.max_condition)
+    C, B, D, valid_axes, cond, bounded = spectrum(state.C, state.mask, p)
     return state.replace(C=C, B=B, D=D, valid_axes=valid_axes, cond=cond, cond_bounded=bounded)
+
+
+def spectrum(
+    C: jax.Array, mask: jax.Array, params: Params
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array, jax.Array, jax.Array]:
+    """`eigen` of ``C`` under ``params.max_condition``; for a diagonal ``params`` the
+    spectrum of ``diag(C)`` without an eigensolver (`kernels.sepcmaes.spectrum`: its
+    off-diagonal entries are dropped, ``B = I``)."""
+    if params.diagonal:
+        return sepcmaes.spectrum(C, mask, params.max_condition)
+    return eigen(C, mask, params.max_condition)
 
 
 def eigen_interval(params: Params, factor: float | jax.Array) -> jax.Array:
@@ -329,9 +357,12 @@ def ask(key: jax.Array, state: State, params: Params) -> tuple[jax.Array, State]
     P = state.mean.shape[-1]
     z = _normals(key, P, popsize, dtype)  # Eq. (38)
     z = jnp.where(state.mask[None, :], z, 0)
-    # Eq. (39) with C^{1/2} = B diag(D) B^T (symmetric), applied as two [popsize, P] x [P, P]
-    # products rather than forming C^{1/2}.
-    y = ((z @ state.B) * state.D[None, :]) @ state.B.T
+    if params.diagonal:  # B = I: C^{1/2} z = D z, O(P) per candidate
+        y = z * state.D[None, :]
+    else:
+        # Eq. (39) with C^{1/2} = B diag(D) B^T (symmetric), applied as two [popsize, P] x
+        # [P, P] products rather than forming C^{1/2}.
+        y = ((z @ state.B) * state.D[None, :]) @ state.B.T
     x = state.mean[None, :] + state.sigma * y  # Eq. (40)
     return jnp.where(state.mask[None, :], x, 0), state
 
@@ -383,7 +414,7 @@ def tell(
     # Step-size path and CSA, Eq. (43)-(44); C^{-1/2} = B diag(1/D) B^T, 1/D = 0 off valid axes.
     inv_d = jnp.where(state.valid_axes, 1 / jnp.where(state.valid_axes, state.D, 1), 0)
     p_sigma = (1 - p.c_sigma) * state.p_sigma + jnp.sqrt(p.c_sigma * (2 - p.c_sigma) * p.mu_eff) * (
-        state.B @ ((y_w @ state.B) * inv_d)
+        y_w * inv_d if p.diagonal else state.B @ ((y_w @ state.B) * inv_d)  # diagonal: B = I
     )  # Eq. (43)
     norm_p_sigma = jnp.linalg.norm(p_sigma)
     sigma = state.sigma * jnp.exp((p.c_sigma / p.d_sigma) * (norm_p_sigma / p.chi_n - 1))
@@ -405,20 +436,26 @@ def tell(
 
     # Active rank-mu: negative weights rescaled by n / ||C^{-1/2} y_k||^2, Eq. (46).
     # ||C^{-1/2} y||^2 = ||diag(1/D) B^T y||^2 as B is orthonormal on the valid axes.
-    norm2 = jnp.sum(((y_k @ state.B) * inv_d[None, :]) ** 2, axis=-1)
+    y_axes = y_k if p.diagonal else y_k @ state.B
+    norm2 = jnp.sum((y_axes * inv_d[None, :]) ** 2, axis=-1)
     w_o = w * jnp.where(w >= 0, 1, p.n / jnp.maximum(norm2, 1e-8))
-    rank_mu = (w_o[:, None] * y_k).T @ y_k
-    C = (
-        (1 + p.c_1 * delta_h_sigma - p.c_1 - p.c_mu * jnp.sum(p.weights)) * state.C
-        + p.c_1 * jnp.outer(p_c, p_c)
-        + p.c_mu * rank_mu
-    )  # Eq. (47)
+    if p.diagonal:  # Eq. (47) on the diagonal alone
+        decay = 1 + p.c_1 * delta_h_sigma - p.c_1 - p.c_mu * jnp.sum(p.weights)
+        c = sepcmaes.covariance(jnp.diagonal(state.C), decay, p.c_1, p.c_mu, p_c, w_o, y_k)
+        C = jnp.diag(jnp.where(mask, c, 0))
+    else:
+        rank_mu = (w_o[:, None] * y_k).T @ y_k
+        C = (
+            (1 + p.c_1 * delta_h_sigma - p.c_1 - p.c_mu * jnp.sum(p.weights)) * state.C
+            + p.c_1 * jnp.outer(p_c, p_c)
+            + p.c_mu * rank_mu
+        )  # Eq. (47)
     if decompose:
-        C, B, D, valid_axes, cond, bounded = eigen(C, mask, p.max_condition)
+        C, B, D, valid_axes, cond, bounded = spectrum(C, mask, p)
     else:
         # What `eigen` does to C before decomposing it, so that `decompose` later gives
-        # exactly what decompose=True would have given now.
-        C = _symmetrised(C, mask)
+        # exactly what decompose=True would have given now (a diagonal C is already).
+        C = C if p.diagonal else _symmetrised(C, mask)
         B, D, valid_axes = state.B, state.D, state.valid_axes
         cond, bounded = state.cond, state.cond_bounded
 

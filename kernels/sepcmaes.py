@@ -45,8 +45,10 @@ def covariance(
     Args:
       c: ``[P]`` the diagonal of C (0 on padded coordinates).
       decay: ``[]`` ``1 + c_1 delta(h_sigma) - c_1 - c_mu sum(w)``, Eq. (47)'s factor on C.
-      c_1, c_mu: ``[]`` the (separable) learning rates.
-      p_c: ``[P]`` the rank-one path; w_o: ``[popsize]`` the rank-mu weights of Eq. (46);
+      c_1: ``[]`` the (separable) rank-one learning rate.
+      c_mu: ``[]`` the (separable) rank-mu learning rate.
+      p_c: ``[P]`` the rank-one path.
+      w_o: ``[popsize]`` the rank-mu weights of Eq. (46).
       y_k: ``[popsize, P]`` the steps ``(x_k - m) / sigma``, 0 on padded coordinates.
     """
     return decay * c + c_1 * p_c**2 + c_mu * (w_o @ y_k**2)

@@ -278,3 +278,48 @@ def test_protocol_experiment_end_to_end_and_resumed():
     for a, b in zip(res["rows"], again["rows"], strict=True):
         np.testing.assert_array_equal(a["log10_cond"], b["log10_cond"])
         assert a["best_cost"] == b["best_cost"]
+
+
+@pytest.mark.slow
+def test_bench_protocol_quick_writes_and_resumes(tmp_path):
+    """``python -m bench condition --protocol --quick``: the JSON and markdown, a checkpoint
+    read back without pickle, and a resumed run from it with the same rows."""
+    import json
+
+    from bench import bench_condition
+
+    out, point = tmp_path / "c.json", tmp_path / "c.npz"
+    first = bench_condition.main(
+        ["--protocol", "--quick", "--out", str(out), "--checkpoint", str(point)]
+    )
+    md = out.with_suffix(".md").read_text()
+    assert "### Network 3000" in md and "Positive control" in md and "1.8e17" in md
+    assert json.loads(out.read_text())["done"] == first["iters"] == 40
+    again = bench_condition.main(
+        [
+            "--protocol",
+            "--quick",
+            "--out",
+            str(out),
+            "--force",
+            "--checkpoint",
+            str(point),
+            "--resume",
+        ]
+    )
+    assert again["resumed_at"] == 40
+    assert [r["trace"] for r in again["rows"]] == [r["trace"] for r in first["rows"]]
+    with pytest.raises(bench_condition.BenchInputError, match="other settings"):
+        bench_condition.main(
+            [
+                "--protocol",
+                "--quick",
+                "--out",
+                str(tmp_path / "d.json"),
+                "--checkpoint",
+                str(point),
+                "--resume",
+                "--seed",
+                "5",
+            ]
+        )

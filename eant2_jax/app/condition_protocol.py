@@ -37,9 +37,19 @@ from .condition import prune_rounds, recording_config
 from .condition_controls import flat_directions, remove_like, with_duplicate
 from .condition_endpoints import endpoints, paired_claim
 
-__all__ = ["VERSIONS", "cast_task", "flat_share", "iterate", "protocol_experiment", "summarise"]
+__all__ = [
+    "PRUNE_ROUNDS",
+    "VERSIONS",
+    "cast_task",
+    "flat_share",
+    "iterate",
+    "protocol_experiment",
+    "summarise",
+]
 
 VERSIONS = ("original", "pruned", "random", "magnitude")
+# The pruning rounds' settings (`eant2_jax.app.condition.condition_experiment`'s defaults).
+PRUNE_ROUNDS = {"rounds": 10, "iters": 2000, "window": 100, "sigma0": 0.1, "candidates": 4}
 
 
 def cast_task(task: Task, dtype) -> Task:
@@ -217,14 +227,7 @@ def protocol_experiment(
       `flat_share` at the end), ``networks`` (sizes, genomes, pruning records), ``popsize``,
       ``iters`` and the settings.
     """
-    prune = {
-        "rounds": 10,
-        "iters": 2000,
-        "window": 100,
-        "sigma0": 0.1,
-        "candidates": 4,
-        **(prune or {}),
-    }
+    prune = {**PRUNE_ROUNDS, **(prune or {})}
     saved = None if resume is None else resume["networks"]
     rows, starts, keys, networks, dup = _plan(
         genomes, task, network_keys, init_keys, weight_scale, prune, saved
@@ -341,14 +344,16 @@ def _rows(rows: list[dict], cond: np.ndarray) -> list[dict]:
 
 
 def summarise(result: dict, at=(1000, 5000, 10000)) -> dict:
-    """Endpoints per run, and the paired claims at each iteration of ``at`` reached:
-    ``pruned``, ``random`` and ``magnitude`` each lower than ``original``; ``pruned`` lower
-    than ``random`` and than ``magnitude``; the positive control (``duplicate`` against
-    ``original`` on network 0) and the flat directions' share per version."""
+    """Endpoints per run (with ``peak``, the largest log10 cond(C)), and the paired claims
+    at each iteration of ``at`` reached: ``pruned``, ``random`` and ``magnitude`` each lower
+    than ``original``; ``pruned`` lower than ``random`` and than ``magnitude``; the positive
+    control (``duplicate`` against ``original`` on network 0) and the flat directions' share
+    per version."""
     rows = result["rows"]
     for r in rows:
         e = endpoints(np.asarray(r["log10_cond"])[None], at)
         r["endpoints"] = {k: v[0] for k, v in e.items()}
+        r["endpoints"]["peak"] = float(np.max(r["log10_cond"]))
     by = {(r["network"], r["version"], r["init"]): r for r in rows}
     done = len(rows[0]["log10_cond"])
     claims = []

@@ -238,7 +238,8 @@ def run_protocol(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]
         point = partial.pop("checkpoint")
         if args.checkpoint:
             _write_checkpoint(args.checkpoint, point, settings)
-        save(dict(payload, **_protocol_payload(partial), chunk_s=list(stamps)))
+        if done:  # the first call comes after the pruning rounds, before any iteration
+            save(dict(payload, **_protocol_payload(partial), chunk_s=list(stamps)))
 
     result = protocol_experiment(
         genomes,

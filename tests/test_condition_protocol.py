@@ -266,8 +266,9 @@ def test_protocol_experiment_end_to_end_and_resumed():
             genomes, task, on_chunk=lambda done, p: points.append(p["checkpoint"]), **options
         )
         s = summarise(res, at=(10, 40))
-        again = protocol_experiment(genomes, task, resume=points[0], **options)
-    assert len(res["rows"]) == 2 * 2 * 4 + 2 and [p["done"] for p in points] == [20, 40]
+        again = protocol_experiment(genomes, task, resume=points[1], **options)
+        fresh = protocol_experiment(genomes, task, resume=points[0], **options)
+    assert len(res["rows"]) == 2 * 2 * 4 + 2 and [p["done"] for p in points] == [0, 20, 40]
     for net in res["networks"]:
         sizes = {len(Genome.parse(net[f"genome_{v}"])) for v in ("pruned", "random", "magnitude")}
         assert len(sizes) == 1 and sizes.pop() <= net["size"]
@@ -275,9 +276,10 @@ def test_protocol_experiment_end_to_end_and_resumed():
     assert all(np.shape(r["log10_cond"]) == (40,) for r in res["rows"])
     assert {c["iteration"] for c in s["claims"]} == {10, 40} and len(s["claims"]) == 10
     assert set(s["positive_control"]) >= {"duplicate_reached_bound", "detects"}
-    for a, b in zip(res["rows"], again["rows"], strict=True):
+    for a, b, c in zip(res["rows"], again["rows"], fresh["rows"], strict=True):
         np.testing.assert_array_equal(a["log10_cond"], b["log10_cond"])
-        assert a["best_cost"] == b["best_cost"]
+        np.testing.assert_array_equal(a["log10_cond"], c["log10_cond"])
+        assert a["best_cost"] == b["best_cost"] == c["best_cost"]
 
 
 @pytest.mark.slow

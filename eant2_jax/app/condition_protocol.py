@@ -217,7 +217,8 @@ def protocol_experiment(
     ``sigma0``, cond(C) bounded at ``max_condition``, one popsize (the CMA-ES default of the
     largest network). Versions that are the same network from the same draws run once.
 
-    ``on_chunk(done, partial)`` gets after each chunk the result so far and, under
+    ``on_chunk(done, partial)`` gets before the first chunk (``done`` 0, after the pruning
+    rounds) and after each chunk the result so far and, under
     ``"checkpoint"``, what ``resume`` takes to go on from there: ``networks`` (the versions,
     so the pruning rounds are not run again), ``done``, ``cond`` and ``cma`` (the CMA-ES
     state's arrays by field).
@@ -284,7 +285,8 @@ def protocol_experiment(
         if jax.tree.map(jnp.shape, cma) != jax.tree.map(jnp.shape, state.cma):
             raise ValueError("the resumed run's state does not fit these runs")
         state = state.replace(cma=cma)
-
+    else:  # a checkpoint before the first chunk: the pruning rounds are not run again
+        progress(0, np.zeros((0, len(unique))), state.cma)
     cma, cond = iterate(
         state,
         batch.layout,

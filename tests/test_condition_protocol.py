@@ -274,7 +274,9 @@ def test_protocol_experiment_end_to_end_and_resumed():
         assert len(sizes) == 1 and sizes.pop() <= net["size"]
     assert any(net["removed"] for net in res["networks"])  # the pruner removed something
     assert all(np.shape(r["log10_cond"]) == (40,) for r in res["rows"])
-    assert {c["iteration"] for c in s["claims"]} == {10, 40} and len(s["claims"]) == 10
+    assert {c["iteration"] for c in s["claims"]} == {10, 40} and len(s["claims"]) == 13
+    means = [c for c in s["claims"] if c["claim"].endswith("(network means)")]
+    assert [c["pairs"] for c in means] == [2, 2, 2] and {c["iteration"] for c in means} == {40}
     assert set(s["positive_control"]) >= {"duplicate_reached_bound", "detects"}
     for a, b, c in zip(res["rows"], again["rows"], fresh["rows"], strict=True):
         np.testing.assert_array_equal(a["log10_cond"], b["log10_cond"])

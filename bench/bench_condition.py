@@ -31,7 +31,7 @@ import jax
 import numpy as np
 
 from bench import harness
-from bench.common import BenchInputError, Column, environment, markdown_table
+from bench.common import BenchInputError, Column, default_out, environment, markdown_table
 
 PROTOCOL_FILES = [f"bench/inputs/protocol-1/default-s{s}.genome" for s in range(2000, 2005)]
 # docs/protocol.md's seeds: networks 3000-3004 (the files in order), initialisations 3100-3104.
@@ -185,6 +185,8 @@ def _prepare_protocol(args: argparse.Namespace) -> None:
         raise BenchInputError(f"--networks must be 1 to {len(PROTOCOL_FILES)}")
     if args.max_condition is None:
         args.max_condition = 1e14
+    if args.out is None:  # the protocol's results beside, not over, the V.A experiment's
+        args.out = str(default_out("condition-protocol"))
     if args.quick:
         args.iters, args.inits, args.prune_iters, args.n_starts = 40, 2, 50, 16
         args.networks, args.chunk = 1, 20

@@ -327,3 +327,20 @@ def test_bench_protocol_quick_writes_and_resumes(tmp_path):
                 "5",
             ]
         )
+
+
+def test_bench_protocol_defaults_are_the_protocols():
+    """``python -m bench condition --protocol`` runs docs/protocol.md's numbers and writes
+    ``bench/results/condition-protocol-<device>.json``; a genome file is refused with it."""
+    from bench import bench_condition, harness
+    from bench.common import device_tag
+
+    args = harness.parse_args(bench_condition.SUITE, ["--protocol"])
+    assert args.out.endswith(f"bench/results/condition-protocol-{device_tag()}.json")
+    assert (args.iters, args.inits, args.networks, args.max_condition) == (10_000, 5, 5, 1e14)
+    assert (args.prune_iters, args.chunk, args.checkpoint, args.resume) == (2000, 1000, None, False)
+    assert len(bench_condition.PROTOCOL_FILES) == 5
+    with pytest.raises(bench_condition.BenchInputError, match="genome-file"):
+        harness.parse_args(bench_condition.SUITE, ["--protocol", "--genome-file", "x.genome"])
+    with pytest.raises(bench_condition.BenchInputError, match="--resume needs"):
+        harness.parse_args(bench_condition.SUITE, ["--protocol", "--resume"])

@@ -16,7 +16,9 @@ pruner's rounds and after as many removals at random and by magnitude, x initial
 3100-3104, float64 CMA-ES state and evaluation, 10,000 iterations, one batch; a positive
 control (network 3000 with an exact duplicate connection); endpoints, paired verdicts and the
 flat directions' share; written to ``bench/results/condition-protocol-<device>.{json,md}``.
-Run: ``python -m bench condition --protocol``.
+Run: ``python -m bench condition --protocol [--checkpoint runs/condition-protocol.npz]``;
+with ``--checkpoint`` the state after the pruning rounds and after each 1,000 iterations is
+kept (plain arrays), and ``--resume --force`` goes on from it with the same settings.
 """
 
 from __future__ import annotations

@@ -482,10 +482,10 @@ def test_covariance_field_reaches_the_engine_and_the_command_line():
 
 
 @pytest.mark.slow
-def test_optimize_with_a_diagonal_covariance_solves_xor_and_prunes_along_axes():
-    """`optimize(..., covariance="diagonal")` end to end: XOR solved, every pruning
-    attempt's shifted mean differs from the mean only on the removed genes, and the final
-    C is diagonal."""
+def test_a_diagonal_tuning_solves_xor_and_prunes_along_axes():
+    """`tuning.tune` (what `optimize` and the loop call) with ``covariance="diagonal"`` end
+    to end: XOR solved, the final C diagonal and B the identity, and a pruning attempt from
+    the converged state moves no weight outside the removed genes."""
     config = ExploitConfig(popsize=10, max_iters=300, covariance="diagonal")
     res = tuning.tune(
         [XOR_GENOME], xor(), key=TASK_KEY, keys=TASK_KEY[None], pad_count=False, config=config

@@ -156,7 +156,7 @@ class ExploitConfig(Configured):
     prune_tolerance: float = option(
         1e-3,
         "Accept a removal iff the cost rises by less than this fraction (0.001: the paper's "
-        "``e~ < 1.001 e``).",
+        "``e~ < 1.001 e``), plus ``improve_atol`` (docs/pruning.md, section 4).",
         check=at_least(0),
     )
     prune_candidates: int = option(
@@ -190,8 +190,9 @@ class ExploitConfig(Configured):
     prune_refit: int = option(
         100,
         "CMA-ES iterations of the reduced structure after the shift, before the acceptance "
-        "test (0: none, the paper's literal rule); at most what is left of ``max_iters``, "
-        "which they count against (at least 1).",
+        "test (0: none, the paper's literal rule); another stretch as long follows while the "
+        "re-fit still closes in on the acceptance limit (docs/pruning.md, section 4); at most "
+        "what is left of ``max_iters``, which they count against (at least 1).",
         check=at_least(0),
         static=True,
     )

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cmaes_runs import evals_to_target
 from evosax.algorithms import CMA_ES
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
@@ -282,25 +283,6 @@ def test_ask_is_symmetric_sqrt_times_fold_in_normals():
 # 3. Statistical equivalence with evosax: median evaluations to a target.
 
 
-def _evals_to_target(step, init_state, seeds, target, max_gens):
-    """Generations until best-so-far < target, per seed (-1 if not reached); traceable."""
-
-    def one(seed):
-        def cond(c):
-            return (c[2] < 0) & (c[1] < max_gens)
-
-        def body(c):
-            state, g, hit, key = c
-            key, sub = jax.random.split(key)
-            state, best = step(state, sub)
-            hit = jnp.where((hit < 0) & (best < target), g + 1, hit)
-            return state, g + 1, hit, key
-
-        return jax.lax.while_loop(cond, body, (init_state, 0, -1, jax.random.key(seed)))[2]
-
-    return jax.vmap(one)(seeds)
-
-
 @functools.cache
 def _stat_runner(algo: str, n: int):
     """Jitted (seeds, (quadratic, is_rosenbrock), mean0, sigma0, target, max_gens) -> gens.
@@ -323,7 +305,7 @@ def _stat_runner(algo: str, n: int):
                 return state, state.best_cost
 
             state = cmaes.init(mean0, sigma0, jnp.ones(n, bool), params)
-            return _evals_to_target(step, state, seeds, target, max_gens)
+            return evals_to_target(step, state, seeds, target, max_gens)
 
     elif algo.startswith("lazy"):
         # The lazy eigendecomposition (ExploitConfig.lazy_eigen) with pycma's factor 0.5, as
@@ -342,7 +324,7 @@ def _stat_runner(algo: str, n: int):
                 return (state, tick + 1), state.best_cost
 
             state = cmaes.init(mean0, sigma0, jnp.ones(n, bool), params)
-            return _evals_to_target(step, (state, 0), seeds, target, max_gens)
+            return evals_to_target(step, (state, 0), seeds, target, max_gens)
 
     else:
         es = evosax_cma(n, popsize)
@@ -358,7 +340,7 @@ def _stat_runner(algo: str, n: int):
                 return state, state.best_fitness
 
             state = es.init(jax.random.key(0), mean0, params)
-            return _evals_to_target(step, state, seeds, target, max_gens)
+            return evals_to_target(step, state, seeds, target, max_gens)
 
     return jax.jit(run)
 

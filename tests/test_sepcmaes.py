@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cmaes_runs import evals_to_target
 
 from eant2_jax import ExploitConfig, tuning
 from eant2_jax import exploitation as ex
@@ -336,22 +337,13 @@ def _ours(n: int):
     params = cmaes.default_params(n, popsize, diagonal=True)
 
     def run(seeds, scale, shift, target, max_gens):
-        def one(seed):
-            def cond(c):
-                return (c[2] < 0) & (c[1] < max_gens)
+        def step(state, key):
+            x, state = cmaes.ask(key, state, params)
+            state = cmaes.tell(state, x, ((x - shift[None, :]) ** 2) @ scale, params)
+            return state, state.best_cost
 
-            def body(c):
-                state, g, hit, key = c
-                key, sub = jax.random.split(key)
-                x, state = cmaes.ask(sub, state, params)
-                state = cmaes.tell(state, x, ((x - shift[None, :]) ** 2) @ scale, params)
-                hit = jnp.where((hit < 0) & (state.best_cost < target), g + 1, hit)
-                return state, g + 1, hit, key
-
-            state = cmaes.init(jnp.zeros(n), 1.0, jnp.ones(n, bool), params)
-            return jax.lax.while_loop(cond, body, (state, 0, -1, jax.random.key(seed)))[2]
-
-        return jax.vmap(one)(seeds)
+        state = cmaes.init(jnp.zeros(n), 1.0, jnp.ones(n, bool), params)
+        return evals_to_target(step, state, seeds, target, max_gens)
 
     return jax.jit(run)
 

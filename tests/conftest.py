@@ -58,6 +58,16 @@ settings.load_profile(
 
 
 @pytest.fixture(autouse=True)
+def _x64_restored():
+    """A test that runs a float64 command in-process (``eant2_jax.enable_x64()``, as the
+    condition bench does) would leave 64-bit mode on for every later test of its worker."""
+    before = jax.config.jax_enable_x64
+    yield
+    if jax.config.jax_enable_x64 != before:
+        jax.config.update("jax_enable_x64", before)
+
+
+@pytest.fixture(autouse=True)
 def _cache_setting_restored():
     """The eant2 command turns JAX's persistent compilation cache on for its process (as
     an application may); run in-process by a test, it would stay on for every later test

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..compiler import compile_genomes
 from ..genome import GeneKind, Genome
+from ..genomepruning import prune_genome
 
 __all__ = [
     "HOMOGENEOUS",
@@ -37,15 +38,6 @@ def leaf_removable(genome: Genome) -> np.ndarray:
     return leaf & has_sibling
 
 
-def _without(genome: Genome, i: int) -> Genome:
-    """``genome`` without leaf gene ``i`` (its neuron's arity one less)."""
-    p = int(genome.parent[i])
-    genes = list(genome.genes)
-    genes[p] = dataclasses.replace(genes[p], arity=genes[p].arity - 1)
-    del genes[i]
-    return Genome(genes)
-
-
 def remove_like(
     genome: Genome, count: int, *, rule: str, key: jax.Array | None = None
 ) -> tuple[Genome, np.ndarray]:
@@ -69,7 +61,8 @@ def remove_like(
             i = int(jax.random.choice(jax.random.fold_in(key, t), candidates))
         else:
             i = int(candidates[np.argmin(np.abs(genome.weights[candidates]))])
-        genome, kept = _without(genome, i), np.delete(kept, i)
+        keep = np.arange(len(genome)) != i
+        genome, kept = prune_genome(genome, keep), kept[keep]
     return genome, kept
 
 

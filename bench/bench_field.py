@@ -59,7 +59,7 @@ from typing import Any
 
 import numpy as np
 
-from bench import harness
+from bench import field_protocol, harness
 from bench.common import BenchInputError, Column, environment, markdown_table, unseen_key
 
 __all__ = ["ENVS", "METHODS", "Env", "first_reaching", "main", "summarise"]
@@ -270,98 +270,39 @@ def _worker_eant2(env: Env, args: argparse.Namespace, log: _Log) -> None:
 
 
 def _tensorneat_problem(env: Env, args: argparse.Namespace, repeat: int):
-    if env.family == "servo":
-        import jax
-        from tensorneat.problem import BaseProblem
+    from bench.field_tensorneat import problem
 
-        from bench.bench_peers import outputs_cost
-        from eant2_jax import tasks
-
-        task = tasks.make("servo")
-
-        class Servo(BaseProblem):
-            """The servo task for TensorNEAT: a genome's outputs at the 1023 start inputs,
-            scored by the task's own move and cost (fitness = minus the cost)."""
-
-            jitable = True
-
-            def evaluate(self, state, randkey, act_func, params):
-                y = jax.vmap(lambda x: act_func(state, params, x))(task.x_start)
-                return -outputs_cost(task, y[None])[0]
-
-            @property
-            def input_shape(self):
-                return (env.n_inputs,)
-
-            @property
-            def output_shape(self):
-                return (env.n_outputs,)
-
-        return Servo()
-    if env.family == "gymnax":
-        from tensorneat.problem.rl import GymNaxEnv
-
-        class Gymnax(GymNaxEnv):
-            """TensorNEAT's GymNaxEnv for gymnax >= 0.0.9, whose ``step`` returns
-            (obs, state, reward, terminated, truncated, info): TensorNEAT's loop expects
-            the older (obs, state, reward, done, info). Nothing else changes."""
-
-            def env_step(self, randkey, env_state, action):
-                out = self.env.step(randkey, env_state, action, self.env_params)
-                if len(out) == 6:
-                    obs, st, reward, terminated, truncated, info = out
-                    return obs, st, reward, terminated | truncated, info
-                return out
-
-        return Gymnax(env.name, max_step=env.max_steps, repeat_times=repeat)
-    from tensorneat.problem.rl import BraxEnv
-
-    episodes = dict(env.tensorneat).get("obs_norm_episodes", 0)
-    if not episodes:
-        return BraxEnv(env.name, backend=args.backend, max_step=env.max_steps, repeat_times=repeat)
-    import jax
-
-    n_out = env.n_outputs
-
-    def random_actions(randkey, obs):  # the example's random_sample_policy
-        return jax.random.uniform(randkey, (n_out,), minval=-1.0, maxval=1.0)
-
-    return BraxEnv(env.name, backend=args.backend, max_step=env.max_steps, repeat_times=repeat,
-                   obs_normalization=True, sample_episodes=episodes,
-                   sample_policy=random_actions)  # fmt: skip
+    return problem(
+        env.family,
+        env.name,
+        n_inputs=env.n_inputs,
+        n_outputs=env.n_outputs,
+        max_steps=env.max_steps,
+        repeat=repeat,
+        backend=args.backend,
+        obs_norm_episodes=dict(env.tensorneat).get("obs_norm_episodes", 0),
+    )
 
 
 def _worker_tensorneat(env: Env, args: argparse.Namespace, log: _Log) -> None:
-    sys.path.insert(0, str(Path(args.tensorneat).resolve()))
+    from bench.field_tensorneat import algorithm as neat
+    from bench.field_tensorneat import import_from
+
+    import_from(args.tensorneat)
     import jax
-    import jax.numpy as jnp
-    from tensorneat.algorithm.neat import NEAT
-    from tensorneat.common import ACT, AGG
-    from tensorneat.genome import BiasNode, DefaultGenome
     from tensorneat.pipeline import Pipeline
 
     if env.discrete:
-        out = jnp.argmax
+        out = "argmax"
     elif env.family == "servo":
         out = None  # the task's own tanh step
     else:
-        scale = env.action_scale
-
-        def out(y):
-            return scale * jnp.tanh(y)
-
+        out = f"{env.action_scale} tanh"
     pop = args.tensorneat_pop
     extra = dict(env.tensorneat)
     sizes = {k: extra[k] for k in ("max_nodes", "max_conns") if k in extra}
-    activation = getattr(ACT, extra.get("activation", "tanh"))
-    algorithm = NEAT(
-        pop_size=pop, species_size=20, survival_threshold=0.1, compatibility_threshold=1.0,
-        genome=DefaultGenome(
-            num_inputs=env.n_inputs, num_outputs=env.n_outputs, init_hidden_layers=(),
-            node_gene=BiasNode(activation_options=activation, aggregation_options=AGG.sum),
-            output_transform=out, **sizes,
-        ),
-    )  # fmt: skip
+    algorithm = neat(env.n_inputs, env.n_outputs, pop=pop, output=out,
+                          activation=extra.get("activation", "tanh"), **sizes)  # fmt: skip
     generations = max(1, math.ceil(args.budget / pop))
     pipeline = Pipeline(algorithm=algorithm, problem=_tensorneat_problem(env, args, env.episodes),
                         seed=args.seed, generation_limit=generations,
@@ -550,13 +491,14 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--envs", nargs="+", choices=sorted(ENVS), default=None,
                    help="default: all (with --quick: cartpole)")  # fmt: skip
     p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
-    harness.run_options(
-        p, seeds=3, first_seed=0, population=None, helps={"population": "eant2 population override"}
-    )
+    # Defaults filled in by _prepare (3 seeds from 0; --protocol: the protocol's seeds).
+    harness.run_options(p, seeds=None, first_seed=None, population=None,
+                        helps={"population": "eant2 population override"})  # fmt: skip
     p.add_argument("--budget", type=int, default=None,
                    help="evaluations per run (default: each environment's, ENVS)")  # fmt: skip
-    p.add_argument("--deadline-s", type=float, default=600.0,
-                   help="wall seconds per run from its process start")  # fmt: skip
+    p.add_argument("--deadline-s", type=float, default=None,
+                   help="wall seconds per run from its process start (600; --protocol: a "
+                        "process's limit, 3600)")  # fmt: skip
     p.add_argument("--grace-s", type=float, default=300.0,
                    help="after its deadline a run has this long to test its champions")  # fmt: skip
     # 100: on Acrobot one champion's mean over 20 episodes still moved by +-4, the size of
@@ -567,22 +509,29 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-iters", type=int, default=None, help="eant2 CMA-ES iterations override")
     p.add_argument("--tensorneat", default=None,
                    help="folder holding TensorNEAT's tensorneat package (its src/)")  # fmt: skip
-    p.add_argument("--tensorneat-pop", type=int, default=TENSORNEAT_POP)
+    p.add_argument("--tensorneat-pop", type=int, default=None,
+                   help=f"TensorNEAT's population ({TENSORNEAT_POP})")  # fmt: skip
+    field_protocol.add_options(p)
 
 
 def _prepare(args: argparse.Namespace) -> None:
+    if args.protocol and not args.render:
+        _check_tensorneat(args)
+        args.deadline_s = args.deadline_s or 3600.0
+        return field_protocol.prepare(args)
+    if args.resume or args.checkpoint:
+        raise BenchInputError("--checkpoint and --resume belong to --protocol")
+    args.seeds = 3 if args.seeds is None else args.seeds
+    args.first_seed = 0 if args.first_seed is None else args.first_seed
+    args.deadline_s = args.deadline_s or 600.0
+    args.tensorneat_pop = args.tensorneat_pop or TENSORNEAT_POP
     if args.quick:
         for k, v in QUICK.items():
             setattr(args, k, v)
     if args.envs is None:
         args.envs = ["cartpole"] if args.quick else list(ENVS)
-    if "tensorneat" in args.methods and not args.render:  # --render measures nothing
-        src = Path(args.tensorneat or "")
-        if not args.tensorneat or not (src / "tensorneat" / "pipeline.py").is_file():
-            raise BenchInputError(
-                "--tensorneat must name the folder holding TensorNEAT's tensorneat package "
-                f"(its src/), got {args.tensorneat!r}; or leave tensorneat out of --methods"
-            )
+    if not args.render:  # --render measures nothing
+        _check_tensorneat(args)
     for name in ("seeds", "test_episodes", "tensorneat_pop"):
         if getattr(args, name) < 1:
             raise BenchInputError(f"--{name.replace('_', '-')} must be at least 1")
@@ -592,7 +541,19 @@ def _prepare(args: argparse.Namespace) -> None:
         raise BenchInputError("--budget must be at least 1")
 
 
+def _check_tensorneat(args: argparse.Namespace) -> None:
+    if "tensorneat" in args.methods:
+        src = Path(args.tensorneat or "")
+        if not args.tensorneat or not (src / "tensorneat" / "pipeline.py").is_file():
+            raise BenchInputError(
+                "--tensorneat must name the folder holding TensorNEAT's tensorneat package "
+                f"(its src/), got {args.tensorneat!r}; or leave tensorneat out of --methods"
+            )
+
+
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
+    if args.protocol:
+        return field_protocol.run(args, save)
     payload: dict[str, Any] = {"environment": environment(),
                                "config": harness.settings(args), "runs": []}  # fmt: skip
     with tempfile.TemporaryDirectory(prefix="eant2-field-") as work:
@@ -622,6 +583,8 @@ def _pair(a: str, b: str, digits: int = 4):
 
 
 def render(payload: dict[str, Any]) -> str:
+    if payload.get("protocol"):
+        return field_protocol.render(payload)
     rows = summarise(payload.get("runs", []))
     cols = [
         Column("env", "env"),

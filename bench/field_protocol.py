@@ -1,0 +1,240 @@
+"""``python -m bench field --protocol``: the field comparison as docs/protocol.md section 3
+fixes it, with the frozen settings of bench/field_settings.py.
+
+Per environment and seed: eant2_jax's and TensorNEAT's training runs, each in a fresh
+process without a compilation cache and timed from its start (bench/field_workers.py), then
+one judging process that puts both methods' candidates through the champion rule on one
+task object (bench/field_champions.py). Each seed's judged record is appended to the
+checkpoint (``--checkpoint``, default beside the result file: ``...checkpoint.jsonl``), and a
+finished training run is kept in ``...checkpoint.jsonl.runs/`` until its seed is judged;
+``--resume --force`` skips the seeds and runs already there (a device call's time limit
+loses at most the runs in progress). The summary (bench/field_stats.py) and the result file
+``bench/results/field-protocol-<device>.{json,md}`` are rewritten after every seed.
+
+Without overrides it runs the protocol's seeds (4000-4009 gymnax, 4000-4004 brax). Any of
+``--seeds/--first-seed/--budget/--population/--max-iters/--tensorneat-pop`` makes it a
+**trial**: written to ``field-protocol-trial-<device>`` and labelled as not the protocol's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from bench import harness
+from bench.common import BenchInputError, default_out, environment
+from bench.field_settings import ENVS, SEEDS, budgets, table
+
+__all__ = ["METHODS", "add_options", "prepare", "render", "run", "trial_overrides"]
+
+TRIAL = ("budget", "population", "max_iters", "tensorneat_pop")
+
+
+def _train_argv(method: str, args: argparse.Namespace, env: str, seed: int, out: Path) -> list:
+    argv = [sys.executable, "-m", "bench.field_workers", "train", "--method", method, "--env",
+            env, "--seed", str(seed), "--out", str(out)]  # fmt: skip
+    pop = args.tensorneat_pop or ENVS[env]["tensorneat"]["pop_size"]
+    if args.budget:
+        argv += ["--pop", str(pop), "--generations", str(max(1, args.budget // pop))]
+    for flag, v in (("--population", args.population), ("--max-iters", args.max_iters)):
+        if v is not None and method == "eant2":
+            argv += [flag, str(v)]
+    if method == "tensorneat":
+        argv += ["--tensorneat", str(args.tensorneat)]
+    return argv
+
+
+# method -> argv of its training process; a test may add a stand-in with the same outputs.
+METHODS = {"eant2": _train_argv, "tensorneat": _train_argv}
+
+
+def add_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--protocol", action="store_true", help="docs/protocol.md section 3")
+    p.add_argument("--checkpoint", default=None,
+                   help="--protocol: per-seed records (default: beside --out)")  # fmt: skip
+    p.add_argument("--resume", action="store_true",
+                   help="--protocol: skip the seeds and runs the checkpoint holds "
+                        "(with --force)")  # fmt: skip
+
+
+def trial_overrides(args: argparse.Namespace) -> list[str]:
+    given = [f"--{k.replace('_', '-')}" for k in TRIAL if getattr(args, k, None) is not None]
+    if args.seeds is not None or args.first_seed is not None:
+        given.append("--seeds/--first-seed")
+    return given
+
+
+def prepare(args: argparse.Namespace) -> None:
+    """Check a ``--protocol`` call and fill its defaults (one line naming a bad option)."""
+    if args.quick:
+        raise BenchInputError("--protocol has no --quick sizes: a trial names --budget etc.")
+    args.envs = args.envs or list(ENVS)
+    bad = [e for e in args.envs if e not in ENVS]
+    if bad:
+        raise BenchInputError(f"--protocol runs {', '.join(ENVS)}; not {', '.join(bad)}")
+    for name in ("seeds", "budget", "population", "max_iters", "tensorneat_pop"):
+        v = getattr(args, name)
+        if v is not None and v < 1:
+            raise BenchInputError(f"--{name.replace('_', '-')} must be at least 1")
+    if args.first_seed is not None and args.first_seed < 0:
+        raise BenchInputError("--first-seed must be at least 0")
+    args.trial = bool(trial_overrides(args))
+    if args.out is None:
+        args.out = str(default_out("field-protocol-trial" if args.trial else "field-protocol"))
+    if args.checkpoint is None:
+        args.checkpoint = str(Path(args.out).with_suffix("")) + ".checkpoint.jsonl"
+    if Path(args.checkpoint).exists() and not args.resume:
+        raise BenchInputError(f"{args.checkpoint} exists: --resume --force goes on from it")
+
+
+def _seeds(args: argparse.Namespace, env: str) -> list[int]:
+    if args.seeds is None and args.first_seed is None:
+        return list(SEEDS[ENVS[env]["family"]])
+    first = 0 if args.first_seed is None else args.first_seed
+    return list(range(first, first + (args.seeds or len(SEEDS[ENVS[env]["family"]]))))
+
+
+def _budgets(args: argparse.Namespace) -> dict[str, list[int]]:
+    if not args.budget:
+        return {e: budgets(ENVS[e]) for e in args.envs}
+    out = {}
+    for e in args.envs:
+        pop = args.tensorneat_pop or ENVS[e]["tensorneat"]["pop_size"]
+        total = pop * max(1, args.budget // pop)
+        out[e] = [round(f * total) for f in (0.25, 0.5, 1.0)]
+    return out
+
+
+def _settings(args: argparse.Namespace) -> dict[str, Any]:
+    keep = ("envs", "methods", "seeds", "first_seed", *TRIAL)
+    return {"frozen": table(args.envs), "args": {k: getattr(args, k) for k in keep},
+            "seed_lists": {e: _seeds(args, e) for e in args.envs}}  # fmt: skip
+
+
+def _read_checkpoint(path: Path, settings: dict) -> list[dict]:
+    """The checkpoint's seed records; refused if its settings are not this call's."""
+    if not path.exists():
+        return []
+    lines = [json.loads(s) for s in path.read_text().splitlines() if s.strip()]
+    if not lines or lines[0].get("settings") != json.loads(json.dumps(settings)):
+        raise BenchInputError(f"{path} holds another call's settings; resume with the same ones")
+    return lines[1:]
+
+
+def _child_env() -> dict[str, str]:
+    environ = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    environ["EANT2_CACHE_DIR"] = ""  # cold: no persistent compilation cache on either side
+    # The checkout goes last, for `bench` alone (as bench_field's workers).
+    environ["PYTHONPATH"] = os.pathsep.join(
+        filter(None, [environ.get("PYTHONPATH", ""), str(Path(__file__).resolve().parents[1])])
+    )
+    return environ
+
+
+def _call(argv: list[str], timeout: float) -> str:
+    """Run a child process; its last stderr line if it failed, else ''."""
+    try:
+        proc = subprocess.run(argv, capture_output=True, text=True, env=_child_env(),
+                              timeout=timeout)  # fmt: skip
+    except subprocess.TimeoutExpired:
+        return f"killed after {timeout:.0f} s"
+    if proc.returncode != 0:
+        return (proc.stderr.strip().splitlines() or [f"exit {proc.returncode}"])[-1]
+    return ""
+
+
+def _train(method, args, env, seed, runs: Path) -> dict:
+    out = runs / f"{env}-s{seed}-{method}.json"
+    if out.is_file() and json.loads(out.read_text()).get("done"):
+        return json.loads(out.read_text())  # a finished run kept by an earlier call
+    t0 = time.time()
+    err = _call([*METHODS[method](method, args, env, seed, out), "--t0", repr(t0)],
+                args.deadline_s)  # fmt: skip
+    run = json.loads(out.read_text()) if out.is_file() else {"method": method, "curve": []}
+    run["process_s"] = time.time() - t0
+    if err:
+        run["error"] = err
+        out.write_text(json.dumps(run))
+    return run
+
+
+def _seed(args, env: str, seed: int, runs: Path, budget_list: list[int]) -> dict:
+    trained = {m: _train(m, args, env, seed, runs) for m in args.methods}
+    paths = [runs / f"{env}-s{seed}-{m}.json" for m in args.methods]
+    judged_path = runs / f"{env}-s{seed}-judged.json"
+    argv = [sys.executable, "-m", "bench.field_workers", "judge", "--env", env,
+            "--out", str(judged_path), "--budgets", *map(str, budget_list), "--",
+            *map(str, paths)]  # fmt: skip
+    err = _call(argv, args.deadline_s)
+    if err:
+        raise BenchInputError(f"field protocol: judging {env} seed {seed} failed: {err}")
+    judged = json.loads(judged_path.read_text())
+    slim = {m: {k: v for k, v in r.items() if k != "candidates"} for m, r in trained.items()}
+    for m, r in trained.items():  # the champions' networks, for the record
+        champs = {b["champion"] for b in judged.get(m, {}).get("budgets", []) if b["champion"]}
+        slim[m]["champions"] = {c: r["candidates"][c] for c in sorted(champs)}
+    return {"env": env, "seed": seed, "runs": slim, "judged": judged}
+
+
+def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
+    from bench.field_stats import summarise
+
+    settings = _settings(args)
+    ckpt = Path(args.checkpoint)
+    records = _read_checkpoint(ckpt, settings) if args.resume else []
+    if not ckpt.exists():
+        ckpt.parent.mkdir(parents=True, exist_ok=True)
+        ckpt.write_text(json.dumps({"settings": settings}) + "\n")
+    runs = Path(str(ckpt) + ".runs")
+    runs.mkdir(exist_ok=True)
+    all_budgets = _budgets(args)
+    payload: dict[str, Any] = {"protocol": True, "trial": args.trial,
+                               "overrides": trial_overrides(args), "environment": environment(),
+                               "config": harness.settings(args), **settings,
+                               "seeds": records}  # fmt: skip
+    done = {(r["env"], r["seed"]) for r in records}
+    for env in args.envs:
+        for seed in _seeds(args, env):
+            if (env, seed) in done:
+                continue
+            harness.log(f"field protocol: {env} seed {seed}")
+            rec = _seed(args, env, seed, runs, all_budgets[env])
+            with ckpt.open("a") as f:
+                f.write(json.dumps(rec) + "\n")
+            for m in args.methods:
+                (runs / f"{env}-s{seed}-{m}.json").unlink(missing_ok=True)
+            payload["seeds"].append(rec)
+            payload["summary"] = summarise(payload["seeds"], all_budgets)
+            save(payload)
+    payload["summary"] = summarise(payload["seeds"], all_budgets)
+    return payload
+
+
+def render(payload: dict[str, Any]) -> str:
+    from bench.field_stats import render_summary, summarise
+
+    budgets_ = payload.get("frozen", {}).get("budgets", {})
+    if payload.get("args", {}).get("budget"):
+        budgets_ = {r["env"]: [] for r in payload["seeds"]}
+        for r in payload["seeds"]:
+            for m in r["judged"].values():
+                budgets_[r["env"]] = [b["budget"] for b in m["budgets"]]
+    rows = summarise(payload.get("seeds", []), budgets_)
+    head = ""
+    if payload.get("trial"):
+        head = ("**A trial, not the protocol's result** (overrides: "
+                f"{', '.join(payload.get('overrides', []))}).\n\n")  # fmt: skip
+    frozen = "```json\n" + json.dumps(payload.get("frozen", {}), indent=1) + "\n```\n"
+    note = ("Test return: the champion's mean over 100 episodes from jax.random.key(9000), the "
+            "same initial states for both methods (checked); champion: the best on 10 "
+            "validation episodes (key 8000) of each method's 5 best by training fitness. "
+            "Medians with percentile bootstrap 95% intervals (10,000 resamples, key 0); "
+            "difference: eant2_jax minus TensorNEAT, same seed; a win or loss needs its "
+            "interval to exclude 0, else a tie.\n")  # fmt: skip
+    return head + render_summary(rows) + "\n" + note + "\nFrozen settings:\n\n" + frozen

@@ -1,0 +1,212 @@
+"""The field protocol's processes: one training run per (environment, seed, method), each in
+a fresh process timed from its start, and one judging process per (environment, seed) that
+puts both methods' networks through the champion rule on one task object
+(bench/field_champions.py). ``python -m bench.field_workers train|judge ...``; the
+orchestration is bench/field_protocol.py.
+
+A training run writes its JSON after every generation (a killed run keeps what it measured):
+``curve`` (per generation: evaluations, wall seconds from process start, best training
+return, the archive of `TOP` candidates as ``[id, training return]``), ``candidates`` (id ->
+the network: eant2_jax's genome text, TensorNEAT's node and connection rows) and ``kind``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench.field_settings import ENVS, TOP, budgets
+
+__all__ = ["Log", "judge", "main", "method_networks", "protocol_task", "train_eant2"]
+
+
+class Log:
+    """A result file rewritten whole after every point; ``paused`` seconds (the protocol's
+    own bookkeeping inside a run) are left out of the wall times."""
+
+    def __init__(self, path: str | Path, t0: float, meta: dict):
+        self.path, self.t0, self.paused = Path(path), t0, 0.0
+        self.data = {**meta, "curve": [], "done": False}
+
+    def wall(self) -> float:
+        return time.time() - self.t0 - self.paused
+
+    def point(self, **point: Any) -> None:
+        self.data["curve"].append({"wall_s": self.wall(), **point})
+        self.write()
+
+    def write(self) -> None:
+        tmp = self.path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.data))
+        os.replace(tmp, self.path)
+
+
+def protocol_task(env: dict[str, Any], episodes: int):
+    """The environment's task object (eant2_jax's input convention, `ENVS`)."""
+    from eant2_jax import tasks
+
+    if env["family"] == "gymnax":
+        normalize = env["eant2"]["normalize"]
+        return tasks.make(f"gymnax:{env['name']}", episodes=episodes,
+                          max_steps=env["max_steps"], normalize=normalize)  # fmt: skip
+    return tasks.make(f"brax:{env['name']}", episodes=episodes, max_steps=env["max_steps"],
+                      backend=env["backend"])  # fmt: skip
+
+
+def train_eant2(env: dict[str, Any], *, seed: int, budget: int, log: Log, top: int = TOP,
+                population: int | None = None, max_iters: int | None = None) -> None:  # fmt: skip
+    """The protocol's eant2_jax run: ``eant2_jax.run`` with the frozen settings; after each
+    generation its population after selection (read from the run directory, the time not
+    counted) offered to the archive."""
+    import jax
+
+    import eant2_jax
+    from bench.field_champions import Archive
+    from eant2_jax import checkpoint
+
+    s = env["eant2"]
+    task = protocol_task(env, env["episodes"])
+    config = eant2_jax.EANT2Config(
+        population=population or s["population"], max_evaluations=budget,
+        reexploit=s["reexploit"], inherit_search=s["reexploit"],
+        min_bucket=tuple(s["min_bucket"]) if s["min_bucket"] else None, stop_when_solved=False,
+        exploit=eant2_jax.ExploitConfig(pruner=s["pruner"], max_iters=max_iters or s["max_iters"],
+                                        rescore=s["rescore"], popsize=s["popsize"]),
+    )  # fmt: skip
+    log.data.update(kind="eant2", settings=config.to_dict())
+    archive, candidates = Archive(top), log.data.setdefault("candidates", {})
+    with tempfile.TemporaryDirectory(prefix="eant2-field-run-") as tmp:
+        out = str(Path(tmp) / "run")
+
+        def on_event(e: dict) -> None:
+            if e["event"] != "generation":
+                return
+            t = time.time()
+            for ind in checkpoint.validate(out, lock=False).state.population:
+                text = str(ind.genome)
+                if archive.offer(text, -float(ind.cost)):
+                    candidates.setdefault(text, text)
+            log.paused += time.time() - t
+            log.point(evaluations=e["evaluations"], train_return=archive.best(),
+                      size=e["best_size"], archive=archive.entries())  # fmt: skip
+
+        eant2_jax.run(task, key=jax.random.key(seed), config=config, generations=10**9,
+                      out=out, callback=on_event)  # fmt: skip
+    keep = {i for p in log.data["curve"] for i, _ in p["archive"]}
+    log.data["candidates"] = {i: g for i, g in candidates.items() if i in keep}
+
+
+def method_networks(task, run: dict[str, Any]):
+    """``(ids, nets)``: a training run's candidates as one batch of the library's networks."""
+    ids = sorted(run["candidates"])
+    if run["kind"] == "eant2":
+        from eant2_jax.compiler import networks
+        from eant2_jax.genome import Genome
+
+        return ids, networks([Genome.parse(run["candidates"][i]) for i in ids], task.n_inputs)
+    from bench.field_tnet import input_affine, stack, tensorneat_net
+
+    n_in = task.n_inputs
+    lib_off = np.asarray(getattr(task, "obs_offset", np.zeros(n_in)))
+    lib_scale = np.asarray(getattr(task, "obs_scale", np.ones(n_in)))
+    off, scale = input_affine(lib_off, lib_scale, run.get("obs_mean"), run.get("obs_std"))
+    nets = [tensorneat_net(np.asarray(run["candidates"][i]["nodes"]).reshape(-1, 4),
+                           np.asarray(run["candidates"][i]["conns"]).reshape(-1, 3),
+                           n_inputs=n_in, n_outputs=task.n_outputs,
+                           activations=run["activations"], in_offset=off, in_scale=scale)
+            for i in ids]  # fmt: skip
+    return ids, stack(nets)
+
+
+def judge(env_name: str, runs: dict[str, dict[str, Any]], budget_list: list[int] | None = None,
+          *, test_keys=None) -> dict[str, Any]:  # fmt: skip
+    """Both methods' runs of one (environment, seed) under the champion rule, through one
+    task object; refused when their test episodes start from different states.
+
+    Args:
+      runs: method -> its training run's JSON.
+      budget_list: the reporting budgets (default: the protocol's, `budgets`).
+      test_keys: method -> test key (default: the protocol's for all; a test's override).
+    """
+    from bench.field_champions import Judge, check_same_starts, judge_run, starts_digest
+
+    env = ENVS[env_name]
+    task = protocol_task(env, 1)
+    judges = {}
+    for m, run in runs.items():
+        if not run.get("curve"):
+            continue
+        ids, nets = method_networks(task, run)
+        judges[m] = Judge(task, nets, ids, test_key=(test_keys or {}).get(m))
+    drawn = {m: j.starts() for m, j in judges.items()}
+    check_same_starts(drawn)
+    out = {}
+    for m, j in judges.items():
+        out[m] = judge_run(j, runs[m]["curve"], budget_list or budgets(env))
+        out[m]["starts_sha256"] = starts_digest(drawn[m])
+    return out
+
+
+def _train(args: argparse.Namespace) -> None:
+    env = ENVS[args.env]
+    log = Log(args.out, args.t0, {"method": args.method, "env": args.env, "seed": args.seed})
+    log.data["start_s"] = log.wall()
+    budget = env["tensorneat"]["pop_size"] * env["tensorneat"]["generations"]
+    if args.generations:
+        budget = (args.pop or env["tensorneat"]["pop_size"]) * args.generations
+    log.data["budget"] = budget
+    if args.method == "eant2":
+        train_eant2(env, seed=args.seed, budget=budget, log=log, population=args.population,
+                    max_iters=args.max_iters)  # fmt: skip
+    else:
+        from bench.field_tensorneat import train
+
+        task = protocol_task(env, 1)
+        train(env, seed=args.seed, src=args.tensorneat, n_inputs=task.n_inputs,
+              n_outputs=task.n_outputs, log=log, top=TOP, pop=args.pop,
+              generations=args.generations, deadline_s=args.deadline_s)  # fmt: skip
+    log.data["done"] = True
+    log.write()
+
+
+def main(argv: list[str]) -> int:
+    """``train --method M --env E --seed S --out F --t0 T [...]`` or ``judge --env E --out F
+    RUN.json ...``."""
+    p = argparse.ArgumentParser(prog="python -m bench.field_workers")
+    p.add_argument("what", choices=("train", "judge"))
+    p.add_argument("--env", choices=sorted(ENVS), required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--method", default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--t0", type=float, default=None)
+    p.add_argument("--tensorneat", default=None)
+    p.add_argument("--pop", type=int, default=None, help="a trial's TensorNEAT population")
+    p.add_argument("--generations", type=int, default=None, help="a trial's TN generations")
+    p.add_argument("--population", type=int, default=None, help="a trial's eant2 population")
+    p.add_argument("--max-iters", type=int, default=None, help="a trial's eant2 iterations")
+    p.add_argument("--deadline-s", type=float, default=math.inf)
+    p.add_argument("--budgets", type=int, nargs="+", default=None, help="reporting budgets")
+    p.add_argument("runs", nargs="*")
+    args = p.parse_args(argv)
+    if args.what == "train":
+        _train(args)
+        return 0
+    runs = {}
+    for path in args.runs:
+        run = json.loads(Path(path).read_text())
+        runs[run["method"]] = run
+    Path(args.out).write_text(json.dumps(judge(args.env, runs, args.budgets)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,356 @@
+"""The field protocol (docs/protocol.md section 3; bench/field_*.py): TensorNEAT's networks
+in the library's form against a plain NumPy reference of TensorNEAT's forward pass (and
+against TensorNEAT itself where its source is at hand), the champion rule and the interval
+and verdict rules against plain references on fresh random inputs, the test episodes'
+initial states compared between the methods (a mismatch refused), and ``python -m bench
+field --protocol`` end to end on CartPole with a stand-in second method that writes
+TensorNEAT-format genomes (TensorNEAT is not installed in CI), resumed from its checkpoint.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import os
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from bench import bench_field, field_champions, field_protocol, field_stats, field_tnet
+from bench.common import BenchInputError
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+HAS_GYMNAX = importlib.util.find_spec("gymnax") is not None
+TN_SRC = Path(os.environ.get("TENSORNEAT_SRC", Path(__file__).resolve().parents[1] / ".tneat/src"))
+
+
+# ------------------------------------------------------------ TensorNEAT genomes, by hand
+def random_tn_genome(rng, n_in, n_out, n_hidden, *, p=0.5, dead_output=False):
+    """A random feed-forward TensorNEAT genome (``nodes [N, 4]``, ``conns [C, 3]``) with
+    NaN padding rows, identity and tanh hidden nodes, some without inputs."""
+    keys_h = list(range(n_in + n_out, n_in + n_out + n_hidden))
+    rng.shuffle(keys_h)  # a topological order unlike the keys' order
+    nodes = [[k, 0.0, 0, 0] for k in range(n_in)]
+    nodes += [[k, rng.normal(), 0, 0] for k in range(n_in, n_in + n_out)]
+    nodes += [[k, rng.normal(), 0, rng.choice([-1, 0])] for k in keys_h]
+    conns = []
+    sources = list(range(n_in))
+    for k in keys_h:
+        for s in sources:
+            if rng.random() < p:
+                conns.append([s, k, rng.normal()])
+        sources.append(k)
+    for o in range(n_in, n_in + n_out):
+        if dead_output and o == n_in + n_out - 1:
+            continue
+        for s in sources:
+            if rng.random() < p or s == 0:
+                conns.append([s, o, rng.normal()])
+    pad = np.full((3, 4), np.nan), np.full((4, 3), np.nan)
+    return np.vstack([np.asarray(nodes, float), pad[0]]), np.vstack([np.asarray(conns), pad[1]])
+
+
+def tn_reference(nodes, conns, x, n_in, n_out, activations):
+    """TensorNEAT's DefaultGenome forward in plain NumPy (float64): a node's value is
+    act(bias + sum of weight * value) over sources with a value; outputs skip act; a node
+    with no such source has no value (NaN)."""
+    acts = {"tanh": np.tanh, "scaled_tanh": lambda z: 3.0 * np.tanh(z)}
+    rows = {int(r[0]): r for r in nodes if not np.isnan(r[0])}
+    edges = [(int(c[0]), int(c[1]), c[2]) for c in conns if not np.isnan(c[0])]
+    vals, pending = {}, set(rows)
+    while pending:
+        for k in sorted(pending):
+            if all(s in vals for s, t, _ in edges if t == k):
+                break
+        pending.remove(k)
+        if k < n_in:
+            vals[k] = x[k]
+            continue
+        ins = [w * vals[s] for s, t, w in edges if t == k and not np.isnan(vals[s])]
+        if not ins:
+            vals[k] = np.nan
+            continue
+        z = rows[k][1] + sum(ins)
+        act = int(rows[k][3])
+        out = n_in <= k < n_in + n_out
+        vals[k] = z if out or act == -1 else acts[activations[act]](z)
+    return np.array([vals.get(o, np.nan) for o in range(n_in, n_in + n_out)])
+
+
+@pytest.mark.parametrize("activation", ["tanh", "scaled_tanh"])
+def test_tensorneat_network_matches_a_numpy_reference(activation):
+    from eant2_jax.kernels import network as kn
+
+    rng = np.random.default_rng()
+    n_in, n_out = 4, 3
+    genomes = [random_tn_genome(rng, n_in, n_out, int(rng.integers(0, 7)), dead_output=i == 0)
+               for i in range(6)]  # fmt: skip
+    lib_off, lib_scale = rng.normal(size=n_in), rng.uniform(0.5, 2.0, n_in)
+    mean, std = rng.normal(size=n_in), rng.uniform(0.5, 2.0, n_in)
+    off, scale = field_tnet.input_affine(lib_off, lib_scale, mean, std)
+    nets = [field_tnet.tensorneat_net(n, c, n_inputs=n_in, n_outputs=n_out,
+                                      activations=[activation], in_offset=off, in_scale=scale)
+            for n, c in genomes]  # fmt: skip
+    batch = field_tnet.stack(nets)
+    obs = rng.normal(size=(5, n_in)) * 2
+    u = (obs - lib_off) * lib_scale  # what the library's task feeds the network
+    step = jax.jit(jax.vmap(jax.vmap(lambda net, x: kn.step(net, x, jax.numpy.zeros_like(
+        net.bias))[0], in_axes=(None, 0)), in_axes=(0, None)))  # fmt: skip
+    got = np.asarray(step(batch, jax.numpy.asarray(u, jax.numpy.float32)))
+    tn_in = (obs - mean) / (std + 1e-6)  # what TensorNEAT's normalised problem feeds it
+    want = np.array([[tn_reference(n, c, x, n_in, n_out, [activation]) for x in tn_in]
+                     for n, c in genomes])  # fmt: skip
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    assert np.isnan(want[0, :, -1]).all()  # the dead output of genome 0
+    # float32 evaluation of float64 weights: a few ulps of the largest term.
+    np.testing.assert_allclose(got[~np.isnan(got)], want[~np.isnan(want)], rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (TN_SRC / "tensorneat").is_dir(), reason="TensorNEAT's source absent")
+def test_tensorneat_network_matches_tensorneat_itself():
+    """Against TensorNEAT's own forward pass on random genomes in its padded format (its
+    source fetched, as the bench uses it: TENSORNEAT_SRC or .tneat/src)."""
+    from bench.field_tensorneat import algorithm, import_from
+
+    import_from(TN_SRC)
+    from tensorneat.common import State
+
+    rng = np.random.default_rng()
+    n_in, n_out = 4, 2
+    algo = algorithm(n_in, n_out, pop=10, output=None, max_nodes=20, max_conns=60)
+    genome = algo.genome
+    state = genome.setup(State(randkey=jax.random.key(0)))
+    for _ in range(4):
+        nodes, conns = random_tn_genome(rng, n_in, n_out, int(rng.integers(1, 6)))
+        pn, pc = np.full((20, nodes.shape[1]), np.nan), np.full((60, 3), np.nan)
+        nodes, conns = nodes[~np.isnan(nodes[:, 0])], conns[~np.isnan(conns[:, 0])]
+        pn[: len(nodes)], pc[: len(conns)] = nodes, conns
+        t = genome.transform(state, jax.numpy.asarray(pn), jax.numpy.asarray(pc))
+        net = field_tnet.tensorneat_net(nodes, conns, n_inputs=n_in, n_outputs=n_out,
+                                        activations=["tanh"], in_offset=np.zeros(n_in),
+                                        in_scale=np.ones(n_in))  # fmt: skip
+        one = jax.tree.map(lambda a: a[0], field_tnet.stack([net]))
+        from eant2_jax.kernels import network as kn
+
+        for x in rng.normal(size=(3, n_in)):
+            want = np.asarray(genome.forward(state, t, jax.numpy.asarray(x, jax.numpy.float32)))
+            got = np.asarray(kn.step(one, jax.numpy.asarray(x, jax.numpy.float32),
+                                     jax.numpy.zeros_like(one.bias))[0])  # fmt: skip
+            np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+
+
+# ------------------------------------------------------------------- the champion rule
+def test_archive_and_choice_match_a_plain_reference():
+    rng = np.random.default_rng()
+    for _ in range(20):
+        k = int(rng.integers(1, 6))
+        archive = field_champions.Archive(k)
+        offers = [(f"n{int(rng.integers(0, 12))}", float(rng.integers(-5, 5))) for _ in range(40)]
+        for i, f in offers:
+            archive.offer(i, f)
+        best, first = {}, {}
+        for n, (i, f) in enumerate(offers):
+            best[i] = max(f, best.get(i, -math.inf))
+            first.setdefault(i, n)
+        ids = sorted(best, key=lambda i: (-best[i], first[i]))[:k]
+        assert archive.entries() == [(i, best[i]) for i in ids]
+        val = {i: float(rng.integers(0, 3)) for i in ids}
+        scores = np.array([val[i] for i in ids])
+        assert field_champions.choose(archive.entries(), val) == ids[int(np.argmax(scores))]
+    with pytest.raises(ValueError, match="no candidates"):
+        field_champions.choose([], {})
+
+
+# ------------------------------------------------------------ intervals and verdicts
+def test_median_interval_matches_a_numpy_loop_and_scipy():
+    import scipy.stats
+
+    from eant2_jax.app.report_stats import bootstrap_indices
+
+    rng = np.random.default_rng()
+    x = rng.normal(loc=rng.normal(), size=int(rng.integers(5, 15)))
+    est, low, high = field_stats.median_interval(list(x))
+    idx = bootstrap_indices(jax.random.fold_in(jax.random.key(0), 0), x.size)
+    meds = np.array([np.median(x[row]) for row in idx])  # the same resamples, one by one
+    assert est == np.median(x)
+    assert (low, high) == pytest.approx(tuple(np.quantile(meds, [0.025, 0.975])), abs=1e-12)
+    ref = scipy.stats.bootstrap((x,), np.median, n_resamples=10_000, method="percentile",
+                                rng=np.random.default_rng(0)).confidence_interval  # fmt: skip
+    spread = x.max() - x.min()  # other resamples: agreement to a fraction of the spread
+    assert abs(low - ref.low) < 0.15 * spread and abs(high - ref.high) < 0.15 * spread
+    assert field_stats.median_interval([None, None]) is None
+
+
+def test_verdicts_need_the_interval_to_exclude_zero():
+    rng = np.random.default_rng()
+    up = rng.uniform(1, 2, 10)
+    assert field_stats.verdict(field_stats.median_interval(up)) == "win"
+    assert field_stats.verdict(field_stats.median_interval(-up)) == "loss"
+    mixed = np.concatenate([up, -up])
+    assert field_stats.verdict(field_stats.median_interval(mixed)) == "tie"
+    for low, high, want in ((0.0, 1.0, "tie"), (1e-9, 1.0, "win"), (-1.0, -1e-9, "loss")):
+        assert field_stats.verdict((0.5, low, high)) == want
+    assert field_stats.verdict(None) is None
+    curve = [{"wall_s": 1.0, "test_return": 3.0}, {"wall_s": 2.0, "test_return": 9.0}]
+    assert field_stats.wall_to_target(curve, 5.0) == 2.0
+    assert field_stats.wall_to_target(curve, 10.0) == math.inf
+
+
+# ------------------------------------------------------- the same test episodes, checked
+FAKE_TN = """
+import argparse, json, sys
+import numpy as np
+sys.path.insert(0, {tests!r})
+from test_field_protocol import random_tn_genome
+from bench.field_champions import Archive
+p = argparse.ArgumentParser()
+for f in ("--out", "--seed", "--generations", "--pop", "--t0"):
+    p.add_argument(f)
+a = p.parse_args()
+rng = np.random.default_rng(int(a.seed))
+archive, cands, curve = Archive(5), {{}}, []
+for g in range(int(a.generations)):
+    for j in range(3):
+        nodes, conns = random_tn_genome(rng, 4, 2, int(rng.integers(0, 4)))
+        d = f"g{{g}}-{{j}}"
+        if archive.offer(d, float(rng.normal())):
+            cands[d] = {{"nodes": nodes[~np.isnan(nodes[:, 0])].tolist(),
+                        "conns": conns[~np.isnan(conns[:, 0])].tolist()}}
+    curve.append({{"evaluations": (g + 1) * int(a.pop), "wall_s": g + 1.0,
+                  "train_return": archive.best(), "archive": archive.entries()}})
+json.dump({{"method": "tensorneat", "kind": "tensorneat", "activations": ["tanh"],
+           "curve": curve, "candidates": cands, "done": True}}, open(a.out, "w"))
+"""
+
+
+def fake_tensorneat(tmp_path: Path):
+    """A stand-in for TensorNEAT's training process: random genomes in its format."""
+    script = tmp_path / "fake_tn.py"
+    script.write_text(FAKE_TN.format(tests=str(Path(__file__).resolve().parent)))
+    calls = []
+
+    def argv(method, args, env, seed, out):
+        calls.append(seed)
+        return [sys.executable, str(script), "--out", str(out), "--seed", str(seed),
+                "--generations", "4", "--pop", str(args.tensorneat_pop or 100)]  # fmt: skip
+
+    return argv, calls
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_GYMNAX, reason="gymnax not installed")
+def test_both_methods_start_from_the_same_states_and_a_mismatch_is_refused():
+    from bench.field_workers import judge
+
+    rng = np.random.default_rng()
+    cands = {}
+    for j in range(2):
+        nodes, conns = random_tn_genome(rng, 4, 2, 2)
+        cands[f"t{j}"] = {"nodes": nodes[~np.isnan(nodes[:, 0])].tolist(),
+                          "conns": conns[~np.isnan(conns[:, 0])].tolist()}  # fmt: skip
+    curve = [{"evaluations": 100, "wall_s": 1.0, "archive": [["t0", 1.0], ["t1", 0.5]]}]
+    tn = {"kind": "tensorneat", "activations": ["tanh"], "curve": curve, "candidates": cands}
+    twin = dict(tn)  # a second method with the same networks: the same scores
+    out = judge("cartpole", {"eant2": twin, "tensorneat": tn}, [100])
+    assert out["eant2"]["starts_sha256"] == out["tensorneat"]["starts_sha256"]
+    assert out["eant2"]["budgets"] == out["tensorneat"]["budgets"]
+    (b,) = out["tensorneat"]["budgets"]
+    assert b["champion"] in ("t0", "t1") and 1 <= b["test_return"] <= 500
+    with pytest.raises(BenchInputError, match="start from different states"):
+        judge("cartpole", {"eant2": twin, "tensorneat": tn}, [100],
+              test_keys={"tensorneat": jax.random.key(9001)})  # fmt: skip
+
+
+def _protocol(tmp_path, *extra):
+    return bench_field.main(["--protocol", "--envs", "cartpole", "--first-seed", "0",
+                             "--budget", "400", "--tensorneat-pop", "100",
+                             "--tensorneat", str(tmp_path / "tn"),
+                             "--out", str(tmp_path / "f.json"), *extra])  # fmt: skip
+
+
+def _fake_src(tmp_path):
+    (tmp_path / "tn" / "tensorneat").mkdir(parents=True, exist_ok=True)
+    (tmp_path / "tn" / "tensorneat" / "pipeline.py").write_text("")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_GYMNAX, reason="gymnax not installed")
+def test_protocol_end_to_end_on_cartpole(tmp_path, monkeypatch, capsys):
+    """eant2_jax's real run and the stand-in, judged on one task; files and labels."""
+    argv, _ = fake_tensorneat(tmp_path)
+    monkeypatch.setitem(field_protocol.METHODS, "tensorneat", argv)
+    _fake_src(tmp_path)
+    payload = _protocol(tmp_path, "--seeds", "1", "--population", "2", "--max-iters", "3")
+    (rec,) = payload["seeds"]
+    assert payload["trial"] and rec["env"] == "cartpole" and rec["seed"] == 0
+    for m in ("eant2", "tensorneat"):
+        judged = rec["judged"][m]
+        assert [b["budget"] for b in judged["budgets"]] == [100, 200, 400]
+        for b in judged["budgets"]:
+            if b["champion"] is not None:
+                assert b["evaluations"] <= b["budget"] and 1 <= b["test_return"] <= 500
+                assert b["champion"] in [c["id"] for c in b["candidates"]]
+                assert b["champion"] in rec["runs"][m]["champions"]
+    assert rec["judged"]["eant2"]["starts_sha256"] == rec["judged"]["tensorneat"]["starts_sha256"]
+    md = (tmp_path / "f.md").read_text()
+    assert "A trial, not the protocol's result" in md and '"max_iters": 100' in md
+    assert [r["budget"] for r in payload["summary"]] == [100, 200, 400]
+    capsys.readouterr()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_GYMNAX, reason="gymnax not installed")
+def test_protocol_resumes_from_its_checkpoint(tmp_path, monkeypatch, capsys):
+    """A run cut after its first seed goes on from the checkpoint: the finished seed is not
+    run again, and the file is the uninterrupted run's (timings aside)."""
+    argv, calls = fake_tensorneat(tmp_path)
+    monkeypatch.setitem(field_protocol.METHODS, "tensorneat", argv)
+    _fake_src(tmp_path)
+    args = ("--seeds", "2", "--methods", "tensorneat")
+    whole = _protocol(tmp_path, *args)
+    assert calls == [0, 1]
+    ckpt = tmp_path / "f.checkpoint.jsonl"
+    lines = ckpt.read_text().splitlines()
+    assert len(lines) == 3  # the settings, then one line per seed
+    ckpt.write_text("\n".join(lines[:2]) + "\n")  # as if stopped after seed 0
+    with pytest.raises(BenchInputError, match="exists"):
+        _protocol(tmp_path, *args, "--force")
+    resumed = _protocol(tmp_path, *args, "--resume", "--force")
+    assert calls == [0, 1, 1]
+    assert resumed["seeds"][0] == whole["seeds"][0]
+    assert resumed["seeds"][1]["judged"] == whole["seeds"][1]["judged"]
+    assert resumed["summary"] == whole["summary"]
+    with pytest.raises(BenchInputError, match="another call's settings"):
+        _protocol(tmp_path, "--seeds", "3", "--methods", "tensorneat", "--resume", "--force")
+    capsys.readouterr()
+
+
+@pytest.mark.parametrize(
+    "argv,phrase",
+    [
+        (["--envs", "servo", "--methods", "eant2"], "--protocol runs"),
+        (["--quick", "--methods", "eant2"], "--quick"),
+        (["--budget", "0", "--methods", "eant2"], "--budget"),
+        (["--methods", "tensorneat"], "--tensorneat"),
+    ],
+)
+def test_protocol_options_are_checked(argv, phrase, tmp_path):
+    with pytest.raises(BenchInputError, match=phrase):
+        bench_field.main(["--protocol", *argv, "--out", str(tmp_path / "f.json")])
+    assert not (tmp_path / "f.json").exists()
+
+
+def test_frozen_settings_are_the_protocols():
+    from bench import field_settings as fs
+
+    assert fs.SEEDS == {"gymnax": tuple(range(4000, 4010)), "brax": tuple(range(4000, 4005))}
+    assert (fs.VALIDATION_KEY, fs.VALIDATION_EPISODES, fs.TEST_KEY, fs.TEST_EPISODES) == (
+        8000, 10, 9000, 100)  # fmt: skip
+    for env in fs.ENVS.values():
+        assert fs.budgets(env) == [25_000, 50_000, 100_000]
+    assert json.loads(json.dumps(fs.table()))["budgets"]["hopper"] == [25_000, 50_000, 100_000]

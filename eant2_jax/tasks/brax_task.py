@@ -14,11 +14,13 @@ A network controls the environment for one episode at a time:
   (2026-11-23) ``generalized`` and ``mjx`` stepped ``inverted_pendulum`` and ``hopper`` at
   about the same rate (within 15%), and ``generalized`` compiled an episode in 10 s
   against 17 s for ``mjx``.
-* **observation -> inputs**: the observation vector as it is (float32). brax's trainers
-  normalise observations with running statistics; this adapter does not, for the reason
-  the gymnax adapter gives: a running normaliser changes the cost function while CMA-ES
-  searches it. brax's observations have no bounds to map from, and CMA-ES adapts its
-  covariance to the inputs' scales.
+* **observation -> inputs**: the observation vector as it is (float32), by default
+  (``normalize="none"``). brax's trainers normalise observations with running statistics;
+  this adapter does not, for the reason the gymnax adapter gives: a running normaliser
+  changes the cost function while CMA-ES searches it. ``normalize="random"`` centres and
+  scales each dimension by statistics of random-policy episodes played once, when the task
+  is made, and frozen (`eant2_jax.tasks.obsnorm`; TensorNEAT's halfcheetah and walker2d
+  examples do the same).
 * **outputs -> action**: one output per actuator (output activation ``tanh``), clipped to
   ``[-1, 1]``, which brax's environments map onto the actuators' control ranges.
 * **episodes and cost** (`eant2_jax.tasks.episodic`, shared with the gymnax adapter): the
@@ -47,13 +49,14 @@ import jax
 import jax.numpy as jnp
 
 from .. import pytree
-from ..kernels import network as kn
 from .episodic import EpisodicTask, check_choice, check_episode_options, check_int, check_like
 from .episodic import returns as returns
+from .obsnorm import check_normalize, normalized
 
 __all__ = [
     "BACKENDS",
     "MAX_FRAMES",
+    "NORMALIZE",
     "PRECISIONS",
     "SOLVED_RETURNS",
     "BraxTask",
@@ -65,6 +68,7 @@ __all__ = [
 ]
 
 BACKENDS = ("generalized", "mjx", "positional", "spring")
+NORMALIZE = ("none", "random")  # of the brax and Playground adapters
 # Precision of the float32 products in brax's physics (``jax.default_matmul_precision``):
 # "highest" (the default) computes them in full float32 on every device; "default" lets a
 # GPU use TF32 (a 10-bit mantissa), which is faster but makes a GPU's trajectories differ
@@ -176,24 +180,35 @@ class PipelineTask(EpisodicTask):
     Attributes:
       precision: precision of the physics' float32 products, one of `PRECISIONS` (static,
         keyword-only).
+      obs_offset, obs_scale: ``[n_inputs]`` inputs are ``(obs - obs_offset) * obs_scale``
+        (``normalize="random"``: `eant2_jax.tasks.obsnorm`); None: the observation as it
+        is (keyword-only).
     """
 
     precision: str = pytree.field(pytree_node=False, default="highest")
+    obs_offset: jax.Array | None = None
+    obs_scale: jax.Array | None = None
 
     @property
     def env(self) -> Any:
         raise NotImplementedError
 
-    def inputs(self, obs: Any) -> jax.Array:
-        """Network inputs ``[n_inputs]`` of one observation."""
+    def observation(self, obs: Any) -> jax.Array:
+        """The observation vector ``[n_inputs]`` float32 (before normalisation)."""
         return jnp.ravel(obs).astype(jnp.float32)
+
+    def inputs(self, obs: Any) -> jax.Array:
+        """Network inputs ``[n_inputs]`` of one observation: normalised where
+        ``normalize="random"`` froze statistics, else the observation as it is."""
+        x = self.observation(obs)
+        return x if self.obs_offset is None else (x - self.obs_offset) * self.obs_scale
 
     def action(self, y: jax.Array) -> jax.Array:
         """The environment's action ``[n_outputs]`` (in ``[-1, 1]``) for outputs ``y``."""
         return jnp.clip(y, -1.0, 1.0)
 
-    def episode(self, net: kn.Network, key: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Return (sum of rewards) and length of ONE episode of ONE network."""
+    def environment(self):
+        """``(reset, step)`` of the environment, at this task's precision."""
         env = self.env
         # "default" leaves the choice to JAX (and its caller's own context).
         exact = contextlib.nullcontext
@@ -210,7 +225,7 @@ class PipelineTask(EpisodicTask):
                 state = env.step(state, action)
             return state.obs, state, state.reward, state.done > 0
 
-        return self.play(net, key, reset, step)
+        return reset, step
 
 
 @pytree.dataclass
@@ -259,6 +274,9 @@ def brax(
     hidden: str = "tanh",
     output: str = "tanh",
     precision: str = "highest",
+    normalize: str = "none",
+    norm_episodes: int | None = None,
+    norm_seed: int | None = None,
 ) -> BraxTask:
     """A brax environment as a task (``tasks.make("brax:NAME", ...)``).
 
@@ -276,6 +294,10 @@ def brax(
       output: activation of output neurons (the action is the output clipped to [-1, 1]).
       precision: precision of the physics' float32 products (``jax.default_matmul_precision``):
         ``highest`` (full float32, as on a CPU), ``high`` or ``default`` (TF32 on a GPU).
+      normalize: ``"none"`` (observations as they are) or ``"random"`` (mean and standard
+        deviation over random-policy episodes, frozen: `eant2_jax.tasks.obsnorm`).
+      norm_episodes: random-policy episodes of ``normalize="random"`` (default 1,000).
+      norm_seed: the seed of their key, ``jax.random.key(norm_seed)`` (default 0).
 
     Returns:
       The `BraxTask`.
@@ -286,13 +308,14 @@ def brax(
     if name not in known:
         raise ValueError(f"unknown brax environment {name!r}; known: {', '.join(known)}")
     check_choice(where, "backend", backend, BACKENDS)
-    frozen = _checked_params(where, envs._envs[name], params)
+    params = _checked_params(where, envs._envs[name], params)
     check_precision(where, precision)
     episodes, max_steps, chunk = check_episode_options(
         where, episodes=episodes, max_steps=max_steps, chunk=chunk, hidden=hidden, output=output
     )
+    norm = check_normalize(where, normalize, norm_episodes, norm_seed, NORMALIZE)
     try:
-        env = _environment(name, backend, frozen)
+        env = _environment(name, backend, params)
         with calling_brax():
             obs = jax.eval_shape(env.reset, jax.random.key(0)).obs
     except (TypeError, ValueError, KeyError, IndexError, AttributeError) as e:
@@ -300,10 +323,10 @@ def brax(
         raise ValueError(f"{where}: cannot build the environment: {first}") from None
     if not hasattr(obs, "shape"):
         raise ValueError(f"{where}: observations are {type(obs).__name__}, not one array")
-    return BraxTask(
+    task = BraxTask(
         env_name=name,
         backend=backend,
-        params=frozen,
+        params=params,
         n_inputs=math.prod(obs.shape),
         n_outputs=int(env.action_size),
         episodes=episodes,
@@ -313,3 +336,4 @@ def brax(
         output=output,
         precision=precision,
     )
+    return normalized(task, norm, where)

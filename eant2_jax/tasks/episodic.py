@@ -215,8 +215,8 @@ def rollout(
 @pytree.dataclass(kw_only=True)
 class EpisodicTask:
     """A task made of episodes: the base of the environment adapters' task classes, which
-    add their environment's fields and define ``inputs``, ``action`` and ``episode``
-    (usually through `play`). Its fields are keyword-only.
+    add their environment's fields and define ``environment``, ``observation``, ``inputs``
+    and ``action`` (or ``episode`` itself). Its fields are keyword-only.
 
     Attributes:
       max_steps: steps per episode at most (static).
@@ -234,6 +234,14 @@ class EpisodicTask:
     hidden: str = pytree.field(pytree_node=False, default="tanh")
     noisy: bool = pytree.field(pytree_node=False, default=True)
 
+    def environment(self) -> tuple[Reset, Step]:
+        """``(reset, step)`` of the environment, as `rollout` takes them."""
+        raise NotImplementedError
+
+    def observation(self, obs: Any) -> jax.Array:
+        """The observation vector ``[n_inputs]`` float32, before any normalisation."""
+        raise NotImplementedError
+
     def inputs(self, obs: Any) -> jax.Array:
         """Network inputs ``[n_inputs]`` of one observation."""
         raise NotImplementedError
@@ -243,8 +251,9 @@ class EpisodicTask:
         raise NotImplementedError
 
     def episode(self, net: kn.Network, key: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Return (sum of rewards) and length of ONE episode of ONE network."""
-        raise NotImplementedError
+        """Return (sum of rewards) and length of ONE episode of ONE network (`play` in
+        the task's `environment`)."""
+        return self.play(net, key, *self.environment())
 
     def play(
         self, net: kn.Network, key: jax.Array, reset: Reset, step: Step

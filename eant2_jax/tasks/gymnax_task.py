@@ -12,7 +12,10 @@ A network controls the environment for one episode at a time:
   cart's and the pole's velocities in CartPole) are left as they are. Fixed rather than
   running statistics (evosax's and OpenAI-ES's choice): a running normaliser changes the
   cost function while CMA-ES searches it, and the task stays a pure function of its key.
-  ``normalize="none"`` passes observations through.
+  ``normalize="none"`` passes observations through; ``normalize="random"`` centres and
+  scales every dimension by its mean and standard deviation over ``norm_episodes``
+  random-policy episodes played when the task is made (`eant2_jax.tasks.obsnorm`), frozen
+  into ``obs_offset`` and ``obs_scale``.
 * **outputs -> action**: a discrete action space gets one output per action and the action
   is the ``argmax`` (output activation ``identity``); a continuous (``Box``) one gets one
   output per action dimension, clipped to ``[-1, 1]`` and mapped linearly onto
@@ -42,13 +45,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import pytree
-from ..kernels import network as kn
-from .episodic import EpisodicTask, check_choice, check_episode_options, check_int, check_like
+from .episodic import EpisodicTask, check_episode_options, check_int, check_like
 from .episodic import returns as returns
+from .obsnorm import check_normalize, normalized
 
 __all__ = ["NORMALIZE", "SOLVED_RETURNS", "GymnaxTask", "gymnax", "returns"]
 
-NORMALIZE = ("bounds", "none")
+NORMALIZE = ("bounds", "none", "random")
 # The solved return of the gymnax environments that port a Gymnasium one with the same id,
 # reward and episode limit: Gymnasium's registry (``gymnasium.spec(id).reward_threshold``;
 # tests/test_gymnax.py checks them against it). With its default parameters and episode
@@ -119,9 +122,13 @@ class GymnaxTask(EpisodicTask):
     def env(self):
         return _environment(self.env_name)[0]
 
+    def observation(self, obs: jax.Array) -> jax.Array:
+        """The observation flattened to ``[n_inputs]`` float32 (before normalisation)."""
+        return jnp.ravel(obs).astype(jnp.float32)
+
     def inputs(self, obs: jax.Array) -> jax.Array:
         """Network inputs ``[n_inputs]`` of one observation."""
-        return (jnp.ravel(obs).astype(jnp.float32) - self.obs_offset) * self.obs_scale
+        return (self.observation(obs) - self.obs_offset) * self.obs_scale
 
     def action(self, y: jax.Array) -> jax.Array:
         """The environment's action for network outputs ``y`` ``[n_outputs]``."""
@@ -130,8 +137,8 @@ class GymnaxTask(EpisodicTask):
         a = self.act_low + (jnp.clip(y, -1.0, 1.0) + 1.0) * 0.5 * (self.act_high - self.act_low)
         return a.reshape(self.action_shape)
 
-    def episode(self, net: kn.Network, key: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Return (sum of rewards) and length of ONE episode of ONE network."""
+    def environment(self):
+        """``(reset, step)`` of the gymnax environment with this task's parameters."""
         env, params = self.env, self.env_params
 
         def reset(key):
@@ -145,7 +152,7 @@ class GymnaxTask(EpisodicTask):
             obs, state, reward, done, _ = out  # older gymnax: obs, state, reward, done, info
             return obs, state, reward, done
 
-        return self.play(net, key, reset, step)
+        return reset, step
 
 
 def _bounds(space: Any, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray] | None:
@@ -159,6 +166,17 @@ def _bounds(space: Any, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]
     low = np.broadcast_to(low, shape).ravel()
     high = np.broadcast_to(high, shape).ravel()
     return low, high
+
+
+def _from_bounds(bounds: tuple[np.ndarray, np.ndarray] | None, n: int):
+    """``(offset, scale)`` ``[n]`` that map finite bounds onto [-1, 1] (``normalize="bounds"``);
+    an unbounded dimension (or no bounds at all) is left as it is."""
+    if bounds is None:
+        return np.zeros(n), np.ones(n)
+    low, high = bounds
+    finite = (np.abs(low) < _HUGE) & (np.abs(high) < _HUGE) & (high > low)
+    offset = np.where(finite, (high + low) / 2, 0.0)
+    return offset, np.where(finite, 2 / np.where(finite, high - low, 1.0), 1.0)
 
 
 def _with_params(where: str, env_params: Any, params: Any) -> Any:
@@ -197,6 +215,8 @@ def gymnax(
     episodes: int = 1,
     max_steps: int | None = None,
     normalize: str = "bounds",
+    norm_episodes: int | None = None,
+    norm_seed: int | None = None,
     params: dict | None = None,
     chunk: int = 50,
     hidden: str = "tanh",
@@ -209,7 +229,11 @@ def gymnax(
       episodes: episodes per evaluation (the cost is minus their mean return).
       max_steps: steps per episode at most (default: the environment's
         ``max_steps_in_episode``; a smaller value also becomes the environment's limit).
-      normalize: ``"bounds"`` (finite observation bounds mapped to [-1, 1]) or ``"none"``.
+      normalize: ``"bounds"`` (finite observation bounds mapped to [-1, 1]), ``"none"``, or
+        ``"random"`` (mean and standard deviation over random-policy episodes, frozen:
+        `eant2_jax.tasks.obsnorm`).
+      norm_episodes: random-policy episodes of ``normalize="random"`` (default 1,000).
+      norm_seed: the seed of their key, ``jax.random.key(norm_seed)`` (default 0).
       params: values replacing fields of the environment's default parameters.
       chunk: steps per block of the episode loop (its early exit is checked per block).
       hidden: activation of hidden neurons.
@@ -224,7 +248,7 @@ def gymnax(
     episodes, max_steps, chunk = check_episode_options(
         where, episodes=episodes, max_steps=max_steps, chunk=chunk, hidden=hidden, output=output
     )
-    check_choice(where, "normalize", normalize, NORMALIZE)
+    norm = check_normalize(where, normalize, norm_episodes, norm_seed, NORMALIZE)
     env_params = _with_params(where, env_params, params)
     limit = getattr(env_params, "max_steps_in_episode", None)
     solved = SOLVED_RETURNS.get(name) if not params and max_steps in (None, limit) else None
@@ -237,12 +261,10 @@ def gymnax(
     obs_shape = jax.eval_shape(env.reset, jax.random.key(0), env_params)[0].shape
     n_inputs = math.prod(obs_shape)
     offset, scale = np.zeros(n_inputs), np.ones(n_inputs)
-    bounds = _bounds(env.observation_space(env_params), obs_shape)
-    if normalize == "bounds" and bounds is not None:
-        low, high = bounds
-        finite = (np.abs(low) < _HUGE) & (np.abs(high) < _HUGE) & (high > low)
-        offset = np.where(finite, (high + low) / 2, 0.0)
-        scale = np.where(finite, 2 / np.where(finite, high - low, 1.0), 1.0)
+    if normalize == "bounds":
+        offset, scale = _from_bounds(
+            _bounds(env.observation_space(env_params), obs_shape), n_inputs
+        )
     space = env.action_space(env_params)
     discrete = hasattr(space, "n") and not hasattr(space, "low")
     if discrete:
@@ -253,7 +275,7 @@ def gymnax(
         n_outputs = max(1, math.prod(action_shape))
         low, high = _bounds(space, action_shape)
     output = output or ("identity" if discrete else "tanh")
-    return GymnaxTask(
+    task = GymnaxTask(
         env_params=env_params,
         obs_offset=jnp.asarray(offset, jnp.float32),
         obs_scale=jnp.asarray(scale, jnp.float32),
@@ -271,3 +293,4 @@ def gymnax(
         hidden=hidden,
         output=output,
     )
+    return normalized(task, norm, where)

@@ -13,8 +13,10 @@ A network controls the environment for one episode at a time, as with the brax a
   is MJX-Warp (``impl="warp"``), which needs NVIDIA's ``warp-lang`` and a GPU.
 * **observation -> inputs**: the observation vector as it is (float32); where an
   environment's observation is a dictionary (the locomotion tasks: ``state``,
-  ``privileged_state``, ...), the entry ``obs_key`` (``state`` by default). Not normalised,
-  for the reason the gymnax adapter gives.
+  ``privileged_state``, ...), the entry ``obs_key`` (``state`` by default). Not normalised
+  by default, for the reason the gymnax adapter gives; ``normalize="random"`` freezes
+  statistics of random-policy episodes into the task, as for brax
+  (`eant2_jax.tasks.obsnorm`).
 * **outputs -> action**: one output per actuator (``tanh``), clipped to ``[-1, 1]``,
   Playground's normalised action range.
 * **episodes and cost** (`eant2_jax.tasks.episodic`): at most ``max_steps`` steps (the
@@ -34,8 +36,9 @@ from typing import Any
 import jax
 
 from .. import pytree
-from .brax_task import PipelineTask, _hashable, calling_brax, check_precision
+from .brax_task import NORMALIZE, PipelineTask, _hashable, calling_brax, check_precision
 from .episodic import check_choice, check_episode_options, check_int, check_like
+from .obsnorm import check_normalize, normalized
 
 __all__ = ["IMPLS", "PlaygroundTask", "playground"]
 
@@ -89,10 +92,10 @@ class PlaygroundTask(PipelineTask):
     def env(self):
         return _environment(self.env_name, self.overrides)
 
-    def inputs(self, obs: Any) -> jax.Array:
-        """Network inputs ``[n_inputs]`` of one observation (its ``obs_key`` entry where
-        it is a dictionary)."""
-        return super().inputs(obs[self.obs_key] if isinstance(obs, dict) else obs)
+    def observation(self, obs: Any) -> jax.Array:
+        """The observation vector ``[n_inputs]`` float32 (its ``obs_key`` entry where it is
+        a dictionary), before normalisation."""
+        return super().observation(obs[self.obs_key] if isinstance(obs, dict) else obs)
 
 
 # Config fields of every Playground environment with a range: steps and repeats are
@@ -155,6 +158,9 @@ def playground(
     hidden: str = "tanh",
     output: str = "tanh",
     precision: str = "highest",
+    normalize: str = "none",
+    norm_episodes: int | None = None,
+    norm_seed: int | None = None,
 ) -> PlaygroundTask:
     """A MuJoCo Playground environment as a task (``tasks.make("playground:NAME", ...)``).
 
@@ -171,6 +177,9 @@ def playground(
       hidden: activation of hidden neurons.
       output: activation of output neurons (the action is the output clipped to [-1, 1]).
       precision: precision of the physics' float32 products (as for brax tasks).
+      normalize: ``"none"`` or ``"random"`` (frozen statistics of random-policy episodes,
+        as for brax tasks: `eant2_jax.tasks.obsnorm`).
+      norm_episodes, norm_seed: their count (default 1,000) and the seed of their key.
 
     Returns:
       The `PlaygroundTask`.
@@ -185,6 +194,7 @@ def playground(
     episodes, max_steps, chunk = check_episode_options(
         where, episodes=episodes, max_steps=max_steps, chunk=chunk, hidden=hidden, output=output
     )
+    norm = check_normalize(where, normalize, norm_episodes, norm_seed, NORMALIZE)
     if not isinstance(obs_key, str):
         raise ValueError(f"{where}: obs_key must be a string, got {obs_key!r:.60}")
     defaults = registry.get_default_config(name)
@@ -205,7 +215,7 @@ def playground(
                 f"obs_key must be one of {', '.join(sorted(obs))}"
             )
         obs = obs[obs_key]
-    return PlaygroundTask(
+    task = PlaygroundTask(
         env_name=name,
         overrides=overrides,
         obs_key=obs_key,
@@ -218,3 +228,4 @@ def playground(
         output=output,
         precision=precision,
     )
+    return normalized(task, norm, where)

@@ -24,9 +24,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from bench.common import BenchInputError
-from bench.field_settings import TEST_EPISODES, TEST_KEY, TOP, VALIDATION_EPISODES, VALIDATION_KEY
+from bench.field_settings import (
+    CURVE_POINTS,
+    TEST_EPISODES,
+    TEST_KEY,
+    TOP,
+    VALIDATION_EPISODES,
+    VALIDATION_KEY,
+)
 
-__all__ = ["Archive", "Judge", "check_same_starts", "choose", "starts", "starts_digest"]
+__all__ = ["Archive", "Judge", "check_same_starts", "choose", "curve_points", "judge_run"]
+__all__ += ["starts", "starts_digest"]
 
 
 class Archive:
@@ -156,12 +164,24 @@ class Judge:
         return starts(self.task, self.test_key, TEST_EPISODES)
 
 
+def curve_points(curve: list[dict], total: int, points: int = CURVE_POINTS) -> list[dict]:
+    """The generations of ``curve`` judged along the run: for each ``i / points`` of the
+    ``total`` budget (i = 1 .. points) the last generation within it, each once."""
+    picked: list[dict] = []
+    for i in range(1, points + 1):
+        within = [p for p in curve if p["evaluations"] <= total * i / points]
+        if within and (not picked or within[-1] is not picked[-1]):
+            picked.append(within[-1])
+    return picked
+
+
 def judge_run(judge: Judge, curve: list[dict], budgets: list[int]) -> dict[str, Any]:
     """A method's run under the rule: at each budget the candidates of its last generation
     within it, their validation returns, the champion and its test return; and along the
-    curve each generation's champion and test return (for the wall time to a target)."""
+    run (`curve_points` of the largest budget) the champion and its test return, for the
+    wall time to a target."""
     out: dict[str, Any] = {"budgets": [], "curve": []}
-    for p in curve:
+    for p in curve_points(curve, max(budgets)):
         champ, _ = judge.champion([tuple(c) for c in p["archive"]])
         out["curve"].append({"evaluations": p["evaluations"], "wall_s": p["wall_s"],
                              "champion": champ, "test_return": judge.tested(champ)})  # fmt: skip

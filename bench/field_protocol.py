@@ -151,15 +151,18 @@ def _call(argv: list[str], timeout: float) -> str:
 
 def _train(method, args, env, seed, runs: Path) -> dict:
     out = runs / f"{env}-s{seed}-{method}.json"
-    if out.is_file() and json.loads(out.read_text()).get("done"):
-        return json.loads(out.read_text())  # a finished run kept by an earlier call
+    if out.is_file():
+        kept = json.loads(out.read_text())
+        if kept.get("done") or kept.get("deadline"):
+            return kept  # a finished run (or one stopped at its deadline) of an earlier call
     t0 = time.time()
     err = _call([*METHODS[method](method, args, env, seed, out), "--t0", repr(t0)],
                 args.deadline_s)  # fmt: skip
     run = json.loads(out.read_text()) if out.is_file() else {"method": method, "curve": []}
     run["process_s"] = time.time() - t0
     if err:
-        run["error"] = err
+        # Stopped at --deadline-s: final, judged on the generations it completed.
+        run["deadline" if err.startswith("killed after") else "error"] = err
         out.write_text(json.dumps(run))
     return run
 
@@ -169,7 +172,7 @@ def _seed(args, env: str, seed: int, runs: Path, budget_list: list[int]) -> dict
     paths = [runs / f"{env}-s{seed}-{m}.json" for m in args.methods]
     judged_path = runs / f"{env}-s{seed}-judged.json"
     argv = [sys.executable, "-m", "bench.field_workers", "judge", "--env", env,
-            "--out", str(judged_path), "--budgets", *map(str, budget_list), "--",
+            "--out", str(judged_path), "--budgets", *map(str, budget_list), "--runs",
             *map(str, paths)]  # fmt: skip
     err = _call(argv, args.deadline_s)
     if err:

@@ -26,6 +26,7 @@ from typing import Any
 
 __all__ = [
     "BUDGET_FRACTIONS",
+    "CURVE_POINTS",
     "ENVS",
     "SEEDS",
     "TEST_EPISODES",
@@ -41,6 +42,9 @@ TOP = 5  # candidates per method at each budget: its best by training fitness
 VALIDATION_KEY, VALIDATION_EPISODES = 8000, 10  # jax.random.key(8000), not counted
 TEST_KEY, TEST_EPISODES = 9000, 100  # jax.random.key(9000), the same for both methods
 BUDGET_FRACTIONS = (0.25, 0.5, 1.0)  # of TensorNEAT's example evaluations
+# The champion along a run (for the wall time to a target) at every 1/CURVE_POINTS of the
+# budget: the last generation within each such share.
+CURVE_POINTS = 20
 SEEDS = {"gymnax": tuple(range(4000, 4010)), "brax": tuple(range(4000, 4005))}
 
 _TN = {"pop_size": 1000, "species_size": 20, "survival_threshold": 0.1,
@@ -105,6 +109,7 @@ def table(names: list[str] | None = None) -> dict[str, Any]:
                 "validation": {"key": VALIDATION_KEY, "episodes": VALIDATION_EPISODES},
                 "test": {"key": TEST_KEY, "episodes": TEST_EPISODES},
                 "budget_fractions": BUDGET_FRACTIONS,
+                "curve_points": CURVE_POINTS,
                 "budgets": {k: budgets(v) for k, v in envs.items()},
             }
         )

@@ -7,9 +7,11 @@ one judging process that puts both methods' candidates through the champion rule
 task object (bench/field_champions.py). Each seed's judged record is appended to the
 checkpoint (``--checkpoint``, default beside the result file: ``...checkpoint.jsonl``), and a
 finished training run is kept in ``...checkpoint.jsonl.runs/`` until its seed is judged;
-``--resume --force`` skips the seeds and runs already there (a device call's time limit
-loses at most the runs in progress). The summary (bench/field_stats.py) and the result file
-``bench/results/field-protocol-<device>.{json,md}`` are rewritten after every seed.
+``--resume --force`` skips the seeds and runs already there. eant2_jax's run keeps its run
+directory there too and a killed one goes on from its last committed generation; a killed
+TensorNEAT run starts again (a device call's time limit loses at most that). The summary
+(bench/field_stats.py) and the result file ``bench/results/field-protocol-<device>.{json,md}``
+are rewritten after every seed.
 
 Without overrides it runs the protocol's seeds (4000-4009 gymnax, 4000-4004 brax). Any of
 ``--seeds/--first-seed/--budget/--population/--max-iters/--tensorneat-pop`` makes it a
@@ -21,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -47,6 +50,8 @@ def _train_argv(method: str, args: argparse.Namespace, env: str, seed: int, out:
             argv += [flag, str(v)]
     if method == "tensorneat":
         argv += ["--tensorneat", str(args.tensorneat)]
+    if method == "eant2":  # kept beside its log: a killed run goes on from it
+        argv += ["--rundir", str(out.with_suffix(".rundir"))]
     return argv
 
 
@@ -212,6 +217,7 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
                 f.write(json.dumps(rec) + "\n")
             for m in args.methods:
                 (runs / f"{env}-s{seed}-{m}.json").unlink(missing_ok=True)
+                shutil.rmtree(runs / f"{env}-s{seed}-{m}.rundir", ignore_errors=True)
             payload["seeds"].append(rec)
             payload["summary"] = summarise(payload["seeds"], all_budgets)
             save(payload)

@@ -13,9 +13,11 @@ the network: eant2_jax's genome text, TensorNEAT's node and connection rows) and
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -26,7 +28,7 @@ import numpy as np
 
 from bench.field_settings import ENVS, TOP, budgets
 
-__all__ = ["Log", "judge", "main", "method_networks", "protocol_task", "train_eant2"]
+__all__ = ["Log", "judge", "main", "method_networks", "protocol_task", "resume_log", "train_eant2"]
 
 
 class Log:
@@ -63,10 +65,17 @@ def protocol_task(env: dict[str, Any], episodes: int):
 
 
 def train_eant2(env: dict[str, Any], *, seed: int, budget: int, log: Log, top: int = TOP,
-                population: int | None = None, max_iters: int | None = None) -> None:  # fmt: skip
+                population: int | None = None, max_iters: int | None = None,
+                rundir: str | Path | None = None) -> None:  # fmt: skip
     """The protocol's eant2_jax run: ``eant2_jax.run`` with the frozen settings; after each
     generation its population after selection (read from the run directory, the time not
-    counted) offered to the archive."""
+    counted) offered to the archive.
+
+    With ``rundir`` the run directory is kept there, and a run whose directory holds a
+    committed generation goes on from it (``eant2_jax.resume``, the same run to the bit)
+    with ``log`` as `resume_log` reopened it: a run longer than one device call finishes
+    over several. Its wall times go on from the last one logged, so the cold start of each
+    new process counts against it."""
     import jax
 
     import eant2_jax
@@ -84,25 +93,67 @@ def train_eant2(env: dict[str, Any], *, seed: int, budget: int, log: Log, top: i
     )  # fmt: skip
     log.data.update(kind="eant2", settings=config.to_dict())
     archive, candidates = Archive(top), log.data.setdefault("candidates", {})
-    with tempfile.TemporaryDirectory(prefix="eant2-field-run-") as tmp:
-        out = str(Path(tmp) / "run")
+    curve = log.data["curve"]
+    for ident, fitness in curve[-1]["archive"] if curve else []:
+        archive.offer(ident, fitness)
 
-        def on_event(e: dict) -> None:
-            if e["event"] != "generation":
-                return
-            t = time.time()
-            for ind in checkpoint.validate(out, lock=False).state.population:
-                text = str(ind.genome)
-                if archive.offer(text, -float(ind.cost)):
-                    candidates.setdefault(text, text)
-            log.paused += time.time() - t
-            log.point(evaluations=e["evaluations"], train_return=archive.best(),
-                      size=e["best_size"], archive=archive.entries())  # fmt: skip
+    def offer(out: str, generation: int, evaluations: int, size: int | None) -> None:
+        t = time.time()
+        for ind in checkpoint.validate(out, lock=False).state.population:
+            text = str(ind.genome)
+            if archive.offer(text, -float(ind.cost)):
+                candidates.setdefault(text, text)
+        log.paused += time.time() - t
+        log.point(generation=generation, evaluations=evaluations, train_return=archive.best(),
+                  size=size, archive=archive.entries())  # fmt: skip
 
-        eant2_jax.run(task, key=jax.random.key(seed), config=config, generations=10**9,
-                      out=out, callback=on_event)  # fmt: skip
+    def on_event(e: dict) -> None:
+        if e["event"] == "generation":
+            offer(out, e["generation"], e["evaluations"], e["best_size"])
+
+    with contextlib.ExitStack() as stack:
+        if rundir is None:
+            out = str(Path(stack.enter_context(tempfile.TemporaryDirectory())) / "run")
+        else:
+            out = str(rundir)
+        state = _committed(out)
+        if state is None:
+            shutil.rmtree(out, ignore_errors=True)  # nothing committed: from the start
+            eant2_jax.run(task, key=jax.random.key(seed), config=config, generations=10**9,
+                          out=out, callback=on_event)  # fmt: skip
+        else:
+            if not curve or state.generation > curve[-1]["generation"]:
+                offer(out, state.generation, state.evaluations, None)  # committed, not logged
+            eant2_jax.resume(out, task, callback=on_event)
     keep = {i for p in log.data["curve"] for i, _ in p["archive"]}
     log.data["candidates"] = {i: g for i, g in candidates.items() if i in keep}
+
+
+def _committed(out: str):
+    """The run directory's committed state, or None (no directory, nothing committed)."""
+    from eant2_jax import checkpoint
+    from eant2_jax.rundir import RunDirError
+
+    if not Path(out).is_dir():
+        return None
+    try:
+        return checkpoint.validate(out, lock=False).state
+    except RunDirError:
+        return None
+
+
+def resume_log(path: str | Path, t0: float, meta: dict) -> Log:
+    """A training run's log, reopened from ``path`` when a killed process left it: its
+    curve and candidates kept, its wall times going on from the last one logged."""
+    log = Log(path, t0, meta)
+    if Path(path).is_file():
+        before = json.loads(Path(path).read_text())
+        if before.get("curve"):
+            last = before["curve"][-1]["wall_s"]
+            log.paused = -last
+            log.data.update(curve=before["curve"], candidates=before.get("candidates", {}),
+                            resumed_at_s=[*before.get("resumed_at_s", []), last])  # fmt: skip
+    return log
 
 
 def method_networks(task, run: dict[str, Any]):
@@ -158,15 +209,16 @@ def judge(env_name: str, runs: dict[str, dict[str, Any]], budget_list: list[int]
 
 def _train(args: argparse.Namespace) -> None:
     env = ENVS[args.env]
-    log = Log(args.out, args.t0, {"method": args.method, "env": args.env, "seed": args.seed})
-    log.data["start_s"] = log.wall()
+    meta = {"method": args.method, "env": args.env, "seed": args.seed}
+    log = resume_log(args.out, args.t0, meta) if args.rundir else Log(args.out, args.t0, meta)
+    log.data.setdefault("start_s", log.wall())
     budget = env["tensorneat"]["pop_size"] * env["tensorneat"]["generations"]
     if args.generations:
         budget = (args.pop or env["tensorneat"]["pop_size"]) * args.generations
     log.data["budget"] = budget
     if args.method == "eant2":
         train_eant2(env, seed=args.seed, budget=budget, log=log, population=args.population,
-                    max_iters=args.max_iters)  # fmt: skip
+                    max_iters=args.max_iters, rundir=args.rundir)  # fmt: skip
     else:
         from bench.field_tensorneat import train
 
@@ -180,7 +232,7 @@ def _train(args: argparse.Namespace) -> None:
 
 def main(argv: list[str]) -> int:
     """``train --method M --env E --seed S --out F --t0 T [...]`` or ``judge --env E --out F
-    RUN.json ...``."""
+    --budgets B ... --runs RUN.json ...``."""
     p = argparse.ArgumentParser(prog="python -m bench.field_workers")
     p.add_argument("what", choices=("train", "judge"))
     p.add_argument("--env", choices=sorted(ENVS), required=True)
@@ -194,8 +246,9 @@ def main(argv: list[str]) -> int:
     p.add_argument("--population", type=int, default=None, help="a trial's eant2 population")
     p.add_argument("--max-iters", type=int, default=None, help="a trial's eant2 iterations")
     p.add_argument("--deadline-s", type=float, default=math.inf)
+    p.add_argument("--rundir", default=None, help="eant2: keep (and go on from) this run dir")
     p.add_argument("--budgets", type=int, nargs="+", default=None, help="reporting budgets")
-    p.add_argument("runs", nargs="*")
+    p.add_argument("--runs", nargs="+", default=[], help="the training runs' JSON files")
     args = p.parse_args(argv)
     if args.what == "train":
         _train(args)

@@ -354,3 +354,45 @@ def test_frozen_settings_are_the_protocols():
     for env in fs.ENVS.values():
         assert fs.budgets(env) == [25_000, 50_000, 100_000]
     assert json.loads(json.dumps(fs.table()))["budgets"]["hopper"] == [25_000, 50_000, 100_000]
+
+
+class _Killed(Exception):
+    pass
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_GYMNAX, reason="gymnax not installed")
+def test_eant2_training_goes_on_from_its_run_directory(tmp_path):
+    """A training run killed after a generation goes on from its run directory: the same
+    generations, archives and candidates as the run never stopped, its wall times going on."""
+    from bench.field_settings import ENVS
+    from bench.field_workers import Log, resume_log, train_eant2
+
+    sizes = {"seed": 3, "budget": 500, "population": 2, "max_iters": 3}
+    whole = Log(tmp_path / "whole.json", 0.0, {})
+    train_eant2(ENVS["cartpole"], log=whole, rundir=tmp_path / "whole.rundir", **sizes)
+
+    class Dies(Log):
+        def point(self, **point):
+            super().point(**point)
+            if len(self.data["curve"]) == 2:
+                raise _Killed
+
+    path = tmp_path / "cut.json"
+    with pytest.raises(_Killed):
+        train_eant2(ENVS["cartpole"], log=Dies(path, 0.0, {}), rundir=tmp_path / "cut.rundir",
+                    **sizes)  # fmt: skip
+    cut_at = json.loads(path.read_text())["curve"][-1]["wall_s"]
+    log = resume_log(path, __import__("time").time(), {})
+    assert log.wall() == pytest.approx(cut_at, abs=5.0)
+    train_eant2(ENVS["cartpole"], log=log, rundir=tmp_path / "cut.rundir", **sizes)
+
+    def strip(curve):  # as the files hold them (tuples become lists), wall times aside
+        return [
+            {k: v for k, v in p.items() if k != "wall_s"} for p in json.loads(json.dumps(curve))
+        ]
+
+    assert len(whole.data["curve"]) > 2
+    assert strip(log.data["curve"]) == strip(whole.data["curve"])
+    assert log.data["candidates"] == whole.data["candidates"]
+    assert log.data["resumed_at_s"] == [cut_at]

@@ -285,3 +285,30 @@ def test_brax_and_playground_inputs_use_frozen_statistics(spec, options):
     # The statistics are leaves: another set of them is the same program.
     leaves = jax.tree.leaves(frozen)
     assert any(leaf is frozen.obs_offset for leaf in leaves)
+
+
+@pytest.mark.slow
+def test_a_resumed_run_goes_on_as_an_uninterrupted_one(tmp_path, capsys, monkeypatch):
+    """From the command line: a run stopped after generation 0 and resumed (its task rebuilt
+    from config.json, the random episodes played again) records what a run of two
+    generations records, field for field (timings aside)."""
+    from eant2_jax.app.cli import main
+    from eant2_jax.records import RUN_DEPENDENT
+
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")
+    argv = ["run", "gymnax:Pendulum-v1", "--population", "2", "--max-iters", "4", "--no-prune"]
+    for option in ("normalize=random", "norm_episodes=3", "norm_seed=11", "max_steps=20"):
+        argv += ["--task-option", option]
+    whole, parts = tmp_path / "whole", tmp_path / "parts"
+    assert main([*argv, "--generations", "1", "--out", str(whole)]) == 0
+    assert main([*argv, "--generations", "0", "--out", str(parts)]) == 0
+    meta = json.loads((parts / "config.json").read_text())
+    assert meta["task_options"]["norm_seed"] == 11
+    assert main(["resume", str(parts), "--generations", "1"]) == 0
+
+    def records(out):
+        rows = [json.loads(x) for x in (out / "generations.jsonl").read_text().splitlines()]
+        return [{k: v for k, v in r.items() if k not in RUN_DEPENDENT} for r in rows]
+
+    assert len(records(whole)) == 2 and records(parts) == records(whole)
+    capsys.readouterr()

@@ -233,28 +233,14 @@ def protocol_experiment(
     rows, starts, keys, networks, dup = _plan(
         genomes, task, network_keys, init_keys, weight_scale, prune, saved
     )
-    # Versions that are the same network (the pruner removed nothing, or a control chose
-    # the pruner's genes) from the same draws and key run once: the same trajectory.
-    unique: dict[tuple, int] = {}
-    source = np.array(
-        [
-            unique.setdefault((r["network"], r["init"], str(g)), len(unique))
-            for r, g in zip(rows, starts, strict=True)
-        ]
-    )
-    first = [source.tolist().index(u) for u in range(len(unique))]
-    config = recording_config(sigma0, iters, max_condition, "float64")
+    source, first = _distinct_runs(rows, starts)
     popsize = default_popsize(max(len(g) for g in genomes))
-    batch = compile_genomes([starts[i] for i in first], task.n_inputs, pad_count=False)
-    means = np.zeros(batch.weights.shape, np.float64)
-    for u, i in enumerate(first):
-        means[u, : len(starts[i])] = starts[i].weights
-    state = engine_init(
-        jnp.stack([keys[i] for i in first]),
-        jnp.asarray(means),
-        batch.layout.gene_mask,
-        config,
-        popsize=popsize,
+    batch, state = _initial_state(
+        [starts[i] for i in first],
+        [keys[i] for i in first],
+        task,
+        recording_config(sigma0, iters, max_condition, "float64"),
+        popsize,
     )
     meta = {
         "networks": networks,
@@ -265,7 +251,7 @@ def protocol_experiment(
         "max_condition": max_condition,
         "prune": prune,
         "duplicate_gene": dup,
-        "distinct_runs": len(unique),
+        "distinct_runs": len(first),
     }
 
     def progress(done, cond, cma):
@@ -281,12 +267,9 @@ def protocol_experiment(
     start, cond = 0, None
     if resume is not None:
         start, cond = int(resume["done"]), np.asarray(resume["cond"], np.float64)
-        cma = state.cma.replace(**{k: jnp.asarray(v) for k, v in resume["cma"].items()})
-        if jax.tree.map(jnp.shape, cma) != jax.tree.map(jnp.shape, state.cma):
-            raise ValueError("the resumed run's state does not fit these runs")
-        state = state.replace(cma=cma)
+        state = _resumed(state, resume["cma"])
     else:  # a checkpoint before the first chunk: the pruning rounds are not run again
-        progress(0, np.zeros((0, len(unique))), state.cma)
+        progress(0, np.zeros((0, len(first))), state.cma)
     cma, cond = iterate(
         state,
         batch.layout,
@@ -306,6 +289,40 @@ def protocol_experiment(
             g, mean[i], C[i], hidden=task.hidden, output=task.output, n_inputs=task.n_inputs
         )
     return dict(meta, rows=out_rows)
+
+
+def _distinct_runs(rows, starts):
+    """Versions that are the same network (the pruner removed nothing, or a control chose
+    the pruner's genes) from the same draws and key run once: the same trajectory.
+    ``(source, first)``: each row's distinct run, and each distinct run's first row."""
+    unique: dict[tuple, int] = {}
+    source = np.array(
+        [
+            unique.setdefault((r["network"], r["init"], str(g)), len(unique))
+            for r, g in zip(rows, starts, strict=True)
+        ]
+    )
+    return source, [source.tolist().index(u) for u in range(len(unique))]
+
+
+def _initial_state(starts, keys, task, config, popsize):
+    """The distinct runs' batch and engine state: each run's mean at its start weights."""
+    batch = compile_genomes(starts, task.n_inputs, pad_count=False)
+    means = np.zeros(batch.weights.shape, np.float64)
+    for u, genome in enumerate(starts):
+        means[u, : len(genome)] = genome.weights
+    state = engine_init(
+        jnp.stack(keys), jnp.asarray(means), batch.layout.gene_mask, config, popsize=popsize
+    )
+    return batch, state
+
+
+def _resumed(state, saved_cma):
+    """``state`` with a checkpoint's CMA-ES arrays (refused unless their shapes fit)."""
+    cma = state.cma.replace(**{k: jnp.asarray(v) for k, v in saved_cma.items()})
+    if jax.tree.map(jnp.shape, cma) != jax.tree.map(jnp.shape, state.cma):
+        raise ValueError("the resumed run's state does not fit these runs")
+    return state.replace(cma=cma)
 
 
 def _plan(genomes, task, network_keys, init_keys, weight_scale, prune, saved=None):

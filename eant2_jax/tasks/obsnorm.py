@@ -16,7 +16,7 @@ do the same; docs/tasks-custom.md ("Observation normalisation") says where this 
   ``k = jax.random.split(key, norm_episodes)[i]``; ``env_key, act_key = split(k)``; the
   environment gets ``env_key`` as an episode of the task gets its key (`episodic.rollout`:
   ``reset_key, step_key = split(env_key)``, step ``t`` gets ``fold_in(step_key, t)``) and
-  step ``t``'s outputs are ``uniform(fold_in(act_key, t), [n_outputs], -1, 1)``.
+  step ``t``'s outputs are ``uniform(fold_in(act_key, t), [n_outputs], float32, -1, 1)``.
 * **which observations**: each step's observation before the action (the initial one
   included, the one after the last step not), until ``max_steps`` or ``done``; an
   observation with a non-finite entry is left out (as TensorNEAT leaves out NaN rows).
@@ -42,6 +42,7 @@ import numpy as np
 from .episodic import MAX_EPISODES, check_choice, check_int
 
 __all__ = [
+    "BLOCK_FLOATS",
     "NORM_EPISODES",
     "SPREAD_MIN",
     "check_normalize",
@@ -99,7 +100,7 @@ def _random_episode(task: Any, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         row = jnp.minimum(t, steps - 1)
         seen = seen.at[row].set(jnp.where(live, task.observation(obs), seen[row]))
         y = jax.random.uniform(
-            jax.random.fold_in(act_key, t), (task.n_outputs,), minval=-1.0, maxval=1.0
+            jax.random.fold_in(act_key, t), (task.n_outputs,), jnp.float32, -1.0, 1.0
         )
         obs, state, _, done = step(jax.random.fold_in(step_key, t), state, task.action(y))
         return (obs, state, seen, live & ~done, t + live.astype(jnp.int32)), None

@@ -246,4 +246,10 @@ def render(payload: dict[str, Any]) -> str:
             "Medians with percentile bootstrap 95% intervals (10,000 resamples, key 0); "
             "difference: eant2_jax minus TensorNEAT, same seed; a win or loss needs its "
             "interval to exclude 0, else a tie.\n")  # fmt: skip
+    stopped = [f"{r['env']} seed {r['seed']} {m}: {run.get('error') or run.get('deadline')}"
+               for r in payload.get("seeds", []) for m, run in r["runs"].items()
+               if run.get("error") or run.get("deadline")]  # fmt: skip
+    if stopped:
+        note += "\nRuns stopped or failed (judged on what they completed):\n\n"
+        note += "".join(f"* {line}\n" for line in stopped)
     return head + render_summary(rows) + "\n" + note + "\nFrozen settings:\n\n" + frozen

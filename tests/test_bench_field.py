@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from bench import bench_field
+from bench import bench_field, field_runner
 from bench.common import BenchInputError
 
 
@@ -59,7 +59,7 @@ def test_tensorneat_size_counts_connections_and_non_input_biases():
     nodes[:5, 0] = np.arange(5)  # 3 inputs, 1 output, 1 hidden
     conns = np.full((10, 3), np.nan)
     conns[:4] = 1.0
-    assert bench_field.tensorneat_size((nodes, conns), n_inputs=3) == 4 + 2
+    assert field_runner.tensorneat_size((nodes, conns), n_inputs=3) == 4 + 2
 
 
 @pytest.mark.parametrize(

@@ -41,6 +41,10 @@ process start) at which eant2_jax's champion first reached TensorNEAT's final te
 
 Run: ``python -m bench field --tensorneat SRC [--envs cartpole acrobot ...] [--seeds 3]``;
 ``--methods eant2`` alone needs no TensorNEAT.
+
+``--protocol``: the fair field comparison of docs/protocol.md section 3 instead (frozen
+settings, one champion rule and one evaluator for both methods, medians with intervals,
+resumable): bench/field_protocol.py.
 """
 
 from __future__ import annotations

@@ -5,18 +5,14 @@ generation and then its champions' test returns."""
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
 import sys
-import time
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from bench.bench_field import ENVS, METHODS, TENSORNEAT_POP, Env
 from bench.common import unseen_key
+from bench.field_workers import Log
 
 __all__ = ["tensorneat_size", "worker"]
 
@@ -38,27 +34,7 @@ def _task(env: Env, args: argparse.Namespace, episodes: int):
     )
 
 
-class _Log:
-    """A worker's result file, rewritten after every generation (a killed run keeps what it
-    measured): the curve, then the test returns."""
-
-    def __init__(self, path: str, t0: float, meta: dict):
-        self.path, self.t0, self.data = Path(path), t0, {**meta, "curve": [], "done": False}
-
-    def wall(self) -> float:
-        return time.time() - self.t0
-
-    def point(self, **point: Any) -> None:
-        self.data["curve"].append({"wall_s": self.wall(), **point})
-        self.write()
-
-    def write(self) -> None:
-        tmp = self.path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self.data))
-        os.replace(tmp, self.path)
-
-
-def _worker_eant2(env: Env, args: argparse.Namespace, log: _Log) -> None:
+def _worker_eant2(env: Env, args: argparse.Namespace, log: Log) -> None:
     import jax
 
     import eant2_jax
@@ -128,7 +104,7 @@ def _tensorneat_problem(env: Env, args: argparse.Namespace, repeat: int):
     )
 
 
-def _worker_tensorneat(env: Env, args: argparse.Namespace, log: _Log) -> None:
+def _worker_tensorneat(env: Env, args: argparse.Namespace, log: Log) -> None:
     from bench.field_tensorneat import algorithm as neat
     from bench.field_tensorneat import import_from
 
@@ -213,7 +189,7 @@ def worker(argv: list[str]) -> int:
     p.add_argument("--tensorneat-pop", type=int, default=TENSORNEAT_POP)
     args = p.parse_args(argv)
     env = ENVS[args.env]
-    log = _Log(args.out, args.t0, {"method": args.method, "env": args.env, "seed": args.seed,
+    log = Log(args.out, args.t0, {"method": args.method, "env": args.env, "seed": args.seed,
                                    "budget": args.budget})  # fmt: skip
     log.data["start_s"] = log.wall()  # process start to the first line of Python here
     (_worker_eant2 if args.method == "eant2" else _worker_tensorneat)(env, args, log)

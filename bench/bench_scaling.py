@@ -5,6 +5,12 @@ moves each, pruning on — is timed on 1, 2, 4, ... devices of a 1-D mesh along 
 axis. Weak scaling: S grows with the device count (``--per-device`` structures each); strong
 scaling: S is fixed (``--strong``). Each case is timed after a warm-up call that compiles.
 
+Each row also times the engine alone (`eant2_jax.exploitation.run` on a prepared batch: the
+devices' loops and the host's one read per chunk) and gives the rest of a generation, the
+host's handover (compiling the genomes, the engine start, turning the results back into
+genomes), which grows with the structures and is not split over devices: where it is a large
+share, more devices cannot help (docs/design.md, "Many devices").
+
 Run: ``python -m bench scaling [--devices 1 2 4] [--quick]``.
 """
 
@@ -22,18 +28,36 @@ from eant2_jax import distributed, tasks, tuning
 from eant2_jax import exploitation as ex
 
 
-def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float, float]:
+def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float, float, float]:
+    """``(first call s, median s per tune, median s of the engine alone)``: the engine alone
+    is `exploitation.run` on a prepared batch (the devices' loops and the host's one read
+    per chunk); the rest of a tune is the host's handover (compile the genomes, start the
+    engine, turn the results back into genomes), which the devices do not split."""
     mesh = distributed.make_mesh(devices) if devices > 1 else None
     key = jax.random.key(0)
     t0 = time.perf_counter()
     tuning.tune(genomes, task, key=key, config=config, mesh=mesh)
     first = time.perf_counter() - t0
-    times = []
-    for r in range(repeats):
+    times, engine = [], []
+    # The keys are made before the clock starts: a first fold_in compiles a small program.
+    keys = [jax.random.fold_in(key, r + 1) for r in range(repeats)]
+    for k in keys:
         t0 = time.perf_counter()
-        tuning.tune(genomes, task, key=jax.random.fold_in(key, r + 1), config=config, mesh=mesh)
+        tuning.tune(genomes, task, key=k, config=config, mesh=mesh)
         times.append(time.perf_counter() - t0)
-    return first, sorted(times)[len(times) // 2]
+    init_key, run_key = jax.random.split(key)
+    prep = tuning.prepare(
+        genomes, task, key=init_key, config=config, multiple_of=distributed.size(mesh)
+    )
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        st, _ = ex.run(
+            prep.state, prep.batch.layout, task, key=run_key, config=config,
+            tables=prep.tables, mesh=mesh,
+        )  # fmt: skip
+        jax.block_until_ready(st)
+        engine.append(time.perf_counter() - t0)
+    return first, sorted(times)[len(times) // 2], sorted(engine)[len(engine) // 2]
 
 
 def _options(p: argparse.ArgumentParser) -> None:
@@ -63,7 +87,7 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
         for d in counts:
             s = args.per_device * d if kind == "weak" else args.strong
             genomes = random_population(1, s, args.genes)
-            first, t = time_case(task, genomes, config, d, args.repeats)
+            first, t, engine = time_case(task, genomes, config, d, args.repeats)
             base = base or (t, s)
             # Speed-up in structures processed per second relative to 1 device.
             speedup = (s / t) / (base[1] / base[0])
@@ -74,6 +98,8 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
                     "structures": s,
                     "first_s": first,
                     "seconds": t,
+                    "engine_s": engine,
+                    "host_s": t - engine,
                     "structures_per_s": s / t,
                     "speedup": speedup,
                 }
@@ -87,6 +113,8 @@ COLUMNS = [
     Column("structures", "structures"),
     Column("first_s", "first call s", "{:.1f}"),
     Column("seconds", "s / generation", "{:.3f}"),
+    Column("engine_s", "engine s", "{:.3f}"),
+    Column("host_s", "handover s", "{:.3f}"),
     Column("structures_per_s", "structures/s", "{:.1f}"),
     Column("speedup", "speed-up", "{:.2f}x"),
 ]

@@ -1,6 +1,6 @@
 """The field protocol (docs/protocol.md section 3; bench/field_*.py): TensorNEAT's networks
-in the library's form against a plain NumPy reference of TensorNEAT's forward pass (and
-against TensorNEAT itself where its source is at hand), the champion rule and the interval
+in the library's form against a plain NumPy reference of TensorNEAT's forward pass, the
+champion rule and the interval
 and verdict rules against plain references on fresh random inputs, the test episodes'
 initial states compared between the methods (a mismatch refused), and ``python -m bench
 field --protocol`` end to end on CartPole with a stand-in second method that writes
@@ -12,7 +12,6 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
-import os
 import sys
 from pathlib import Path
 
@@ -25,7 +24,6 @@ from bench.common import BenchInputError
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 HAS_GYMNAX = importlib.util.find_spec("gymnax") is not None
-TN_SRC = Path(os.environ.get("TENSORNEAT_SRC", Path(__file__).resolve().parents[1] / ".tneat/src"))
 
 
 # ------------------------------------------------------------ TensorNEAT genomes, by hand
@@ -108,40 +106,6 @@ def test_tensorneat_network_matches_a_numpy_reference(activation):
     assert np.isnan(want[0, :, -1]).all()  # the dead output of genome 0
     # float32 evaluation of float64 weights: a few ulps of the largest term.
     np.testing.assert_allclose(got[~np.isnan(got)], want[~np.isnan(want)], rtol=1e-4, atol=1e-4)
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(not (TN_SRC / "tensorneat").is_dir(), reason="TensorNEAT's source absent")
-def test_tensorneat_network_matches_tensorneat_itself():
-    """Against TensorNEAT's own forward pass on random genomes in its padded format (its
-    source fetched, as the bench uses it: TENSORNEAT_SRC or .tneat/src)."""
-    from bench.field_tensorneat import algorithm, import_from
-
-    import_from(TN_SRC)
-    from tensorneat.common import State
-
-    rng = np.random.default_rng()
-    n_in, n_out = 4, 2
-    algo = algorithm(n_in, n_out, pop=10, output=None, max_nodes=20, max_conns=60)
-    genome = algo.genome
-    state = genome.setup(State(randkey=jax.random.key(0)))
-    for _ in range(4):
-        nodes, conns = random_tn_genome(rng, n_in, n_out, int(rng.integers(1, 6)))
-        pn, pc = np.full((20, nodes.shape[1]), np.nan), np.full((60, 3), np.nan)
-        nodes, conns = nodes[~np.isnan(nodes[:, 0])], conns[~np.isnan(conns[:, 0])]
-        pn[: len(nodes)], pc[: len(conns)] = nodes, conns
-        t = genome.transform(state, jax.numpy.asarray(pn), jax.numpy.asarray(pc))
-        net = field_tnet.tensorneat_net(nodes, conns, n_inputs=n_in, n_outputs=n_out,
-                                        activations=["tanh"], in_offset=np.zeros(n_in),
-                                        in_scale=np.ones(n_in))  # fmt: skip
-        one = jax.tree.map(lambda a: a[0], field_tnet.stack([net]))
-        from eant2_jax.kernels import network as kn
-
-        for x in rng.normal(size=(3, n_in)):
-            want = np.asarray(genome.forward(state, t, jax.numpy.asarray(x, jax.numpy.float32)))
-            got = np.asarray(kn.step(one, jax.numpy.asarray(x, jax.numpy.float32),
-                                     jax.numpy.zeros_like(one.bias))[0])  # fmt: skip
-            np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
 
 
 # ------------------------------------------------------------------- the champion rule

@@ -193,10 +193,6 @@ class PipelineTask(EpisodicTask):
     def env(self) -> Any:
         raise NotImplementedError
 
-    def observation(self, obs: Any) -> jax.Array:
-        """The observation vector ``[n_inputs]`` float32 (before normalisation)."""
-        return jnp.ravel(obs).astype(jnp.float32)
-
     def inputs(self, obs: Any) -> jax.Array:
         """Network inputs ``[n_inputs]`` of one observation: normalised where
         ``normalize="random"`` froze statistics, else the observation as it is."""

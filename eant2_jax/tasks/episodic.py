@@ -42,6 +42,7 @@ __all__ = [
     "EpisodicTask",
     "check_choice",
     "check_episode_options",
+    "chunked_steps",
     "check_int",
     "check_like",
     "returns",
@@ -202,14 +203,22 @@ def rollout(
         alive = live & ~done & jnp.isfinite(ret)
         return (obs, state, h, ret, alive, t + live.astype(jnp.int32)), None
 
-    def block(carry):
-        return jax.lax.scan(one, carry, None, length=min(chunk, max_steps))[0]
-
     def going(carry):
         return carry[4] & (carry[5] < max_steps)
 
-    _, _, _, ret, _, t = jax.lax.while_loop(going, block, carry0)
+    _, _, _, ret, _, t = chunked_steps(one, going, carry0, chunk=chunk, max_steps=max_steps)
     return ret, t
+
+
+def chunked_steps(one: Callable, going: Callable, carry0: Any, *, chunk: int, max_steps: int):
+    """An episode's steps in blocks: ``chunk`` steps of ``one(carry, None) -> (carry, None)``
+    (a `jax.lax.scan`) while ``going(carry)``; the batch's episodes that ended ride along in
+    the block, and a batch stops once none goes on. Returns the last carry."""
+
+    def block(carry):
+        return jax.lax.scan(one, carry, None, length=min(chunk, max_steps))[0]
+
+    return jax.lax.while_loop(going, block, carry0)
 
 
 @pytree.dataclass(kw_only=True)
@@ -239,8 +248,9 @@ class EpisodicTask:
         raise NotImplementedError
 
     def observation(self, obs: Any) -> jax.Array:
-        """The observation vector ``[n_inputs]`` float32, before any normalisation."""
-        raise NotImplementedError
+        """The observation vector ``[n_inputs]`` float32, before any normalisation (an
+        array observation flattened; an adapter with another kind overrides it)."""
+        return jnp.ravel(obs).astype(jnp.float32)
 
     def inputs(self, obs: Any) -> jax.Array:
         """Network inputs ``[n_inputs]`` of one observation."""

@@ -122,10 +122,6 @@ class GymnaxTask(EpisodicTask):
     def env(self):
         return _environment(self.env_name)[0]
 
-    def observation(self, obs: jax.Array) -> jax.Array:
-        """The observation flattened to ``[n_inputs]`` float32 (before normalisation)."""
-        return jnp.ravel(obs).astype(jnp.float32)
-
     def inputs(self, obs: jax.Array) -> jax.Array:
         """Network inputs ``[n_inputs]`` of one observation."""
         return (self.observation(obs) - self.obs_offset) * self.obs_scale

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .episodic import MAX_EPISODES, check_choice, check_int
+from .episodic import MAX_EPISODES, check_choice, check_int, chunked_steps
 
 __all__ = [
     "BLOCK_FLOATS",
@@ -105,13 +105,10 @@ def _random_episode(task: Any, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         obs, state, _, done = step(jax.random.fold_in(step_key, t), state, task.action(y))
         return (obs, state, seen, live & ~done, t + live.astype(jnp.int32)), None
 
-    def block(carry):
-        return jax.lax.scan(one, carry, None, length=min(task.chunk, steps))[0]
-
     def going(carry):
         return carry[3] & (carry[4] < steps)
 
-    _, _, seen, _, t = jax.lax.while_loop(going, block, carry0)
+    _, _, seen, _, t = chunked_steps(one, going, carry0, chunk=task.chunk, max_steps=steps)
     return seen, t
 
 

@@ -425,6 +425,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
         harness.log(f"wrote {figure(argv[1], argv[2:])}")
         return {}
+    if "--protocol" in argv:  # before JAX starts: the children need the device's memory
+        from bench.field_protocol import hold_no_device_memory
+
+        hold_no_device_memory()
     return SUITE.main(argv)
 
 

@@ -34,7 +34,16 @@ from bench import harness
 from bench.common import BenchInputError, default_out, environment
 from bench.field_settings import ENVS, SEEDS, budgets, table
 
-__all__ = ["METHODS", "add_options", "prepare", "render", "run", "trial_overrides"]
+__all__ = [
+    "METHODS",
+    "add_options",
+    "hold_no_device_memory",
+    "prepare",
+    "protocol_child_env",
+    "render",
+    "run",
+    "trial_overrides",
+]
 
 TRIAL = ("budget", "population", "max_iters", "tensorneat_pop")
 
@@ -132,8 +141,29 @@ def _read_checkpoint(path: Path, settings: dict) -> list[dict]:
     return lines[1:]
 
 
-def _child_env() -> dict[str, str]:
+# The orchestrating process's own JAX (its bootstrap intervals) must not hold the device's
+# memory while the training and judging processes run: with JAX's default preallocation it
+# would take 75% of the GPU at its first array, and every later child would run out of memory.
+_PREALLOCATE = "XLA_PYTHON_CLIENT_PREALLOCATE"
+CHILD_PREALLOCATE: list[str | None] = []  # the caller's own setting, for the children
+
+
+def hold_no_device_memory() -> None:
+    """Keep this process from preallocating device memory (call before JAX starts its
+    backends); the child processes get the caller's setting back (`protocol_child_env`)."""
+    if not CHILD_PREALLOCATE:
+        CHILD_PREALLOCATE.append(os.environ.get(_PREALLOCATE))
+    os.environ[_PREALLOCATE] = "false"
+
+
+def protocol_child_env() -> dict[str, str]:
+    """A training or judging process's environment: cold (no compilation cache), the
+    caller's device-memory setting, this checkout last on ``PYTHONPATH``."""
     environ = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    if CHILD_PREALLOCATE:
+        environ.pop(_PREALLOCATE, None)
+        if CHILD_PREALLOCATE[0] is not None:
+            environ[_PREALLOCATE] = CHILD_PREALLOCATE[0]
     environ["EANT2_CACHE_DIR"] = ""  # cold: no persistent compilation cache on either side
     # The checkout goes last, for `bench` alone (as bench_field's workers).
     environ["PYTHONPATH"] = os.pathsep.join(
@@ -145,7 +175,7 @@ def _child_env() -> dict[str, str]:
 def _call(argv: list[str], timeout: float) -> str:
     """Run a child process; its last stderr line if it failed, else ''."""
     try:
-        proc = subprocess.run(argv, capture_output=True, text=True, env=_child_env(),
+        proc = subprocess.run(argv, capture_output=True, text=True, env=protocol_child_env(),
                               timeout=timeout)  # fmt: skip
     except subprocess.TimeoutExpired:
         return f"killed after {timeout:.0f} s"

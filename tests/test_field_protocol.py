@@ -12,6 +12,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -360,3 +361,18 @@ def test_eant2_training_goes_on_from_its_run_directory(tmp_path):
     assert strip(log.data["curve"]) == strip(whole.data["curve"])
     assert log.data["candidates"] == whole.data["candidates"]
     assert log.data["resumed_at_s"] == [cut_at]
+
+
+@pytest.mark.parametrize("callers", [None, "true"])
+def test_the_orchestrator_holds_no_device_memory(monkeypatch, callers):
+    """The protocol's own process does not preallocate device memory (its children would run
+    out); the children get the caller's setting back."""
+    monkeypatch.setattr(field_protocol, "CHILD_PREALLOCATE", [])
+    if callers is None:
+        monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)
+    else:
+        monkeypatch.setenv("XLA_PYTHON_CLIENT_PREALLOCATE", callers)
+    field_protocol.hold_no_device_memory()
+    field_protocol.hold_no_device_memory()  # twice: the caller's setting is kept, not "false"
+    assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
+    assert field_protocol.protocol_child_env().get("XLA_PYTHON_CLIENT_PREALLOCATE") == callers

@@ -1,10 +1,10 @@
 """The field protocol (docs/protocol.md section 3; bench/field_*.py): TensorNEAT's networks
 in the library's form against a plain NumPy reference of TensorNEAT's forward pass, the
-champion rule and the interval
-and verdict rules against plain references on fresh random inputs, the test episodes'
-initial states compared between the methods (a mismatch refused), and ``python -m bench
-field --protocol`` end to end on CartPole with a stand-in second method that writes
-TensorNEAT-format genomes (TensorNEAT is not installed in CI), resumed from its checkpoint.
+champion rule and the interval and verdict rules against plain references on fresh random
+inputs, the test episodes' initial states compared between the methods (a mismatch refused),
+and ``python -m bench field --protocol`` end to end on CartPole with a stand-in second method
+that writes TensorNEAT-format genomes (TensorNEAT is not installed in CI), resumed from its
+checkpoint.
 """
 
 from __future__ import annotations

@@ -42,9 +42,9 @@ __all__ = [
     "EpisodicTask",
     "check_choice",
     "check_episode_options",
-    "chunked_steps",
     "check_int",
     "check_like",
+    "chunked_steps",
     "returns",
     "rollout",
 ]

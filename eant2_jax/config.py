@@ -436,7 +436,8 @@ class EANT2Config(Configured):
         True,
         "With no ``target_cost`` given, stop once the best cost reaches the task's solved "
         "level, where the task defines one (XOR, dpv, gymnax and brax environments with a "
-        "solved return: docs/tasks.md). False runs every generation (``--no-solved-stop``).",
+        "solved return: docs/tasks.md); a run with a ``solution_test`` is solved by its test "
+        "instead. False runs every generation (``--no-solved-stop``).",
         added="0.1.0 (issue 43)",
         old=False,
     )

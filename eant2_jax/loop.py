@@ -191,7 +191,8 @@ def run(
     if generations < 0:
         raise ValueError(f"generations must be >= 0, got {generations}")
     check_task(task)  # before anything is written
-    config = strategy.resolved(config, task)  # the target it runs to, recorded
+    # the target it runs to, recorded; with a solution test, the test decides
+    config = strategy.resolved(config, task, tested=solution_test is not None)
     meta = run_meta(task, meta)
     key = key_from_data(key_data(as_key(key)))
     mesh = distributed.make_mesh(config.devices)  # every check before anything is created
@@ -252,7 +253,12 @@ def resume(
         task = task_for(rundir.path, v.committed.config, task)
         check_task(task)
         check_fits(rundir.path, v, task)
-        config, total, meta = resumed(v, generations, changes, lambda c: strategy.resolved(c, task))
+        config, total, meta = resumed(
+            v,
+            generations,
+            changes,
+            lambda c: strategy.resolved(c, task, tested=solution_test is not None),
+        )
         mesh = distributed.make_mesh(config.devices)
         rewind(rundir, v, task)
         if meta is not None:

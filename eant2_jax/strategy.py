@@ -383,13 +383,18 @@ def tell(
     return Told(state, record, prune, solution)
 
 
-def resolved(config: EANT2Config, task: Task) -> EANT2Config:
+def resolved(config: EANT2Config, task: Task, *, tested: bool = False) -> EANT2Config:
     """The configuration a run of ``task`` runs with: with no ``target_cost`` and
     ``stop_when_solved`` on, ``target_cost`` becomes the task's solved level (its
     ``solved_cost``, where it defines one). The one place the run's target is decided: a
     run directory records the configuration this returns, so a resume and a report read
-    the target the run used. Resolving twice changes nothing."""
-    if config.target_cost is not None or not config.stop_when_solved:
+    the target the run used. Resolving twice changes nothing.
+
+    ``tested``: the run has a ``solution_test`` (`eant2_jax.run`). Such a run is solved
+    when its test passes, not when its cost reaches the solved level: a training cost at
+    that level whose network fails the test must not end it (docs/pole.md, "Under the
+    published rule"), so only a ``target_cost`` given explicitly stops it."""
+    if config.target_cost is not None or not config.stop_when_solved or tested:
         return config
     level = solved_cost(task)
     return config if level is None else dataclasses.replace(config, target_cost=level)

@@ -108,6 +108,9 @@ def test_the_target_resolves_once_to_the_tasks_level_unless_told_otherwise():
     assert strategy.resolved(EANT2Config(target_cost=0.1), xor).target_cost == 0.1
     assert strategy.resolved(EANT2Config(stop_when_solved=False), xor).target_cost is None
     assert strategy.resolved(EANT2Config(), tasks.make("dpnv")).target_cost is None
+    # A run with a solution test is solved by the test, not by its cost's level.
+    assert strategy.resolved(EANT2Config(), xor, tested=True).target_cost is None
+    assert strategy.resolved(EANT2Config(target_cost=0.1), xor, tested=True).target_cost == 0.1
     # A run directory from before the option ran every generation: it reads that way.
     d = EANT2Config().to_dict()
     old = {k: v for k, v in d.items() if k != "stop_when_solved"}
@@ -145,6 +148,27 @@ def test_eant2_run_xor_stops_at_the_solved_generation(tmp_path, capsys, monkeypa
     assert _cli(argv, capsys, monkeypatch)[0] == 0
     assert len(_records(off)) == 3
     assert json.loads((off / "config.json").read_text())["config"]["target_cost"] is None
+
+
+def test_a_failed_solution_test_keeps_a_run_going_past_the_solved_level(tmp_path):
+    """dpv's seeds 5003 and 5014 (docs/pole.md): a training cost at the task's solved level
+    whose network fails the solution test does not end the run; the test decides."""
+    config = EANT2Config(population=6, exploit=ExploitConfig(max_iters=100))
+    tested: list[float] = []
+    result = eant2_jax.run(
+        tasks.make("xor"),
+        key=jax.random.key(0),
+        config=config,
+        generations=2,
+        out=str(tmp_path / "run"),
+        solution_test=lambda g: tested.append(1.0) is not None,  # never passes
+    )
+    recs = _records(tmp_path / "run")
+    assert len(recs) == 3 and result.solution is None
+    assert recs[1].best_cost <= 0.04  # the level the run alone stops at (the CLI test above)
+    assert tested  # the test ran
+    config_json = json.loads((tmp_path / "run" / "config.json").read_text())["config"]
+    assert config_json["target_cost"] is None and config_json["stop_when_solved"] is True
 
 
 # -------------------------------------------------------------------------- progress numbers

@@ -167,8 +167,10 @@ def method_networks(task, run: dict[str, Any]):
     from bench.field_tnet import input_affine, stack, tensorneat_net
 
     n_in = task.n_inputs
-    lib_off = np.asarray(getattr(task, "obs_offset", np.zeros(n_in)))
-    lib_scale = np.asarray(getattr(task, "obs_scale", np.ones(n_in)))
+    # A task that feeds raw observations has no affine (brax's obs_offset is None).
+    lib_off, lib_scale = getattr(task, "obs_offset", None), getattr(task, "obs_scale", None)
+    lib_off = np.zeros(n_in) if lib_off is None else np.asarray(lib_off)
+    lib_scale = np.ones(n_in) if lib_scale is None else np.asarray(lib_scale)
     off, scale = input_affine(lib_off, lib_scale, run.get("obs_mean"), run.get("obs_std"))
     nets = [tensorneat_net(np.asarray(run["candidates"][i]["nodes"]).reshape(-1, 4),
                            np.asarray(run["candidates"][i]["conns"]).reshape(-1, 3),

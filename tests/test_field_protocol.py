@@ -14,13 +14,21 @@ import json
 import math
 import os
 import sys
+import types
 from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 
-from bench import bench_field, field_champions, field_protocol, field_stats, field_tnet
+from bench import (
+    bench_field,
+    field_champions,
+    field_protocol,
+    field_stats,
+    field_tnet,
+    field_workers,
+)
 from bench.common import BenchInputError
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -106,6 +114,30 @@ def test_tensorneat_network_matches_a_numpy_reference(activation):
     assert np.array_equal(np.isnan(got), np.isnan(want))
     assert np.isnan(want[0, :, -1]).all()  # the dead output of genome 0
     # float32 evaluation of float64 weights: a few ulps of the largest term.
+    np.testing.assert_allclose(got[~np.isnan(got)], want[~np.isnan(want)], rtol=1e-4, atol=1e-4)
+
+
+def test_tensorneat_candidates_on_a_task_of_raw_observations():
+    """A brax task keeps raw observations (``obs_offset`` None): TensorNEAT's candidates are
+    judged on the same raw inputs (hopper's first judging failed on the None)."""
+    from eant2_jax.kernels import network as kn
+
+    rng = np.random.default_rng()
+    n_in, n_out = 4, 3
+    genomes = [random_tn_genome(rng, n_in, n_out, int(rng.integers(0, 7))) for _ in range(4)]
+    run = {"kind": "tensorneat", "activations": ["tanh"],
+           "candidates": {f"c{i}": {"nodes": n.tolist(), "conns": c.tolist()}
+                          for i, (n, c) in enumerate(genomes)}}  # fmt: skip
+    task = types.SimpleNamespace(n_inputs=n_in, n_outputs=n_out, obs_offset=None, obs_scale=None)
+    ids, batch = field_workers.method_networks(task, run)
+    assert ids == [f"c{i}" for i in range(4)]
+    obs = rng.normal(size=(5, n_in)) * 2
+    step = jax.jit(jax.vmap(jax.vmap(lambda net, x: kn.step(net, x, jax.numpy.zeros_like(
+        net.bias))[0], in_axes=(None, 0)), in_axes=(0, None)))  # fmt: skip
+    got = np.asarray(step(batch, jax.numpy.asarray(obs, jax.numpy.float32)))
+    want = np.array([[tn_reference(n, c, x, n_in, n_out, ["tanh"]) for x in obs]
+                     for n, c in genomes])  # fmt: skip
+    assert np.array_equal(np.isnan(got), np.isnan(want))
     np.testing.assert_allclose(got[~np.isnan(got)], want[~np.isnan(want)], rtol=1e-4, atol=1e-4)
 
 

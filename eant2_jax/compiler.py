@@ -182,6 +182,30 @@ def compile_genomes(
       The `CompiledBatch`.
     """
     genomes = list(genomes)
+    n_out = _check_genomes(genomes, n_inputs)
+    bucket = _check_bucket(genomes, bucket, n_inputs, n_out)
+    count = len(genomes)
+    rows = batch_rows(count, min_rows=min_rows, pad_count=pad_count, multiple_of=multiple_of)
+    tables = _tables(genomes, rows, bucket, n_inputs, n_out)
+    slot, gene_mask, is_root, neuron_mask, depth, weights = tables
+    # device_put, not jnp.asarray: the latter compiles a small program per new shape (a
+    # cold-start cost on a GPU); the arrays already have their final dtypes.
+    layout = Layout(
+        slot=jax.device_put(slot),
+        gene_mask=jax.device_put(gene_mask),
+        is_root=jax.device_put(is_root),
+        neuron_mask=jax.device_put(neuron_mask),
+        depth=jax.device_put(depth),
+        n_inputs=int(n_inputs),
+        n_outputs=int(n_out),
+        sweeps=bucket.sweeps,
+    )
+    return CompiledBatch(layout=layout, weights=jax.device_put(weights), count=count, bucket=bucket)
+
+
+def _check_genomes(genomes: list[Genome], n_inputs: int) -> int:
+    """The genomes' common number of outputs, after checking that they can share a batch
+    (same outputs, inputs within ``n_inputs``, weights that fit in float32)."""
     if not genomes:
         raise ValueError("compile_genomes: no genomes")
     n_out = genomes[0].n_outputs
@@ -201,20 +225,33 @@ def compile_genomes(
             raise ValueError(
                 f"genome {i}: weight {g.weights[j]!r} of gene {j} does not fit in float32"
             )
+    return n_out
+
+
+def _check_bucket(
+    genomes: list[Genome], bucket: Bucket | None, n_inputs: int, n_out: int
+) -> Bucket:
+    """The bucket to compile into: ``bucket`` if it holds the genomes (default the smallest
+    that does), and within the int32 slot table."""
     need = bucket_for(genomes)
     if bucket is None:
         bucket = need
     elif bucket.neurons < need.neurons or bucket.genes < need.genes or bucket.sweeps < need.sweeps:
         raise ValueError(f"bucket {bucket} is too small for these genomes (need {need})")
-    h, p = bucket.neurons, bucket.genes
+    h = bucket.neurons
     if buffer_size(h, n_inputs, n_out) > MAX_BUFFER:
         raise ValueError(
             f"network too large to compile: {h} neuron slots (padded) and {n_inputs} inputs "
             f"need {buffer_size(h, n_inputs, n_out):,} parameter entries, more than the "
             f"int32 slot table holds ({MAX_BUFFER:,}; about 24,576 neurons with few inputs)"
         )
-    count = len(genomes)
-    rows = batch_rows(count, min_rows=min_rows, pad_count=pad_count, multiple_of=multiple_of)
+    return bucket
+
+
+def _tables(genomes: list[Genome], rows: int, bucket: Bucket, n_inputs: int, n_out: int) -> tuple:
+    """The host arrays of a batch of ``rows`` (`Layout`'s and the weights), padding rows
+    empty: ``(slot, gene_mask, is_root, neuron_mask, depth, weights)``."""
+    h, p = bucket.neurons, bucket.genes
     trash = buffer_size(h, n_inputs, n_out) - 1
     slot = np.full((rows, p), trash, dtype=np.int32)
     gene_mask = np.zeros((rows, p), dtype=bool)
@@ -230,19 +267,7 @@ def compile_genomes(
         is_root[r], neuron_mask[r] = root, real
         depth[r] = g.depth()
         weights[r, :n] = g.weights
-    # device_put, not jnp.asarray: the latter compiles a small program per new shape (a
-    # cold-start cost on a GPU); the arrays already have their final dtypes.
-    layout = Layout(
-        slot=jax.device_put(slot),
-        gene_mask=jax.device_put(gene_mask),
-        is_root=jax.device_put(is_root),
-        neuron_mask=jax.device_put(neuron_mask),
-        depth=jax.device_put(depth),
-        n_inputs=int(n_inputs),
-        n_outputs=int(n_out),
-        sweeps=bucket.sweeps,
-    )
-    return CompiledBatch(layout=layout, weights=jax.device_put(weights), count=count, bucket=bucket)
+    return slot, gene_mask, is_root, neuron_mask, depth, weights
 
 
 def network_batch(layout: Layout, weights: jax.Array) -> Network:

@@ -173,18 +173,7 @@ def default_params(
         mu_rate = (mu_eff + 1 / mu_eff - 2) / ((n_sq + 2) ** 2 + alpha_cov * mu_eff / 2)
         c_mu = jnp.minimum(1 - c_1 - 1e-8, scale * alpha_cov * mu_rate)
 
-    min_alpha = jnp.minimum(
-        1 + c_1 / c_mu,  # Eq. (50)
-        1 + (2 * mu_eff_minus) / (mu_eff + 2),  # Eq. (51)
-    )
-    min_alpha = jnp.minimum(min_alpha, (1 - c_1 - c_mu) / (n * c_mu))  # Eq. (52)
-    positive_sum = jnp.sum(weights_prime * (weights_prime > 0))
-    negative_sum = jnp.sum(jnp.abs(weights_prime * (weights_prime < 0)))
-    weights = jnp.where(
-        weights_prime >= 0,
-        weights_prime / positive_sum,
-        min_alpha * weights_prime / negative_sum,
-    )  # Eq. (53)
+    weights = _active_weights(weights_prime, n, mu_eff, mu_eff_minus, c_1, c_mu)
 
     c_sigma = (mu_eff + 2) / (n + mu_eff + 5)  # Eq. (55)
     d_sigma = 1 + 2 * jnp.maximum(0, jnp.sqrt((mu_eff - 1) / (n + 1)) - 1) + c_sigma  # Eq. (55)
@@ -209,6 +198,23 @@ def default_params(
         max_condition=scalar(max_condition),
         diagonal=bool(diagonal),
     )
+
+
+def _active_weights(weights_prime, n, mu_eff, mu_eff_minus, c_1, c_mu) -> jax.Array:
+    """Rank weights, Eq. (53): the positive ones sum to 1, the negative ones to minus the
+    bound of Eq. (50)-(52)."""
+    min_alpha = jnp.minimum(
+        1 + c_1 / c_mu,  # Eq. (50)
+        1 + (2 * mu_eff_minus) / (mu_eff + 2),  # Eq. (51)
+    )
+    min_alpha = jnp.minimum(min_alpha, (1 - c_1 - c_mu) / (n * c_mu))  # Eq. (52)
+    positive_sum = jnp.sum(weights_prime * (weights_prime > 0))
+    negative_sum = jnp.sum(jnp.abs(weights_prime * (weights_prime < 0)))
+    return jnp.where(
+        weights_prime >= 0,
+        weights_prime / positive_sum,
+        min_alpha * weights_prime / negative_sum,
+    )  # Eq. (53)
 
 
 def _cast_params(params: Params, dtype: DTypeLike) -> Params:
@@ -427,13 +433,25 @@ def tell(
     h_sigma = (
         norm_p_sigma / jnp.sqrt(1 - (1 - p.c_sigma) ** (2 * (g + 1)))
         < (1.4 + 2 / (p.n + 1)) * p.chi_n
-    )
-    h_sigma = h_sigma.astype(dtype)
+    ).astype(dtype)
     p_c = (1 - p.c_c) * state.p_c + h_sigma * jnp.sqrt(
         p.c_c * (2 - p.c_c) * p.mu_eff
     ) * y_w  # Eq. (45)
     delta_h_sigma = (1 - h_sigma) * p.c_c * (2 - p.c_c)
 
+    C = _covariance(state, p, w, y_k, inv_d, p_c, delta_h_sigma)
+    if decompose:
+        decomposed = spectrum(C, mask, p)
+    else:
+        # What `eigen` does to C before decomposing it, so that `decompose` later gives
+        # exactly what decompose=True would have given now (a diagonal C is already).
+        C = C if p.diagonal else _symmetrised(C, mask)
+        decomposed = (C, state.B, state.D, state.valid_axes, state.cond, state.cond_bounded)
+    return _told(state, x, cost, finite, mean, sigma, p_sigma, p_c, decomposed)
+
+
+def _covariance(state, p, w, y_k, inv_d, p_c, delta_h_sigma) -> jax.Array:
+    """`tell`'s new ``C``: the rank-one and the active rank-mu update, Eq. (46)-(47)."""
     # Active rank-mu: negative weights rescaled by n / ||C^{-1/2} y_k||^2, Eq. (46).
     # ||C^{-1/2} y||^2 = ||diag(1/D) B^T y||^2 as B is orthonormal on the valid axes.
     y_axes = y_k if p.diagonal else y_k @ state.B
@@ -442,34 +460,19 @@ def tell(
     if p.diagonal:  # Eq. (47) on the diagonal alone
         decay = 1 + p.c_1 * delta_h_sigma - p.c_1 - p.c_mu * jnp.sum(p.weights)
         c = sepcmaes.covariance(jnp.diagonal(state.C), decay, p.c_1, p.c_mu, p_c, w_o, y_k)
-        C = jnp.diag(jnp.where(mask, c, 0))
-    else:
-        rank_mu = (w_o[:, None] * y_k).T @ y_k
-        C = (
-            (1 + p.c_1 * delta_h_sigma - p.c_1 - p.c_mu * jnp.sum(p.weights)) * state.C
-            + p.c_1 * jnp.outer(p_c, p_c)
-            + p.c_mu * rank_mu
-        )  # Eq. (47)
-    if decompose:
-        C, B, D, valid_axes, cond, bounded = spectrum(C, mask, p)
-    else:
-        # What `eigen` does to C before decomposing it, so that `decompose` later gives
-        # exactly what decompose=True would have given now (a diagonal C is already).
-        C = C if p.diagonal else _symmetrised(C, mask)
-        B, D, valid_axes = state.B, state.D, state.valid_axes
-        cond, bounded = state.cond, state.cond_bounded
-
-    return _told(
-        state, x, cost, finite, mean, sigma, p_sigma, p_c, (C, B, D, valid_axes, cond, bounded)
-    )
+        return jnp.diag(jnp.where(state.mask, c, 0))
+    rank_mu = (w_o[:, None] * y_k).T @ y_k
+    return (
+        (1 + p.c_1 * delta_h_sigma - p.c_1 - p.c_mu * jnp.sum(p.weights)) * state.C
+        + p.c_1 * jnp.outer(p_c, p_c)
+        + p.c_mu * rank_mu
+    )  # Eq. (47)
 
 
 def _told(state, x, cost, finite, mean, sigma, p_sigma, p_c, decomposed) -> State:
     """`tell`'s new state: the updated distribution, the best so far over finite costs; the
     distribution unchanged if no cost is finite."""
     C, B, D, valid_axes, cond, bounded = decomposed
-    mask = state.mask
-    # Best-so-far over finite costs.
     masked_cost = jnp.where(finite, cost, jnp.inf)
     i_best = jnp.argmin(masked_cost)
     improved = masked_cost[i_best] < state.best_cost
@@ -485,7 +488,7 @@ def _told(state, x, cost, finite, mean, sigma, p_sigma, p_c, decomposed) -> Stat
         valid_axes=valid_axes,
         cond=cond,
         cond_bounded=bounded,
-        best_x=jnp.where(improved, jnp.where(mask, x[i_best], 0), state.best_x),
+        best_x=jnp.where(improved, jnp.where(state.mask, x[i_best], 0), state.best_x),
         best_cost=jnp.where(improved, masked_cost[i_best], state.best_cost),
     )
     new = jax.tree.map(lambda a, b: jnp.where(jnp.any(finite), a, b), updated, state)

@@ -205,37 +205,45 @@ def mutate(
         target = free[int(rng.integers(len(free)))]
         return _insert_child(genome, target, [Gene(GeneKind.BIAS, -1, 0.0)])
     if operator == "add_connection":
-        target = neurons[int(rng.integers(len(neurons)))]
-        # A connection the target already has would be an exact duplicate: two weights on one
-        # edge, a flat direction of the cost that adds nothing. Each kind offers only new
-        # sources; a forward jumper may read any neuron to the right of the target (already
-        # evaluated at this step, so no cycle), a recurrent jumper any neuron.
-        have = {(g.kind, g.ref) for g in _children(genome, target)}
-        ids = [genome[i].ref for i in neurons]
-        sources = {
-            GeneKind.INPUT: [j for j in range(n_inputs) if (GeneKind.INPUT, j) not in have],
-            GeneKind.BIAS: [-1] if (GeneKind.BIAS, -1) not in have else [],
-            GeneKind.RECURRENT: [r for r in ids if (GeneKind.RECURRENT, r) not in have],
-            GeneKind.FORWARD: [
-                genome[i].ref
-                for i in neurons
-                if i > target
-                and (GeneKind.FORWARD, genome[i].ref) not in have
-                and (GeneKind.NEURON, genome[i].ref) not in have
-            ],
-        }
-        kinds = [
-            k
-            for k in (GeneKind.INPUT, GeneKind.BIAS, GeneKind.RECURRENT, GeneKind.FORWARD)
-            if sources[k]
-        ]
-        if not kinds:
-            return None
-        kind = kinds[int(rng.integers(len(kinds)))]
-        options = sources[kind]
-        gene = Gene(kind, options[int(rng.integers(len(options)))], 0.0)
-        return _insert_child(genome, target, [gene])
+        return _add_connection(rng, genome, neurons, n_inputs)
     raise ValueError(f"unknown operator {operator!r}; known: {', '.join(OPERATORS)}")
+
+
+def _add_connection(
+    rng: np.random.Generator, genome: Genome, neurons: list[int], n_inputs: int
+) -> Genome | None:
+    """`mutate`'s ``add_connection``: a new input, bias or jumper on a random neuron (None if
+    that neuron already has every connection it could get)."""
+    target = neurons[int(rng.integers(len(neurons)))]
+    # A connection the target already has would be an exact duplicate: two weights on one
+    # edge, a flat direction of the cost that adds nothing. Each kind offers only new
+    # sources; a forward jumper may read any neuron to the right of the target (already
+    # evaluated at this step, so no cycle), a recurrent jumper any neuron.
+    have = {(g.kind, g.ref) for g in _children(genome, target)}
+    ids = [genome[i].ref for i in neurons]
+    sources = {
+        GeneKind.INPUT: [j for j in range(n_inputs) if (GeneKind.INPUT, j) not in have],
+        GeneKind.BIAS: [-1] if (GeneKind.BIAS, -1) not in have else [],
+        GeneKind.RECURRENT: [r for r in ids if (GeneKind.RECURRENT, r) not in have],
+        GeneKind.FORWARD: [
+            genome[i].ref
+            for i in neurons
+            if i > target
+            and (GeneKind.FORWARD, genome[i].ref) not in have
+            and (GeneKind.NEURON, genome[i].ref) not in have
+        ],
+    }
+    kinds = [
+        k
+        for k in (GeneKind.INPUT, GeneKind.BIAS, GeneKind.RECURRENT, GeneKind.FORWARD)
+        if sources[k]
+    ]
+    if not kinds:
+        return None
+    kind = kinds[int(rng.integers(len(kinds)))]
+    options = sources[kind]
+    gene = Gene(kind, options[int(rng.integers(len(options)))], 0.0)
+    return _insert_child(genome, target, [gene])
 
 
 def mutate_once(

@@ -112,9 +112,8 @@ class AttemptRecord:
 
 # An attempt in progress is a small state machine per structure, driven by the engine's
 # iterations: the engine evaluates whatever points each structure's phase asks for with ONE
-# call of the task's cost, so the cost is compiled once per program, not once for CMA-ES
-# and again for the shifted means and again for the re-fit (which made the pruner
-# 2-3x the compile time of the engine without it).
+# call of the task's cost, compiled once per program; compiling it once per phase (CMA-ES,
+# shifted means, re-fit) made the pruner's compile time 2-3x the engine's without it.
 NORMAL, TRIAL, REFIT = 0, 1, 2
 
 
@@ -271,8 +270,7 @@ def judge(
     refit_limit: int | jax.Array,
     reference: str,
 ) -> tuple[Attempt, cmaes.State, cmaes.Params, AttemptRecord, jax.Array]:
-    """The ``TRIAL`` phase of the ``active`` structures, given the costs of
-    `trial_points` (IV.B.3).
+    """The ``TRIAL`` phase of the ``active`` structures, given the costs of `trial_points` (IV.B.3).
 
     Without a re-fit (the paper): accept iff the lowest shifted cost that passes rises by
     less than ``tolerance`` (relative) plus ``atol`` (absolute, `kernels.pruning.accept`)
@@ -297,31 +295,14 @@ def judge(
         # The lowest shifted cost goes on to the re-fit (the best-scored if none is finite).
         pick = jnp.argmin(jnp.where(att.scored & jnp.isfinite(e_trial), e_trial, jnp.inf), 1)
     else:
-        # Among the candidates that pass, the lowest shifted cost; if none passes, report
-        # the best-scored one.
+        # The lowest shifted cost that passes; if none passes, report the best-scored one.
         pick = jnp.where(jnp.any(ok, axis=1), jnp.argmin(jnp.where(ok, e_trial, jnp.inf), 1), 0)
     s_idx = jnp.arange(s_count)
     remove = att.removed[s_idx, pick]
     mean = att.trial[s_idx, pick]
     e_new = e_trial[s_idx, pick]
     pruned, new_params = reduce(cma, params, remove, mean, e_new)
-    nan = jnp.nan
-    gene = att.gene[s_idx, pick]
-    record = AttemptRecord(
-        attempted=active,
-        gene=jnp.where(active, gene, -1),
-        axis=jnp.where(active, att.axis[s_idx, pick], -1),
-        factor=jnp.where(active, att.factor[s_idx, pick], nan),
-        e=jnp.where(active, e, nan),
-        e_shifted=jnp.where(active, e_new, nan),
-        e_refit=jnp.full(s_count, nan),
-        e_reference=jnp.where(active, e_ref, nan),
-        accepted=jnp.zeros(s_count, bool),
-        cond_before=jnp.where(active, cma.cond, nan),
-        cond_after=jnp.where(active, cma.cond, nan),
-        iteration=att.record.iteration,
-    )
-    record = _cast_record(record)
+    record = _trial_record(att, cma, active, (s_idx, pick), e, e_new, e_ref)
     if refit:
         started, pruned = _start_refit(
             att, cma, params, pruned, record, mean, (s_idx, pick), refit, refit_scale, refit_limit
@@ -334,10 +315,8 @@ def judge(
             jnp.zeros(s_count, bool),
         )
     accepted = active & jnp.any(ok, axis=1)
-    record = record.replace(
-        accepted=accepted, cond_after=jnp.where(accepted, pruned.cond, record.cond_after)
-    )
-    record = _cast_record(record)
+    cond_after = jnp.where(accepted, pruned.cond, record.cond_after)
+    record = _cast_record(record.replace(accepted=accepted, cond_after=cond_after))
     done = att.replace(phase=jnp.where(active, NORMAL, att.phase))
     return (
         done,
@@ -346,6 +325,27 @@ def judge(
         record,
         active,
     )
+
+
+def _trial_record(att, cma, active, picked, e, e_new, e_ref) -> AttemptRecord:
+    """The record of the ``active`` structures' trial of their ``picked`` candidates (the
+    rows' and candidates' indices), not accepted yet (`judge`)."""
+    nan, s_count = jnp.nan, active.shape[0]
+    record = AttemptRecord(
+        attempted=active,
+        gene=jnp.where(active, att.gene[picked], -1),
+        axis=jnp.where(active, att.axis[picked], -1),
+        factor=jnp.where(active, att.factor[picked], nan),
+        e=jnp.where(active, e, nan),
+        e_shifted=jnp.where(active, e_new, nan),
+        e_refit=jnp.full(s_count, nan),
+        e_reference=jnp.where(active, e_ref, nan),
+        accepted=jnp.zeros(s_count, bool),
+        cond_before=jnp.where(active, cma.cond, nan),
+        cond_after=jnp.where(active, cma.cond, nan),
+        iteration=att.record.iteration,
+    )
+    return _cast_record(record)
 
 
 def _start_refit(att, cma, params, pruned, record, mean, picked, refit, refit_scale, refit_limit):

@@ -6,7 +6,38 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-__all__ = ["eigen", "symmetrised"]
+__all__ = ["eigen", "eigh", "symmetrised"]
+
+
+@jax.custom_batching.custom_vmap
+def _one_at_a_time(a: jax.Array) -> tuple[jax.Array, jax.Array]:
+    lam, vec = jnp.linalg.eigh(a)
+    return lam, vec
+
+
+@_one_at_a_time.def_vmap
+def _one_at_a_time_batched(axis_size, in_batched, a):
+    del axis_size
+    if not in_batched[0]:
+        return _one_at_a_time(a), (False, False)
+    return jax.lax.map(_one_at_a_time, a), (True, True)
+
+
+def eigh(a: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``jnp.linalg.eigh`` of ONE symmetric matrix, with the same bits under ``vmap``.
+
+    On a CPU backend with more than one device, a batch of matrices is decomposed one
+    matrix at a time (``lax.map``) instead of by jaxlib's batched LAPACK kernel. That kernel
+    splits its batch over XLA's CPU thread pool and waits for it from a thread of the same
+    pool; when every device's program holds a thread of the pool in such a wait (two
+    devices on two cores), nothing runs the batch and the process hangs
+    (docs/reliability.md, "Several CPU devices"). LAPACK decomposes each matrix of a batch
+    alone, so both ways give the same bits (tests/test_eigen.py). Elsewhere this is
+    ``jnp.linalg.eigh``.
+    """
+    if jax.default_backend() == "cpu" and jax.device_count() > 1:
+        return _one_at_a_time(a)
+    return jnp.linalg.eigh(a)
 
 
 def symmetrised(C: jax.Array, mask: jax.Array) -> jax.Array:
@@ -41,7 +72,7 @@ def eigen(
     diag = jnp.diagonal(C)
     d_max = jnp.max(jnp.where(mask, jnp.abs(diag), 0))
     shift = jnp.where(d_max > 0, d_max, 1)
-    lam, B = jnp.linalg.eigh(C - jnp.diag(jnp.where(mask, 0, shift)))
+    lam, B = eigh(C - jnp.diag(jnp.where(mask, 0, shift)))
     # A valid axis has (up to rounding, thanks to the gap) all its mass on valid coordinates.
     mass = jnp.sum(jnp.where(mask[:, None], B**2, 0), axis=0)
     valid_axes = mass > 0.5

@@ -96,6 +96,47 @@ def test_one_sharded_iteration_equals_unsharded():
     assert out["evals"][:3] == [50, 50, 50] and out["evals"][3:] == [0] * 5
 
 
+def test_two_cpu_devices_with_several_structures_each_do_not_hang():
+    """On two cores, two CPU devices each running a batch of eigendecompositions held both
+    threads of XLA's pool while jaxlib's batched LAPACK kernel waited on that pool for its
+    batch: this run hung in its first chunk, under some timings, not in every attempt
+    (kernels/eigen.py, `eigh`). The subprocess's timeout turns a hang into a failure. With
+    several CPU devices `eigh` decomposes a batch one matrix at a time: the same bits as the
+    batched kernel, checked here on fresh random matrices."""
+    out = _python(
+        """
+        from eant2_jax.kernels import eigen
+        m = np.random.default_rng().normal(size=(5, 7, 7)).astype(np.float32)
+        m = jnp.asarray(m @ m.transpose(0, 2, 1))
+        got, want = jax.jit(jax.vmap(eigen.eigh))(m), jax.jit(jax.vmap(jnp.linalg.eigh))(m)
+        assert all(np.array_equal(np.asarray(g), np.asarray(w)) for g, w in zip(got, want))
+        assert "scan" in str(jax.make_jaxpr(jax.vmap(eigen.eigh))(m))  # one at a time
+        from bench.common import random_population
+        from eant2_jax import exploitation as ex
+        r = np.random.default_rng(0)
+        x10 = r.normal(size=(32, 10))
+        task10 = E.tasks.regression(x10, np.tanh(x10[:, :1]), hidden="tanh", output="tanh")
+        c1 = ex.ExploitConfig(max_iters=4, chunk=4, pruner="none")
+        prep = tuning.prepare(random_population(1, 4, 12), task10, key=jax.random.key(0),
+                              config=c1, min_rows=2)
+        assert prep.batch.layout.slot.shape[0] == 4  # two real structures per device
+        def go(mesh):
+            st, h = ex.run(prep.state, prep.batch.layout, task10, key=jax.random.key(1),
+                           config=c1, tables=prep.tables, mesh=mesh)
+            return distributed.gather((st.cma.mean, st.cma.C, st.evals))
+        a, s = go(None), go(distributed.make_mesh(2))
+        err = [float(np.max(np.abs(np.asarray(u, float) - np.asarray(v, float))))
+               for u, v in zip(a, s)]
+        evals = [np.asarray(a[2]).tolist(), np.asarray(s[2]).tolist()]
+        print(json.dumps({"err": err, "evals": evals}))
+        """,
+        devices=2,
+        timeout=180,
+    )
+    assert out["evals"][0] == out["evals"][1]
+    assert max(out["err"]) < 1e-5, out  # float32 reduction order only
+
+
 def test_run_many_equals_solo_runs():
     out = _python(
         """

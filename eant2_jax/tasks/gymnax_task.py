@@ -205,6 +205,32 @@ def _with_params(where: str, env_params: Any, params: Any) -> Any:
     return env_params.replace(**fields)
 
 
+def _episode_limit(where: str, env_params: Any, limit: Any, max_steps: int | None) -> tuple:
+    """``(env_params, max_steps)``: the environment's episode limit by default; a given
+    ``max_steps`` also becomes the environment's limit where it is smaller."""
+    if max_steps is None:
+        if limit is None:
+            raise ValueError(f"{where} has no episode limit: pass max_steps")
+        max_steps = int(limit)
+    elif limit is not None:
+        env_params = env_params.replace(max_steps_in_episode=min(int(limit), max_steps))
+    return env_params, max_steps
+
+
+def _actions(space: Any) -> tuple:
+    """``(discrete, n_outputs, action_shape, low, high)`` of an action space: a discrete one
+    has one output per action (and zero bounds), a box one per action coordinate."""
+    discrete = hasattr(space, "n") and not hasattr(space, "low")
+    if discrete:
+        n_outputs, action_shape = int(space.n), ()
+        low = high = np.zeros(n_outputs)
+    else:
+        action_shape = tuple(int(s) for s in space.shape)
+        n_outputs = max(1, math.prod(action_shape))
+        low, high = _bounds(space, action_shape)
+    return discrete, n_outputs, action_shape, low, high
+
+
 def gymnax(
     name: str,
     *,
@@ -248,12 +274,7 @@ def gymnax(
     env_params = _with_params(where, env_params, params)
     limit = getattr(env_params, "max_steps_in_episode", None)
     solved = SOLVED_RETURNS.get(name) if not params and max_steps in (None, limit) else None
-    if max_steps is None:
-        if limit is None:
-            raise ValueError(f"{where} has no episode limit: pass max_steps")
-        max_steps = int(limit)
-    elif limit is not None:
-        env_params = env_params.replace(max_steps_in_episode=min(int(limit), max_steps))
+    env_params, max_steps = _episode_limit(where, env_params, limit, max_steps)
     obs_shape = jax.eval_shape(env.reset, jax.random.key(0), env_params)[0].shape
     n_inputs = math.prod(obs_shape)
     offset, scale = np.zeros(n_inputs), np.ones(n_inputs)
@@ -261,15 +282,7 @@ def gymnax(
         offset, scale = _from_bounds(
             _bounds(env.observation_space(env_params), obs_shape), n_inputs
         )
-    space = env.action_space(env_params)
-    discrete = hasattr(space, "n") and not hasattr(space, "low")
-    if discrete:
-        n_outputs, action_shape = int(space.n), ()
-        low = high = np.zeros(n_outputs)
-    else:
-        action_shape = tuple(int(s) for s in space.shape)
-        n_outputs = max(1, math.prod(action_shape))
-        low, high = _bounds(space, action_shape)
+    discrete, n_outputs, action_shape, low, high = _actions(env.action_space(env_params))
     output = output or ("identity" if discrete else "tanh")
     task = GymnaxTask(
         env_params=env_params,

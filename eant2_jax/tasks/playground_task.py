@@ -146,6 +146,31 @@ def _checked_config(where: str, defaults: Any, config: Any, prefix: str = "") ->
     return out
 
 
+def _built(where: str, name: str, overrides: tuple[tuple[str, Any], ...]) -> tuple[Any, Any]:
+    """The environment and the shape of its observation; a failure to build it is one
+    ``ValueError`` naming its first line."""
+    try:
+        env = _environment(name, overrides)
+        with calling_brax():
+            obs = jax.eval_shape(env.reset, jax.random.key(0)).obs
+    except (TypeError, ValueError, RuntimeError, KeyError, AttributeError) as e:
+        first = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ValueError(f"{where}: cannot build the environment: {first}") from None
+    return env, obs
+
+
+def _observed(where: str, obs: Any, obs_key: str) -> Any:
+    """The observation the network sees: entry ``obs_key`` of a dictionary observation."""
+    if isinstance(obs, dict):
+        if obs_key not in obs:
+            raise ValueError(
+                f"{where}: observations are a dictionary without {obs_key!r}; "
+                f"obs_key must be one of {', '.join(sorted(obs))}"
+            )
+        obs = obs[obs_key]
+    return obs
+
+
 def playground(
     name: str,
     *,
@@ -200,21 +225,9 @@ def playground(
     defaults = registry.get_default_config(name)
     config = _checked_config(where, defaults, config)  # flat, dotted keys
     overrides = tuple(sorted((k, _hashable(v)) for k, v in {**config, "impl": impl}.items()))
-    try:
-        env = _environment(name, overrides)
-        with calling_brax():
-            obs = jax.eval_shape(env.reset, jax.random.key(0)).obs
-    except (TypeError, ValueError, RuntimeError, KeyError, AttributeError) as e:
-        first = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise ValueError(f"{where}: cannot build the environment: {first}") from None
+    env, obs = _built(where, name, overrides)
     steps = max_steps or int(config.get("episode_length", defaults.get("episode_length", 1000)))
-    if isinstance(obs, dict):
-        if obs_key not in obs:
-            raise ValueError(
-                f"{where}: observations are a dictionary without {obs_key!r}; "
-                f"obs_key must be one of {', '.join(sorted(obs))}"
-            )
-        obs = obs[obs_key]
+    obs = _observed(where, obs, obs_key)
     task = PlaygroundTask(
         env_name=name,
         overrides=overrides,

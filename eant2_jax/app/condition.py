@@ -81,13 +81,7 @@ def condition_experiment(
         genome, task, k_prune, rounds=rounds, iters=prune_iters, window=prune_window,
         sigma0=prune_sigma0, candidates=prune_candidates,
     )  # fmt: skip
-    rng = np.random.default_rng(np.asarray(jax.random.key_data(k_init)))
-    starts_a, starts_b = [], []
-    for _ in range(inits):
-        w = rng.normal(0, weight_scale, genome.n_params)
-        starts_a.append(genome.with_weights(w))
-        # The pruned network starts from the same draw on the genes it kept.
-        starts_b.append(current.with_weights(w[_kept_genes(genome, current)]))
+    starts_a, starts_b = _random_starts(genome, current, k_init, inits, weight_scale)
     config = recording_config(sigma0, iters, max_condition, dtype)
     res = tune(starts_a + starts_b, task, key=k_run, config=config, pad_count=False)
     cond = np.asarray(res.history.cond, np.float64).T  # [runs, iters]
@@ -98,21 +92,40 @@ def condition_experiment(
             genome, current, task, jax.random.fold_in(k_run, 1), config, inits, evolved_warmup,
             prune_sigma0,
         )  # fmt: skip
+    result = _result(genome, current, before, after, res.costs, dtype, max_condition, removed)
+    return {**result, "evolved": evolved}
+
+
+def _random_starts(genome, pruned, key, inits, weight_scale) -> tuple[list, list]:
+    """The ``inits`` random starts of the network and of its pruned version: the pruned one
+    from the same draw on the genes it kept (NumPy draws seeded by ``key``'s data)."""
+    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)))
+    starts_a, starts_b = [], []
+    for _ in range(inits):
+        w = rng.normal(0, weight_scale, genome.n_params)
+        starts_a.append(genome.with_weights(w))
+        starts_b.append(pruned.with_weights(w[_kept_genes(genome, pruned)]))
+    return starts_a, starts_b
+
+
+def _result(genome, pruned, before, after, costs, dtype, max_condition, removed) -> dict:
+    """`condition_experiment`'s record of the runs from random weights (``before``/``after``
+    ``[inits, iters]`` cond(C), ``costs`` the best cost of the ``2 * inits`` runs)."""
+    inits = len(before)
     return {
         "before": before.tolist(),
         "after": after.tolist(),
         "peak_before": before.max(axis=1).tolist(),
         "peak_after": after.max(axis=1).tolist(),
-        "cost_before": res.costs[:inits],
-        "cost_after": res.costs[inits:],
+        "cost_before": costs[:inits],
+        "cost_after": costs[inits:],
         "size_before": genome.n_params,
-        "size_after": current.n_params,
+        "size_after": pruned.n_params,
         "genome_before": str(genome),
-        "genome_after": str(current),
+        "genome_after": str(pruned),
         "dtype": dtype,
         "max_condition": max_condition,
         "removed": removed,
-        "evolved": evolved,
     }
 
 

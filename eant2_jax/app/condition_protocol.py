@@ -235,13 +235,8 @@ def protocol_experiment(
     )
     source, first = _distinct_runs(rows, starts)
     popsize = default_popsize(max(len(g) for g in genomes))
-    batch, state = _initial_state(
-        [starts[i] for i in first],
-        [keys[i] for i in first],
-        task,
-        recording_config(sigma0, iters, max_condition, "float64"),
-        popsize,
-    )
+    config = recording_config(sigma0, iters, max_condition, "float64")
+    batch, state = _initial_state(starts, keys, first, task, config, popsize)
     meta = {
         "networks": networks,
         "popsize": popsize,
@@ -264,15 +259,22 @@ def protocol_experiment(
             }
             on_chunk(done, dict(meta, rows=_rows(rows, cond[:, source]), checkpoint=point))
 
+    cma, cond = _run(state, batch.layout, task, iters, chunk, progress, resume)
+    return dict(meta, rows=_final_rows(rows, starts, source, cma, cond, task))
+
+
+def _run(state, layout, task, iters, chunk, progress, resume) -> tuple:
+    """``(cma, cond)`` of the distinct runs after ``iters`` iterations (`iterate`, float64),
+    from the start or from ``resume``'s checkpoint; ``progress`` as `iterate`'s ``on_chunk``."""
     start, cond = 0, None
     if resume is not None:
         start, cond = int(resume["done"]), np.asarray(resume["cond"], np.float64)
         state = _resumed(state, resume["cma"])
     else:  # a checkpoint before the first chunk: the pruning rounds are not run again
-        progress(0, np.zeros((0, len(first))), state.cma)
-    cma, cond = iterate(
+        progress(0, np.zeros((0, state.cma.mean.shape[0])), state.cma)
+    return iterate(
         state,
-        batch.layout,
+        layout,
         cast_task(task, jnp.float64),
         jax.random.key(0),
         iters=iters,
@@ -281,6 +283,11 @@ def protocol_experiment(
         start=start,
         cond=cond,
     )
+
+
+def _final_rows(rows, starts, source, cma, cond, task) -> list[dict]:
+    """The rows with their ``log10_cond`` traces, best costs and `flat_share` at the end
+    (``source``: each row's distinct run)."""
     out_rows = _rows(rows, cond[:, source])
     mean, C, best = (np.asarray(a, np.float64)[source] for a in (cma.mean, cma.C, cma.best_cost))
     for i, (r, g) in enumerate(zip(out_rows, starts, strict=True)):
@@ -288,7 +295,7 @@ def protocol_experiment(
         r["flat"] = flat_share(
             g, mean[i], C[i], hidden=task.hidden, output=task.output, n_inputs=task.n_inputs
         )
-    return dict(meta, rows=out_rows)
+    return out_rows
 
 
 def _distinct_runs(rows, starts):
@@ -305,8 +312,10 @@ def _distinct_runs(rows, starts):
     return source, [source.tolist().index(u) for u in range(len(unique))]
 
 
-def _initial_state(starts, keys, task, config, popsize):
-    """The distinct runs' batch and engine state: each run's mean at its start weights."""
+def _initial_state(starts, keys, first, task, config, popsize):
+    """The batch and engine state of the distinct runs (rows ``first`` of ``starts`` and
+    ``keys``): each run's mean at its start weights."""
+    starts, keys = [starts[i] for i in first], [keys[i] for i in first]
     batch = compile_genomes(starts, task.n_inputs, pad_count=False)
     means = np.zeros(batch.weights.shape, np.float64)
     for u, genome in enumerate(starts):

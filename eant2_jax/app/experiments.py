@@ -77,53 +77,40 @@ def reproduce(
     overlap_condition: bool | None = None,
     callback: Callable[[dict], None] | None = None,
 ) -> Path:
-    """Run the paper's experiments and write the report.
+    """Run the paper's experiments and write the report; returns the path of
+    ``report/report.md`` (docs/reproduce.md).
 
-    The settings are checked (`eant2_jax.app.manifest.check_manifest`: the limits a
-    manifest read back must meet) and go first into ``out/reproduce.json``; a reproduction
-    that was killed (or crashed) goes on with `resume_reproduction` (``eant2 resume OUT``),
-    losing at most each run's current generation.
+    The settings are checked (`eant2_jax.app.manifest.check_manifest`: the limits a manifest
+    read back must meet) and go first into ``out/reproduce.json``: `resume_reproduction`
+    (``eant2 resume OUT``) finishes a killed one, losing at most each run's current generation.
 
     Args:
       task: the task (the paper's: ``tasks.make("servo")``).
-      out: a new directory (must not exist or be empty); it receives one run directory per
-        arm and seed (``ARM-sSEED``), ``condition.json`` and ``report/``.
+      out: a new or empty directory; it receives one run directory per arm and seed
+        (``ARM-sSEED``), ``condition.json`` and ``report/``.
       task_meta: ``{"task": name, "task_options": {...}}`` stored with each run.
       runs: runs per arm (seeds ``seed .. seed+runs-1``; the same seeds in every arm).
       generations: generations per run.
-      pruners: the arms, by name (`eant2_jax.app.arms`: the protocol's arms such as
-        ``default``, ``no-refit``, ``random``, or a pruner's name, or ``NAME-literal``); an
-        arm without pruning (``none``) is always added.
-      arm_runs: runs of the arms whose count is not ``runs`` (``{"none": 20}``); an arm of
-        ``n`` runs takes seeds ``seed .. seed+n-1``.
-      config: base EANT2 configuration (each arm sets its pruning fields,
-        `eant2_jax.app.arms.arm_overrides`).
+      pruners: the arms, by name (`eant2_jax.app.arms`: a protocol arm such as ``default`` or
+        ``no-refit``, a pruner's name, or ``NAME-literal``); ``none`` (no pruning) is added.
+      arm_runs: runs of the arms whose count is not ``runs`` (``{"none": 20}``), from ``seed``.
+      config: base EANT2 configuration (each arm sets its pruning fields: `arm_overrides`).
       seed: first seed.
       devices: devices to spread the runs over (see `eant2_jax.run_many`).
-      workers_per_device: concurrent runs per device (overlaps one run's host work with
-        another's device work).
+      workers_per_device: concurrent runs per device (host work overlaps device work).
       lockstep: an arm's runs go in lock-step, each generation of all of them tuned in one
-        batch (`eant2_jax.run_lockstep`; one group per device); False: each run alone, in
-        ``workers_per_device`` threads per device. A run then shares its padding bucket
-        with its arm (docs/reproduce.md).
+        batch, one group per device (`eant2_jax.run_lockstep`: a run shares its padding
+        bucket with its arm); False: each run alone, ``workers_per_device`` per device.
       condition: also run the V.A condition experiment.
       condition_iters: CMA-ES budget of each run of that experiment from random weights.
       condition_inits: random initialisations of each network in it.
       condition_dtype: the CMA-ES state's dtype in it; ``float64`` turns on JAX's x64 mode
-        for that experiment alone (``jax.enable_x64``, once the evolution runs are done:
-        they stay in float32).
+        for that experiment alone (the evolution runs, done by then, stay in float32).
       overlap_condition: run the condition experiment in a background thread while the
-        pruning arms run (the arm without pruning goes first: the experiment starts from its
-        best network), and the baselines' costs while the first arm runs. The experiment is
-        a chain of small, latency-bound programs that leaves an accelerator mostly idle, so
-        the overlap hides most of it; the results are the same either way. ``None``
-        (default): on unless the default backend is a CPU, where two programs at once can
-        deadlock XLA's CPU thread pool (`eant2_jax.multirun`).
+        pruning arms run, and the baselines' costs while the first arm runs (the results are
+        the same either way). ``None`` (default): on unless the default backend is a CPU.
       callback: progress events: ``generation`` events with ``run`` and ``arm``; a
         ``condition`` event with ``phase`` ``"start"`` or ``"done"`` (and ``wall_s``).
-
-    Returns:
-      The path of ``report/report.md``.
 
     Raises:
       ManifestError: a setting out of its range (one line naming it); nothing is created.
@@ -146,20 +133,33 @@ def reproduce(
         "condition_inits": condition_inits,
         "condition_dtype": condition_dtype,
     }
+    settings = _create(out, _with_arms(manifest, pruners, runs, arm_runs))
+    settings["config"] = config or EANT2Config()
+    return _reproduce(task, out, settings, overlap_condition, callback, resume=False)
+
+
+def _with_arms(manifest: dict, pruners: Sequence[str], runs: int, arm_runs) -> dict:
+    """``manifest`` with its arms' run counts (with ``arm_runs``) and overrides; an unknown
+    arm is left to `check_manifest`, which names it in its own words."""
     arms = arm_order(list(pruners)) if isinstance(pruners, Sequence) else []
     if arm_runs:
         manifest["arm_runs"] = {**{a: runs for a in arms}, **dict(arm_runs)}
     try:
         manifest["arm_overrides"] = {a: arm_overrides(a) for a in arms}
     except ValueError:
-        pass  # check_manifest names the unknown arm in its own words
-    settings = check_manifest(manifest, "reproduce")  # one rule for a start and a resume
+        pass
+    return manifest
+
+
+def _create(out: Path, manifest: dict) -> dict:
+    """The checked settings of ``manifest`` (one rule for a start and a resume), written
+    into the new directory ``out``; nothing is created if a setting or ``out`` is wrong."""
+    settings = check_manifest(manifest, "reproduce")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise RunDirError(f"{out} already exists and is not an empty directory; not overwriting")
     outputs.make_folder(out)
     outputs.write_text(out / MANIFEST, dumps(manifest, indent=2) + "\n")  # whole or absent
-    settings["config"] = config or EANT2Config()
-    return _reproduce(task, out, settings, overlap_condition, callback, resume=False)
+    return settings
 
 
 def resume_reproduction(
@@ -201,6 +201,9 @@ def _reproduce(task, out: Path, settings: dict, overlap, callback, *, resume: bo
     jobs = [(arm, s["seed"] + i) for arm in arms for i in range(s["arm_runs"][arm])]
     dirs = [out / f"{arm}-s{seed}" for arm, seed in jobs]
     t0 = time.perf_counter()
+    # The condition experiment is a chain of small, latency-bound programs that leaves an
+    # accelerator mostly idle, so overlapping it with the arms hides most of it; on a CPU two
+    # programs at once can deadlock XLA's CPU thread pool (`eant2_jax.multirun`).
     if overlap is None:
         overlap = jax.default_backend() != "cpu"
     done = out / CONDITION

@@ -45,7 +45,6 @@ sine=1 servo=3] [--commit HASH]``; ``--quick`` is a smoke test (xor, tiny budget
 from __future__ import annotations
 
 import argparse
-import subprocess
 import time
 from typing import Any
 
@@ -55,7 +54,7 @@ import numpy as np
 import optax
 
 from bench import harness
-from bench.common import BenchInputError, Column, environment, random_genome
+from bench.common import BenchInputError, Column, environment, git_commit, random_genome
 from eant2_jax import evaluate, tasks, tuning
 from eant2_jax import exploitation as ex
 from eant2_jax.compiler import Bucket, bucket_for, compile_genomes
@@ -217,12 +216,7 @@ def _prepare(args: argparse.Namespace) -> None:
     if min(args.choose_seeds) < args.seeds:
         raise BenchInputError("--choose-seeds must not overlap the report seeds 0..seeds-1")
     if args.commit is None:
-        try:
-            head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                                  text=True, check=True)  # fmt: skip
-            args.commit = head.stdout.strip()
-        except (OSError, subprocess.CalledProcessError):
-            args.commit = "unknown"
+        args.commit = git_commit()
 
 
 def _problem(name: str, args, save, payload) -> None:

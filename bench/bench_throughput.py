@@ -52,7 +52,6 @@ import copy
 import functools
 import math
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -66,6 +65,7 @@ from bench.common import (
     BenchInputError,
     Column,
     environment,
+    git_commit,
     markdown_table,
     random_population,
 )
@@ -254,31 +254,8 @@ def _tn_hidden(population, n_in: int, n_out: int) -> float:
 
 
 # ----------------------------------------------------------------------------- the suite
-def _commit() -> str:
-    """git's short HEAD of this checkout, ``+dirty`` when tracked files differ from it."""
-    root = Path(__file__).resolve().parent.parent
-    try:
-        head = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=root,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "-uno"],
-            cwd=root,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-    return head + ("+dirty" if dirty else "")  # fmt: skip
-
-
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
-    payload: dict[str, Any] = {"environment": environment(), "commit": _commit(),
+    payload: dict[str, Any] = {"environment": environment(), "commit": git_commit(),
                                "config": harness.settings(args), "early_termination": EARLY_END,
                                "rows": []}  # fmt: skip
     for name in args.envs:

@@ -51,7 +51,6 @@ import contextlib
 import copy
 import functools
 import math
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -68,6 +67,7 @@ from bench.common import (
     git_commit,
     markdown_table,
     random_population,
+    time_call,
 )
 from bench.field_settings import ENVS
 from eant2_jax import tasks
@@ -94,14 +94,9 @@ QUICK = {"max_steps": 20, "widths": [4, 8], "tn_pops": [40], "repeats": 1}
 
 # ----------------------------------------------------------------------------- measuring
 def _timed(call, repeats: int) -> dict[str, Any]:
-    """One untimed call, then the median of ``repeats`` timed ones (each waits)."""
-    jax.block_until_ready(call())
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(call())
-        times.append(time.perf_counter() - t0)
-    return {"batch_s": statistics.median(times), "batch_min_s": min(times), "times_s": times}
+    """One untimed call, then the median of ``repeats`` timed ones (`bench.common.time_call`)."""
+    t = time_call(call, warmup=0, repeats=repeats)
+    return {"batch_s": t.median_s, "batch_min_s": t.min_s, "times_s": list(t.times_s)}
 
 
 def _rates(row: dict[str, Any], lengths: np.ndarray, *, computed_per_episode: int) -> None:

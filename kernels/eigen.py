@@ -32,7 +32,7 @@ def eigh(a: jax.Array) -> tuple[jax.Array, jax.Array]:
     pool; when every device's program holds a thread of the pool in such a wait (two
     devices on two cores), nothing runs the batch and the process hangs
     (docs/reliability.md, "Several CPU devices"). LAPACK decomposes each matrix of a batch
-    alone, so both ways give the same bits (tests/test_eigen.py). Elsewhere this is
+    alone, so both ways give the same bits (tests/test_distributed.py). Elsewhere this is
     ``jnp.linalg.eigh``.
     """
     if jax.default_backend() == "cpu" and jax.device_count() > 1:

@@ -21,6 +21,19 @@ import numpy as np
 
 from . import pytree
 from .configspec import Check, Configured, above, at_least, between, document, one_of, option
+from .configvalues import (
+    DEFAULT_MAX_CONDITION,
+    DTYPES,
+    FINITE,
+    FRACTION,
+    NON_NEGATIVE,
+    RECOMMEND,
+    TOLERANCE,
+    bucket_value,
+    weights_value,
+)
+from .configvalues import MAX_BUCKET as MAX_BUCKET  # importable here, as before
+from .configvalues import MAX_POPULATION as MAX_POPULATION
 from .exploration import OPERATORS
 
 # Process-wide JAX settings live in their own module; their names stay importable here.
@@ -29,17 +42,6 @@ from .jaxsetup import enable_x64 as enable_x64
 from .kernels.pruning import PRUNERS
 
 __all__ = ["EANT2Config", "ExploitConfig", "enable_x64"]
-
-RECOMMEND = ("best", "mean", "both")
-DTYPES = ("float32", "float64")
-# The default bound on cond(C) by the dtype of the CMA-ES state: float32 resolves an
-# eigenvalue to about 1e-7 of the largest, so a larger bound lets rounding noise through
-# (sigma then explodes along an exactly flat direction); float64 honours the paper's 1e14.
-DEFAULT_MAX_CONDITION = {"float32": 1e7, "float64": 1e14}
-# None of target_cost and tolfun is held as -inf (no cost is below it); a config rebuilt
-# from its fields (``replace``) passes -inf back in.
-_FINITE = Check(lambda v: v == -math.inf or math.isfinite(v), "finite")
-_TOLERANCE = Check(lambda v: v == -math.inf or (v >= 0 and math.isfinite(v)), ">= 0 and finite")
 
 
 def _plain_numbers(config) -> bool:
@@ -74,10 +76,21 @@ class ExploitConfig(Configured):
     popsize: int | None = option(
         None,
         "Candidates per CMA-ES iteration, shared by the batch; None takes `default_popsize` "
-        "of the batch's padded gene count (the handover's one rule, "
+        "of the batch's padded gene count, or more with ``width`` (the handover's one rule, "
         "`eant2_jax.tuning.popsize_for`).",
         check=at_least(2),
         static=True,
+    )
+    width: int | None = option(
+        None,
+        "Networks per engine batch (all rows, padding included, on every device): with no "
+        "``popsize``, each row gets ``max(default_popsize, width // rows)`` candidates "
+        "(`eant2_jax.tuning.popsize_for`; docs/algorithm.md, Batch width). None: the "
+        "default popsize alone.",
+        check=at_least(1),
+        static=True,
+        added="0.1.0 (issue 41)",
+        old=None,
     )
     sigma0: float = option(0.5, "Initial step size.", check=above(0))
     max_iters: int = option(1000, "Iteration budget per structure.", check=at_least(1))
@@ -98,7 +111,7 @@ class ExploitConfig(Configured):
         "best cost so far for ``10 + ceil(30 n / popsize)`` iterations in a row (CMA-ES's "
         "TolFun, Hansen's tutorial B.3: nothing is left to learn, e.g. a perfect fit at cost "
         "0 or a plateau); None never stops for it.",
-        check=_TOLERANCE,
+        check=TOLERANCE,
         none=-math.inf,
         added="0.1.0 (7d7ae39)",
         old=None,
@@ -133,7 +146,7 @@ class ExploitConfig(Configured):
         None,
         "Stop a structure once its best cost is at or below this (pycma's ``ftarget``); None "
         "never stops for it.",
-        check=_FINITE,
+        check=FINITE,
         none=-math.inf,
     )
     pruner: str = option(
@@ -276,8 +289,14 @@ class ExploitConfig(Configured):
             super().__post_init__()
 
     def check_across(self) -> None:
-        """The numbers are used in the state's dtype: each must survive the cast there (a
+        """``popsize`` and ``width`` exclude each other (either sets the candidates per
+        row). The numbers are used in the state's dtype: each must survive the cast there (a
         float32 sigma0 of 1e-45 is 0, and the search turns NaN)."""
+        if self.popsize is not None and self.width is not None:
+            raise ValueError(
+                f"ExploitConfig.popsize = {self.popsize} and ExploitConfig.width = "
+                f"{self.width} are both set: set one (popsize fixes the candidates per row)"
+            )
         info = np.finfo(self.dtype)
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
@@ -301,34 +320,6 @@ class ExploitConfig(Configured):
         return cls(
             **{"prune_refit": 0, "prune_reference": "mean", "prune_at_stop": False, **options}
         )
-
-
-# A documented size limit (docs/reliability.md): far above any useful EANT2 population, far
-# below the sizes that would only exhaust memory before saying anything.
-MAX_POPULATION = 1_000_000
-# EANT2Config.min_bucket's bound on each entry: far beyond any network a generation compiles
-# (the flat parameter buffer's int32 index allows 24,576 neuron slots: compiler.MAX_BUFFER).
-MAX_BUCKET = 16384
-_NON_NEGATIVE = Check(lambda v: v >= 0 and math.isfinite(v), ">= 0 and finite")
-_FRACTION = between(0, 1, open_low=True)
-
-
-def _weights(v) -> tuple[float, ...]:
-    if not isinstance(v, list | tuple) or not all(
-        isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) for x in v
-    ):
-        raise ValueError(v)
-    return tuple(float(x) for x in v)
-
-
-def _bucket(v) -> tuple[int, int, int]:
-    if not (
-        isinstance(v, list | tuple)
-        and len(v) == 3
-        and all(isinstance(x, int) and not isinstance(x, bool) and 1 <= x <= MAX_BUCKET for x in v)
-    ):
-        raise ValueError(v)
-    return tuple(v)
 
 
 def _exploit(v) -> ExploitConfig:
@@ -355,9 +346,9 @@ class EANT2Config(Configured):
         check=between(1, MAX_POPULATION),
     )
     init_connectivity: float = option(
-        1.0, "Probability that an initial output neuron reads each input.", check=_FRACTION
+        1.0, "Probability that an initial output neuron reads each input.", check=FRACTION
     )
-    init_weight_scale: float = option(0.1, "Std of the initial weights.", check=_NON_NEGATIVE)
+    init_weight_scale: float = option(0.1, "Std of the initial weights.", check=NON_NEGATIVE)
     init_recurrent: bool = option(
         False,
         "Recurrent-ready start: each initial output neuron also reads its own previous output "
@@ -380,15 +371,15 @@ class EANT2Config(Configured):
     input_fraction: float = option(
         0.5,
         "Probability that a new hidden neuron reads each input (paper: ~50%).",
-        check=_FRACTION,
+        check=FRACTION,
     )
     new_weight_scale: float = option(
-        0.5, "Std of a new hidden neuron's inner weights.", check=_NON_NEGATIVE
+        0.5, "Std of a new hidden neuron's inner weights.", check=NON_NEGATIVE
     )
     operator_weights: tuple[float, ...] = option(
         (1.0, 1.0, 1.0, 1.0, 1.0),
         "Relative frequency of each operator in ``exploration.OPERATORS``.",
-        convert=_weights,
+        convert=weights_value,
         want="finite numbers",
         check=Check(
             lambda w: len(w) == len(OPERATORS) and min(w) >= 0 and sum(w) > 0,
@@ -420,9 +411,9 @@ class EANT2Config(Configured):
         True, "Of two costs within ``size_tolerance`` the smaller network ranks first."
     )
     size_tolerance: float = option(
-        1e-3, "Relative cost tolerance of that rule.", check=_NON_NEGATIVE
+        1e-3, "Relative cost tolerance of that rule.", check=NON_NEGATIVE
     )
-    size_atol: float = option(1e-9, "Absolute cost tolerance of that rule.", check=_NON_NEGATIVE)
+    size_atol: float = option(1e-9, "Absolute cost tolerance of that rule.", check=NON_NEGATIVE)
     target_cost: float | None = option(
         None,
         "Stop the run once the best cost is at or below this. None: the task's solved level "
@@ -482,7 +473,7 @@ class EANT2Config(Configured):
         "CMA-ES population follows the gene bucket (`eant2_jax.tuning.popsize_for`), so a "
         "floor also raises it (fix it with ``exploit.popsize``); the same key and config "
         "give the same run either way.",
-        convert=_bucket,
+        convert=bucket_value,
         want=f"None or three integers (neurons, genes, sweeps) in [1, {MAX_BUCKET}]",
         added="0.1.0 (8993ec2)",
         old=None,

@@ -55,15 +55,26 @@ __all__ = [
 
 
 def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch) -> int:
-    """The population size of a batch: ``config.popsize``, else the CMA-ES default
-    (`eant2_jax.exploitation.default_popsize`) of the batch's padded gene count.
+    """The population size of a batch, the one rule (docs/algorithm.md, "Batch width"):
+    ``config.popsize`` if set; else, with ``config.width``, ``max(default, width // rows)``;
+    else the default. ``default`` is the CMA-ES default
+    (`eant2_jax.exploitation.default_popsize`) of the batch's padded gene count, and
+    ``rows`` the batch's rows, padding rows included (with a device mesh, the rows of every
+    device: ``width`` counts the networks of the whole batch).
 
-    The rule follows the gene bucket rather than each structure's own size so that every
+    The default follows the gene bucket rather than each structure's own size so that every
     batch of one bucket shares one compiled program; within a bucket the padded count
     exceeds a structure's own by at most a half, which changes ``4 + floor(3 ln n)`` by at
-    most one candidate.
+    most one candidate. Every batch of one bucket and row count gets one popsize, so a
+    program compiled ahead for a guessed bucket (`eant2_jax.programs.guesses`) is the one
+    the generation runs, ``width`` or not.
     """
-    return config.popsize or ex.default_popsize(batch.bucket.genes)
+    if config.popsize is not None:
+        return config.popsize
+    default = ex.default_popsize(batch.bucket.genes)
+    if config.width is None:
+        return default
+    return max(default, config.width // batch.layout.slot.shape[0])
 
 
 class Prepared(NamedTuple):

@@ -57,8 +57,10 @@ def grow_bucket(
     Each new bucket is a new program to compile (seconds on a CPU, more on a GPU), while the
     padding costs little (a generation is latency-bound: docs/benchmarks.md). A structure's
     CMA-ES is independent of its padding except through the default popsize, which follows
-    the gene bucket (`eant2_jax.tuning.popsize_for`); so the bucket is part of the checkpoint
-    (`eant2_jax.records.RunState.bucket`) and a resumed run goes on with it."""
+    the gene bucket (`eant2_jax.tuning.popsize_for`; with ``exploit.width`` also the rows,
+    which the configuration and a lock-step group's size fix: `generation_rows`); so the
+    bucket is part of the checkpoint (`eant2_jax.records.RunState.bucket`) and a resumed
+    run goes on with it."""
     neurons = max(g.n_neurons for g in genomes)
     genes = max(g.n_params for g in genomes)
     depth = max(g.depth() for g in genomes)

@@ -1,0 +1,141 @@
+"""The batch as a first-class resource (issue 41 item 1): ``ExploitConfig.width``, the
+networks per engine batch, sets the CMA-ES population of a batch's rows through the one rule
+`eant2_jax.tuning.popsize_for` (docs/algorithm.md, "Batch width")."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import jax
+import numpy as np
+import pytest
+from rundirs import run_main
+
+import eant2_jax
+from eant2_jax import EANT2Config, ExploitConfig, Genome
+from eant2_jax.compiler import compile_genomes
+from eant2_jax.exploitation import popsize_of
+from eant2_jax.tasks import xor
+from eant2_jax.tuning import optimize, popsize_for, tune
+
+# XOR with one hidden neuron (tests/test_optimize.py's start).
+START = Genome.parse("N0/4*1 N1/3*0.1 I0*0.1 I1*-0.1 B*0.05 I0*0.1 I1*0.1 B*0.0")
+
+
+def plain_popsize(genes: int, rows: int, popsize: int | None, width: int | None) -> int:
+    """The rule as docs/algorithm.md states it, written out (Hansen's default 4 + floor(3 ln n))."""
+    default = 4 + math.floor(3 * math.log(genes))
+    if popsize is not None:
+        return popsize
+    return default if width is None else max(default, width // rows)
+
+
+def test_popsize_for_follows_the_width_rule():
+    seen = set()
+    for count, min_rows, multiple_of in [(1, 1, 1), (3, 1, 1), (3, 10, 1), (5, 1, 8), (2, 40, 1)]:
+        batch = compile_genomes(
+            [START] * count, 2, min_rows=min_rows, multiple_of=multiple_of, pad_count=True
+        )
+        rows, genes = batch.layout.slot.shape[0], batch.bucket.genes
+        # Rows count the padding, the device rounding (multiple_of) included.
+        assert rows >= max(count, min_rows) and rows % multiple_of == 0
+        for popsize, width in [(None, None), (None, 16), (None, 64), (None, 4096), (7, None)]:
+            config = ExploitConfig(popsize=popsize, width=width)
+            got = popsize_for(config, batch)
+            assert got == plain_popsize(genes, rows, popsize, width), (rows, popsize, width)
+            if width is not None:
+                seen.add("width" if width // rows > got - 1 else "floor")
+    assert seen == {"width", "floor"}  # both sides of the max were taken
+
+
+def test_popsize_and_width_together_are_one_error():
+    want = r"^ExploitConfig\.popsize = 8 and ExploitConfig\.width = 64 are both set: set one"
+    with pytest.raises(ValueError, match=want):
+        ExploitConfig(popsize=8, width=64)
+    with pytest.raises(ValueError, match=want):
+        EANT2Config.from_dict({"exploit": {"popsize": 8, "width": 64}})
+    with pytest.raises(ValueError, match=r"^ExploitConfig\.width must be >= 1 \(or None\), got 0"):
+        ExploitConfig(width=0)
+
+
+def test_width_round_trips_is_static_and_old_files_read_none():
+    assert ExploitConfig().width is None and EANT2Config().exploit.width is None
+    config = EANT2Config(exploit=ExploitConfig(width=4096))
+    d = json.loads(json.dumps(config.to_dict()))
+    assert d["exploit"]["width"] == 4096
+    assert EANT2Config.from_dict(d, complete=True) == config
+    # A run directory written before the field existed ran with today's rule: None.
+    old = {**d, "exploit": {k: v for k, v in d["exploit"].items() if k != "width"}}
+    assert EANT2Config.from_dict(old, complete=True).exploit.width is None
+    # Static: part of the program's structure, no traced leaf.
+    assert jax.tree.structure(ExploitConfig(width=64)) != jax.tree.structure(ExploitConfig())
+    assert len(jax.tree.leaves(ExploitConfig(width=64))) == len(jax.tree.leaves(ExploitConfig()))
+
+
+def _wide_tune(key: jax.Array):
+    config = ExploitConfig(width=64, max_iters=4, pruner="none")
+    return tune([START] * 3, xor(), key=key, config=config)
+
+
+def test_a_wide_batch_evaluates_rows_times_its_popsize_and_repeats_to_the_bit():
+    res = _wide_tune(jax.random.key(3))
+    rows, genes = res.history.running.shape[1], int(res.state.cma.mean.shape[-1])
+    popsize = popsize_of(res.state)
+    assert (
+        popsize
+        == plain_popsize(genes, rows, None, 64)
+        == 64 // rows
+        > 4 + math.floor(3 * math.log(genes))
+    )  # the width, not the default, set it here
+    # Each running structure spends popsize evaluations per engine iteration.
+    evals, running = np.asarray(res.history.evaluations), np.asarray(res.history.running)
+    steps = np.diff(np.concatenate([np.zeros((1, rows), evals.dtype), evals]), axis=0)
+    np.testing.assert_array_equal(steps[running], popsize)
+    assert res.evaluations == [int(running[:, i].sum()) * popsize for i in range(3)]
+    again = _wide_tune(jax.random.key(3))
+    assert again.costs == res.costs and again.genomes == res.genomes
+    np.testing.assert_array_equal(np.asarray(again.history.sigma), np.asarray(res.history.sigma))
+
+
+def test_optimize_takes_width_as_its_one_row_s_popsize():
+    res = optimize(START, xor(), key=jax.random.key(1), width=40, max_iters=2, pruner="none")
+    np.testing.assert_array_equal(np.asarray(res.history.evaluations), [40, 80])
+
+
+def test_a_run_with_width_compiles_the_rule_s_popsize_and_repeats():
+    config = EANT2Config(
+        population=3, exploit=ExploitConfig(width=96, max_iters=5, pruner="none")
+    )  # a width of its own: a program this process has not run, so its compile is reported
+    events = []
+    res = eant2_jax.run(
+        xor(), key=jax.random.key(0), config=config, generations=1, callback=events.append
+    )
+    compiled = [e for e in events if e["event"] == "compiling"]
+    assert compiled
+    for e in compiled:
+        rows, genes = e["structures"], e["genes"]
+        assert e["popsize"] == plain_popsize(genes, rows, None, 96)
+    again = eant2_jax.run(xor(), key=jax.random.key(0), config=config, generations=1)
+    assert [r.to_json()["best_cost"] for r in again.generations] == [
+        r.to_json()["best_cost"] for r in res.generations
+    ]
+    assert [r.evaluations for r in again.generations] == [r.evaluations for r in res.generations]
+
+
+def test_eant2_run_sets_width_from_the_command_line(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "run"
+    argv = ["run", "xor", "--set", "exploit.width=64", "--population", "3", "--max-iters", "5"]
+    rc, _, err = run_main([*argv, "--generations", "0", "--no-prune", "--out", out],
+                          capsys, monkeypatch)  # fmt: skip
+    assert rc == 0, err
+    assert json.loads((out / "config.json").read_text())["config"]["exploit"]["width"] == 64
+    # Generation 0 is one structure (identical minimal starts), padded to the run's 3 rows:
+    # 64 // 3 = 21 candidates (the default of its 8-gene bucket is 10), 5 iterations; XOR is
+    # not noisy and nothing is pruned, so every evaluation is a candidate's.
+    (record,) = [json.loads(x) for x in (out / "generations.jsonl").read_text().splitlines()]
+    assert record["exploited"] == 1 and record["evaluations"] == 5 * 21, record
+    rc, _, err = run_main([*argv, "--set", "exploit.popsize=8", "--out", tmp_path / "both"],
+                          capsys, monkeypatch)  # fmt: skip
+    assert rc == 2 and len(err) == 1 and "are both set" in err[0], err
+    assert not (tmp_path / "both").exists()

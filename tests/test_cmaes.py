@@ -180,6 +180,89 @@ def test_default_params_traced_n():
         _assert_params_match(n, 8, jax.tree.map(lambda a, i=i: a[i], batched))
 
 
+def tutorial_params(n: int, popsize: int, diagonal: bool = False) -> dict[str, np.ndarray]:
+    """Hansen's tutorial (arXiv:1604.00772, Table 1 and Eqs. 48-58) in float64 NumPy; with
+    ``diagonal``, Ros & Hansen's rates: c_1 and c_mu times (n + 2) / 3, c_mu capped at
+    1 - c_1 (less the kernel's 1e-8), as kernels/cmaes.py documents."""
+    w = np.log((popsize + 1) / 2) - np.log(np.arange(1, popsize + 1))  # Eq. (48)
+    pos, neg = w[: popsize // 2], w[popsize // 2 :]
+    mu_eff, mu_eff_minus = pos.sum() ** 2 / (pos**2).sum(), neg.sum() ** 2 / (neg**2).sum()
+    c_1 = 2 / ((n + 1.3) ** 2 + mu_eff)  # Eq. (57)
+    c_mu = 2 * (mu_eff - 2 + 1 / mu_eff) / ((n + 2) ** 2 + mu_eff)  # Eq. (58)
+    if diagonal:
+        c_1, c_mu = c_1 * (n + 2) / 3, c_mu * (n + 2) / 3
+    c_mu = min(1 - c_1 - 1e-8, c_mu)
+    alpha = min(1 + c_1 / c_mu, 1 + 2 * mu_eff_minus / (mu_eff + 2))  # Eqs. (50), (51)
+    alpha = min(alpha, (1 - c_1 - c_mu) / (n * c_mu))  # Eq. (52)
+    weights = np.where(w >= 0, w / w[w > 0].sum(), alpha * w / np.abs(w[w < 0]).sum())  # (53)
+    c_sigma = (mu_eff + 2) / (n + mu_eff + 5)  # Eq. (55)
+    d_sigma = 1 + 2 * max(0.0, math.sqrt((mu_eff - 1) / (n + 1)) - 1) + c_sigma
+    c_c = (4 + mu_eff / n) / (n + 4 + 2 * mu_eff / n)  # Eq. (56)
+    return {"weights": weights, "mu_eff": mu_eff, "c_1": c_1, "c_mu": c_mu, "c_c": c_c,
+            "c_sigma": c_sigma, "d_sigma": d_sigma}  # fmt: skip
+
+
+# Populations of thousands (ExploitConfig.width: docs/algorithm.md, "Batch width"); n = 5
+# puts c_mu at its cap 1 - c_1, where the negative weights vanish (Eq. 52).
+LARGE = [(20, 1000), (100, 4096), (5, 1000)]
+
+
+@pytest.mark.parametrize(("n", "popsize"), LARGE)
+def test_large_population_params_are_the_tutorial_s_and_pycma_s(n, popsize):
+    """At large lambda the weights and rates are Hansen's tutorial's (float32, 1e-5
+    relative; a weight near the zero crossing of Eq. 48, a difference of two float32 logs
+    of about ln(lambda / 2), to 1e-6 of the largest weight), and pycma's where pycma keeps
+    the tutorial's formulas: mu, the positive weights, mu_eff, c_1, c_c, and the negative
+    weights of Eqs. (50)-(53) (pycma's `finalize_negative_weights`) given our c_mu.
+
+    pycma departs from the tutorial in c_mu (its rankmu_offset adds 0.25 to mu_eff in the
+    numerator: 0.1% at n = 20, lambda = 1000) and, in pycma 4.x, in c_sigma (capped at 0.5)
+    and d_sigma (its own damping): n = 20, lambda = 1000 gives c_sigma 0.918 and d_sigma
+    6.87 here, 0.5 and 15.9 in pycma 4.5. Those are not compared."""
+    import warnings
+
+    import cma
+    from cma.recombination_weights import RecombinationWeights
+
+    ours = cmaes.default_params(n, popsize)
+    ref = tutorial_params(n, popsize)
+    w_atol = 1e-6 * np.abs(ref["weights"]).max()
+    for name, want in ref.items():
+        got = np.asarray(getattr(ours, name), np.float64)
+        atol = w_atol if name == "weights" else 0
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=atol, err_msg=name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        options = {"popsize": popsize, "verbose": -9, "seed": 1}
+        sp = cma.CMAEvolutionStrategy(np.zeros(n), 0.5, options).sp
+    weights, mu = np.asarray(ours.weights, np.float64), sp.weights.mu
+    assert mu == popsize // 2 == int((weights > 0).sum())
+    np.testing.assert_allclose(weights[:mu], sp.weights[:mu], rtol=1e-5, atol=w_atol)
+    for name, theirs in [("mu_eff", sp.weights.mueff), ("c_1", sp.c1), ("c_c", sp.cc)]:
+        np.testing.assert_allclose(float(getattr(ours, name)), theirs, rtol=1e-5, err_msg=name)
+    assert abs(sp.cmu - float(ours.c_mu)) <= 2e-3 * sp.cmu  # the offset alone
+    negative = RecombinationWeights(popsize)
+    negative.finalize_negative_weights(n, float(ours.c_1), float(ours.c_mu))
+    np.testing.assert_allclose(weights[mu:], negative[mu:], rtol=1e-5, atol=w_atol)
+
+
+@pytest.mark.parametrize(("n", "popsize"), LARGE[:2])
+def test_large_population_separable_params_are_ros_and_hansen_s(n, popsize):
+    """The separable variant (`kernels.sepcmaes`, the same `default_params`) at large
+    lambda: the tutorial's weights with Ros & Hansen's rates; c_mu then sits at its cap
+    1 - c_1 and the negative weights are 0 (Eq. 52). pycma's CMA_diagonal has its own rates
+    (c1_sep, cmu_sep: 0.0240 and 0.976 at n = 20, lambda = 1000, against 0.0207 and 0.979
+    here), not compared."""
+    ours = cmaes.default_params(n, popsize, diagonal=True)
+    ref = tutorial_params(n, popsize, diagonal=True)
+    for name in ("weights", "mu_eff", "c_1", "c_mu"):
+        got = np.asarray(getattr(ours, name), np.float64)
+        atol = 1e-6 * np.abs(ref["weights"]).max() if name == "weights" else 0
+        np.testing.assert_allclose(got, ref[name], rtol=1e-5, atol=atol, err_msg=name)
+    assert float(ours.c_mu) == pytest.approx(1 - float(ours.c_1), rel=1e-6)
+    assert np.all(np.asarray(ours.weights)[popsize // 2 :] == 0)
+
+
 # --------------------------------------------------------------------------------------------
 # 2. One tell and one ask against evosax / the definition.
 

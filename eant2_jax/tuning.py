@@ -32,7 +32,7 @@ import numpy as np
 
 from . import distributed, programs, rescoring
 from . import exploitation as ex
-from .compiler import Bucket, CompiledBatch, compile_genomes
+from .compiler import Bucket, CompiledBatch, batch_rows, compile_genomes
 from .evaluate import as_genomes
 from .genome import Genome
 from .pruning import PruneAttempt, attempt_records, prune_genome, tables_for
@@ -54,13 +54,16 @@ __all__ = [
 ]
 
 
-def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch) -> int:
+def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch, rows: int | None = None) -> int:
     """The population size of a batch, the one rule (docs/algorithm.md, "Batch width"):
     ``config.popsize`` if set; else, with ``config.width``, ``max(default, width // rows)``;
     else the default. ``default`` is the CMA-ES default
-    (`eant2_jax.exploitation.default_popsize`) of the batch's padded gene count, and
-    ``rows`` the batch's rows, padding rows included (with a device mesh, the rows of every
-    device: ``width`` counts the networks of the whole batch).
+    (`eant2_jax.exploitation.default_popsize`) of the batch's padded gene count.
+
+    ``rows``: the batch's rows, padding rows included, as one device would hold them
+    (default: the batch's own rows). `prepare` passes the rows before they are rounded up
+    to a multiple of a device mesh's size: ``width`` counts the networks of the whole batch,
+    on every device together, and a mesh changes placement only, never the popsize.
 
     The default follows the gene bucket rather than each structure's own size so that every
     batch of one bucket shares one compiled program; within a bucket the padded count
@@ -74,7 +77,8 @@ def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch) -> int:
     default = ex.default_popsize(batch.bucket.genes)
     if config.width is None:
         return default
-    return max(default, config.width // batch.layout.slot.shape[0])
+    rows = batch.layout.slot.shape[0] if rows is None else rows
+    return max(default, config.width // rows)
 
 
 class Prepared(NamedTuple):
@@ -126,7 +130,10 @@ def prepare(
         multiple_of=multiple_of,
     )
     rows = batch.layout.slot.shape[0]
-    popsize = popsize_for(config, batch)
+    # The rows one device would hold: a mesh does not change the popsize (`popsize_for`).
+    popsize = popsize_for(
+        config, batch, batch_rows(len(genomes), min_rows=min_rows, pad_count=pad_count)
+    )
     if keys is None:
         keys = jax.eval_shape(start_keys, key, rows) if abstract else start_keys(key, rows)
     elif keys.shape[0] != rows:

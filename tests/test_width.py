@@ -6,6 +6,10 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
+import textwrap
 
 import jax
 import numpy as np
@@ -33,17 +37,17 @@ def plain_popsize(genes: int, rows: int, popsize: int | None, width: int | None)
 
 def test_popsize_for_follows_the_width_rule():
     seen = set()
-    for count, min_rows, multiple_of in [(1, 1, 1), (3, 1, 1), (3, 10, 1), (5, 1, 8), (2, 40, 1)]:
-        batch = compile_genomes(
-            [START] * count, 2, min_rows=min_rows, multiple_of=multiple_of, pad_count=True
-        )
+    for count, min_rows in [(1, 1), (3, 1), (3, 10), (5, 1), (2, 40)]:
+        batch = compile_genomes([START] * count, 2, min_rows=min_rows, pad_count=True)
         rows, genes = batch.layout.slot.shape[0], batch.bucket.genes
-        # Rows count the padding, the device rounding (multiple_of) included.
-        assert rows >= max(count, min_rows) and rows % multiple_of == 0
+        assert rows >= max(count, min_rows)  # padding rows count
         for popsize, width in [(None, None), (None, 16), (None, 64), (None, 4096), (7, None)]:
             config = ExploitConfig(popsize=popsize, width=width)
             got = popsize_for(config, batch)
             assert got == plain_popsize(genes, rows, popsize, width), (rows, popsize, width)
+            # Rows given (`prepare`'s, before a mesh rounds them up) replace the batch's.
+            given = popsize_for(config, batch, rows + 3)
+            assert given == plain_popsize(genes, rows + 3, popsize, width)
             if width is not None:
                 seen.add("width" if width // rows > got - 1 else "floor")
     assert seen == {"width", "floor"}  # both sides of the max were taken
@@ -96,6 +100,38 @@ def test_a_wide_batch_evaluates_rows_times_its_popsize_and_repeats_to_the_bit():
     again = _wide_tune(jax.random.key(3))
     assert again.costs == res.costs and again.genomes == res.genomes
     np.testing.assert_array_equal(np.asarray(again.history.sigma), np.asarray(res.history.sigma))
+
+
+MESH = """
+import json
+import jax
+import eant2_jax as E
+from eant2_jax import distributed, tuning
+from eant2_jax.exploitation import popsize_of
+assert len(jax.devices()) == 4
+genomes = [E.Genome.parse("N0/4*1 N1/3*0.1 I0*0.1 I1*-0.1 B*0.05 I0*0.1 I1*0.1 B*0.0")] * 3
+config = E.ExploitConfig(width=64, max_iters=4, pruner="none")
+runs = [tuning.tune(genomes, E.tasks.xor(), key=jax.random.key(3), config=config, mesh=mesh)
+        for mesh in (None, distributed.make_mesh(4))]
+print(json.dumps({"rows": [r.history.running.shape[1] for r in runs],
+                  "popsize": [popsize_of(r.state) for r in runs],
+                  "evaluations": [r.evaluations for r in runs], "costs": [r.costs for r in runs]}))
+"""
+
+
+@pytest.mark.slow  # a fresh interpreter with 4 CPU devices: about 20 s on 2 busy cores
+def test_a_device_mesh_changes_placement_only_not_the_popsize():
+    """Width counts the whole batch, on every device; the rows a mesh adds to split the
+    batch evenly (3 rows -> 4 over 4 CPU devices) change neither the popsize nor the run."""
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
+    proc = subprocess.run([sys.executable, "-W", "error", "-c", textwrap.dedent(MESH)],
+                          env=env, capture_output=True, text=True, timeout=240)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["rows"] == [3, 4] and out["popsize"] == [64 // 3] * 2
+    assert out["evaluations"][0] == out["evaluations"][1]
+    # Up to float reduction order across devices (tests/test_distributed.py says why).
+    np.testing.assert_allclose(out["costs"][1], out["costs"][0], rtol=1e-3)
 
 
 def test_optimize_takes_width_as_its_one_row_s_popsize():

@@ -32,7 +32,8 @@ whole batch, so a run's result also depends on the group it ran in. A killed gro
 exactly (on a task that is not noisy): the group's bucket is the largest its members'
 checkpoints hold, and runs a generation behind the others (killed between two commits)
 catch up first. How much a group saves depends on how full one run's batch already keeps
-the device (docs/benchmarks.md, "Many runs on one GPU").
+the device (docs/benchmarks.md, "Not rerun on today's code": the lock-step measurement
+is in git history).
 
 The library never prints: progress goes to ``callback(event: dict)``.
 """

@@ -27,8 +27,9 @@ bucket, up to the float rounding of wider padded sums (tests/test_lockstep.py). 
 is the group's (it grows with the largest structure of any run), and the default CMA-ES
 popsize follows it (`eant2_jax.tuning.popsize_for`), so a run in a group can differ from
 the same key run alone; with ``ExploitConfig.width`` the width is shared by the group's rows,
-so a run in a group of K gets about K times fewer candidates than alone. On a noisy task the episodes of an iteration are shared by the
-whole batch, so a run's result also depends on the group it ran in. A killed group resumes
+so a run in a group of K gets about K times fewer candidates than alone. On a noisy task
+the episodes of an iteration are shared by the whole batch, so a run's result also depends
+on the group it ran in. A killed group resumes
 exactly (on a task that is not noisy): the group's bucket is the largest its members'
 checkpoints hold, and runs a generation behind the others (killed between two commits)
 catch up first. How much a group saves depends on how full one run's batch already keeps

@@ -308,6 +308,9 @@ def _options(p: argparse.ArgumentParser) -> None:
                    help="new episodes each champion plays after the run")  # fmt: skip
     p.add_argument("--backend", default="spring", help="brax physics backend, both methods")
     p.add_argument("--max-iters", type=int, default=None, help="eant2 CMA-ES iterations override")
+    p.add_argument("--width", type=int, default=None,
+                   help="--protocol trial: eant2's ExploitConfig.width (networks per engine "
+                        "batch) in place of its frozen popsize")  # fmt: skip
     p.add_argument("--tensorneat", default=None,
                    help="folder holding TensorNEAT's tensorneat package (its src/)")  # fmt: skip
     p.add_argument("--tensorneat-pop", type=int, default=None,
@@ -322,6 +325,8 @@ def _prepare(args: argparse.Namespace) -> None:
         return field_protocol.prepare(args)
     if args.resume or args.checkpoint:
         raise BenchInputError("--checkpoint and --resume belong to --protocol")
+    if args.width is not None:
+        raise BenchInputError("--width belongs to --protocol (a trial's option)")
     args.seeds = 3 if args.seeds is None else args.seeds
     args.first_seed = 0 if args.first_seed is None else args.first_seed
     args.deadline_s = args.deadline_s or 600.0

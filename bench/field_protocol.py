@@ -14,7 +14,7 @@ TensorNEAT run starts again (a device call's time limit loses at most that). The
 are rewritten after every seed.
 
 Without overrides it runs the protocol's seeds (4000-4009 gymnax, 4000-4004 brax). Any of
-``--seeds/--first-seed/--budget/--population/--max-iters/--tensorneat-pop`` makes it a
+``--seeds/--first-seed/--budget/--population/--max-iters/--width/--tensorneat-pop`` makes it a
 **trial**: written to ``field-protocol-trial-<device>`` and labelled as not the protocol's.
 """
 
@@ -37,6 +37,7 @@ from bench.field_settings import ENVS, SEEDS, budgets, table
 __all__ = [
     "METHODS",
     "add_options",
+    "call_settings",
     "hold_no_device_memory",
     "prepare",
     "protocol_child_env",
@@ -45,7 +46,7 @@ __all__ = [
     "trial_overrides",
 ]
 
-TRIAL = ("budget", "population", "max_iters", "tensorneat_pop")
+TRIAL = ("budget", "population", "max_iters", "width", "tensorneat_pop")
 
 
 def _train_argv(method: str, args: argparse.Namespace, env: str, seed: int, out: Path) -> list:
@@ -54,7 +55,9 @@ def _train_argv(method: str, args: argparse.Namespace, env: str, seed: int, out:
     pop = args.tensorneat_pop or ENVS[env]["tensorneat"]["pop_size"]
     if args.budget:
         argv += ["--pop", str(pop), "--generations", str(max(1, args.budget // pop))]
-    for flag, v in (("--population", args.population), ("--max-iters", args.max_iters)):
+    eant2 = (("--population", args.population), ("--max-iters", args.max_iters),
+             ("--width", args.width))  # fmt: skip
+    for flag, v in eant2:
         if v is not None and method == "eant2":
             argv += [flag, str(v)]
     if method == "tensorneat":
@@ -92,7 +95,7 @@ def prepare(args: argparse.Namespace) -> None:
     bad = [e for e in args.envs if e not in ENVS]
     if bad:
         raise BenchInputError(f"--protocol runs {', '.join(ENVS)}; not {', '.join(bad)}")
-    for name in ("seeds", "budget", "population", "max_iters", "tensorneat_pop"):
+    for name in ("seeds", "budget", "population", "max_iters", "width", "tensorneat_pop"):
         v = getattr(args, name)
         if v is not None and v < 1:
             raise BenchInputError(f"--{name.replace('_', '-')} must be at least 1")
@@ -125,9 +128,14 @@ def _budgets(args: argparse.Namespace) -> dict[str, list[int]]:
     return out
 
 
-def _settings(args: argparse.Namespace) -> dict[str, Any]:
+def call_settings(args: argparse.Namespace) -> dict[str, Any]:
+    """What a checkpoint must share with the call that resumes it: the frozen settings, the
+    call's options and its seeds."""
     keep = ("envs", "methods", "seeds", "first_seed", *TRIAL)
-    return {"frozen": table(args.envs), "args": {k: getattr(args, k) for k in keep},
+    # --width came later: left out while unset, so a checkpoint written before it still
+    # matches the call that resumes it.
+    given = {k: getattr(args, k) for k in keep if k != "width" or args.width is not None}
+    return {"frozen": table(args.envs), "args": given,
             "seed_lists": {e: _seeds(args, e) for e in args.envs}}  # fmt: skip
 
 
@@ -223,7 +231,7 @@ def _seed(args, env: str, seed: int, runs: Path, budget_list: list[int]) -> dict
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     from bench.field_stats import summarise
 
-    settings = _settings(args)
+    settings = call_settings(args)
     ckpt = Path(args.checkpoint)
     records = _read_checkpoint(ckpt, settings) if args.resume else []
     if not ckpt.exists():

@@ -28,7 +28,16 @@ import numpy as np
 
 from bench.field_settings import ENVS, TOP, budgets
 
-__all__ = ["Log", "judge", "main", "method_networks", "protocol_task", "resume_log", "train_eant2"]
+__all__ = [
+    "Log",
+    "eant2_config",
+    "judge",
+    "main",
+    "method_networks",
+    "protocol_task",
+    "resume_log",
+    "train_eant2",
+]
 
 
 class Log:
@@ -64,9 +73,29 @@ def protocol_task(env: dict[str, Any], episodes: int):
                       backend=env["backend"])  # fmt: skip
 
 
+def eant2_config(env: dict[str, Any], *, budget: int, population: int | None = None,
+                 max_iters: int | None = None, width: int | None = None):  # fmt: skip
+    """The protocol's `eant2_jax.EANT2Config` for ``env`` (its frozen settings), a trial's
+    ``population``, ``max_iters`` or ``width`` in their place where given (``width`` sets
+    ``ExploitConfig.width`` and leaves the popsize to its rule)."""
+    import eant2_jax
+
+    s = env["eant2"]
+    exploit = eant2_jax.ExploitConfig(
+        pruner=s["pruner"], max_iters=max_iters or s["max_iters"], rescore=s["rescore"],
+        popsize=None if width else s["popsize"], width=width,
+    )  # fmt: skip
+    return eant2_jax.EANT2Config(
+        population=population or s["population"], max_evaluations=budget,
+        reexploit=s["reexploit"], inherit_search=s["reexploit"],
+        min_bucket=tuple(s["min_bucket"]) if s["min_bucket"] else None, stop_when_solved=False,
+        exploit=exploit,
+    )  # fmt: skip
+
+
 def train_eant2(env: dict[str, Any], *, seed: int, budget: int, log: Log, top: int = TOP,
                 population: int | None = None, max_iters: int | None = None,
-                rundir: str | Path | None = None) -> None:  # fmt: skip
+                width: int | None = None, rundir: str | Path | None = None) -> None:  # fmt: skip
     """The protocol's eant2_jax run: ``eant2_jax.run`` with the frozen settings; after each
     generation its population after selection (read from the run directory, the time not
     counted) offered to the archive.
@@ -82,15 +111,9 @@ def train_eant2(env: dict[str, Any], *, seed: int, budget: int, log: Log, top: i
     from bench.field_champions import Archive
     from eant2_jax import checkpoint
 
-    s = env["eant2"]
     task = protocol_task(env, env["episodes"])
-    config = eant2_jax.EANT2Config(
-        population=population or s["population"], max_evaluations=budget,
-        reexploit=s["reexploit"], inherit_search=s["reexploit"],
-        min_bucket=tuple(s["min_bucket"]) if s["min_bucket"] else None, stop_when_solved=False,
-        exploit=eant2_jax.ExploitConfig(pruner=s["pruner"], max_iters=max_iters or s["max_iters"],
-                                        rescore=s["rescore"], popsize=s["popsize"]),
-    )  # fmt: skip
+    config = eant2_config(env, budget=budget, population=population, max_iters=max_iters,
+                          width=width)  # fmt: skip
     log.data.update(kind="eant2", settings=config.to_dict())
     archive, candidates = Archive(top), log.data.setdefault("candidates", {})
     curve = log.data["curve"]
@@ -220,7 +243,7 @@ def _train(args: argparse.Namespace) -> None:
     log.data["budget"] = budget
     if args.method == "eant2":
         train_eant2(env, seed=args.seed, budget=budget, log=log, population=args.population,
-                    max_iters=args.max_iters, rundir=args.rundir)  # fmt: skip
+                    max_iters=args.max_iters, width=args.width, rundir=args.rundir)  # fmt: skip
     else:
         from bench.field_tensorneat import train
 
@@ -247,6 +270,7 @@ def main(argv: list[str]) -> int:
     p.add_argument("--generations", type=int, default=None, help="a trial's TN generations")
     p.add_argument("--population", type=int, default=None, help="a trial's eant2 population")
     p.add_argument("--max-iters", type=int, default=None, help="a trial's eant2 iterations")
+    p.add_argument("--width", type=int, default=None, help="a trial's eant2 batch width")
     p.add_argument("--deadline-s", type=float, default=math.inf)
     p.add_argument("--rundir", default=None, help="eant2: keep (and go on from) this run dir")
     p.add_argument("--budgets", type=int, nargs="+", default=None, help="reporting budgets")

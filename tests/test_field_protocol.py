@@ -9,6 +9,7 @@ checkpoint.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import math
@@ -28,6 +29,7 @@ from bench import (
     field_stats,
     field_tnet,
     field_workers,
+    harness,
 )
 from bench.common import BenchInputError
 
@@ -351,6 +353,37 @@ def test_frozen_settings_are_the_protocols():
     for env in fs.ENVS.values():
         assert fs.budgets(env) == [25_000, 50_000, 100_000]
     assert json.loads(json.dumps(fs.table()))["budgets"]["hopper"] == [25_000, 50_000, 100_000]
+
+
+def test_a_width_trial_reaches_eant2_alone_and_older_checkpoints_still_match(tmp_path):
+    """``--width W`` (issue 41): a --protocol trial whose eant2_jax run takes
+    ``ExploitConfig.width = W`` in place of its frozen popsize; TensorNEAT's argv is
+    untouched, and a call without it has the settings a checkpoint written before the
+    option existed holds."""
+    from bench.field_settings import ENVS
+
+    env = ENVS["hopper"]
+    frozen = field_workers.eant2_config(env, budget=1000)
+    assert (frozen.exploit.popsize, frozen.exploit.width) == (env["eant2"]["popsize"], None)
+    wide = field_workers.eant2_config(env, budget=1000, width=4096)
+    assert (wide.exploit.popsize, wide.exploit.width) == (None, 4096)
+    assert dataclasses.replace(wide, exploit=frozen.exploit) == frozen  # nothing else moves
+
+    (tmp_path / "tensorneat").mkdir()
+    (tmp_path / "tensorneat" / "pipeline.py").write_text("")  # found, never imported here
+    argv = ["--protocol", "--envs", "hopper", "--width", "4096", "--tensorneat", str(tmp_path),
+            "--out", str(tmp_path / "f.json")]  # fmt: skip
+    args = harness.parse_args(bench_field.SUITE, argv)
+    assert args.trial and "--width" in field_protocol.trial_overrides(args)
+    out = tmp_path / "run.json"
+    eant2 = field_protocol.METHODS["eant2"]("eant2", args, "hopper", 4000, out)
+    tn = field_protocol.METHODS["tensorneat"]("tensorneat", args, "hopper", 4000, out)
+    assert eant2[eant2.index("--width") + 1] == "4096" and "--width" not in tn
+    assert field_protocol.call_settings(args)["args"]["width"] == 4096
+    args.width = None
+    assert "width" not in field_protocol.call_settings(args)["args"]
+    with pytest.raises(BenchInputError, match="--width belongs to --protocol"):
+        bench_field.main(["--width", "64", "--quick", "--out", str(tmp_path / "g.json")])
 
 
 class _Killed(Exception):

@@ -33,8 +33,8 @@ on the group it ran in. A killed group resumes
 exactly (on a task that is not noisy): the group's bucket is the largest its members'
 checkpoints hold, and runs a generation behind the others (killed between two commits)
 catch up first. How much a group saves depends on how full one run's batch already keeps
-the device (docs/benchmarks.md, "Not rerun on today's code": the lock-step measurement
-is in git history).
+the device (the lock-step measurement of 2026-11-23 is in git history with the brax
+results: ``git log -- 'bench/results/brax-*'``).
 
 The library never prints: progress goes to ``callback(event: dict)``.
 """

@@ -6,38 +6,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from .linalg import eigh  # safe on several CPU devices (see there)
+
 __all__ = ["eigen", "eigh", "symmetrised"]
-
-
-@jax.custom_batching.custom_vmap
-def _one_at_a_time(a: jax.Array) -> tuple[jax.Array, jax.Array]:
-    lam, vec = jnp.linalg.eigh(a)
-    return lam, vec
-
-
-@_one_at_a_time.def_vmap
-def _one_at_a_time_batched(axis_size, in_batched, a):
-    del axis_size
-    if not in_batched[0]:
-        return _one_at_a_time(a), (False, False)
-    return jax.lax.map(_one_at_a_time, a), (True, True)
-
-
-def eigh(a: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``jnp.linalg.eigh`` of ONE symmetric matrix, with the same bits under ``vmap``.
-
-    On a CPU backend with more than one device, a batch of matrices is decomposed one
-    matrix at a time (``lax.map``) instead of by jaxlib's batched LAPACK kernel. That kernel
-    splits its batch over XLA's CPU thread pool and waits for it from a thread of the same
-    pool; when every device's program holds a thread of the pool in such a wait (two
-    devices on two cores), nothing runs the batch and the process hangs
-    (docs/reliability.md, "Several CPU devices"). LAPACK decomposes each matrix of a batch
-    alone, so both ways give the same bits (tests/test_distributed.py). Elsewhere this is
-    ``jnp.linalg.eigh``.
-    """
-    if jax.default_backend() == "cpu" and jax.device_count() > 1:
-        return _one_at_a_time(a)
-    return jnp.linalg.eigh(a)
 
 
 def symmetrised(C: jax.Array, mask: jax.Array) -> jax.Array:

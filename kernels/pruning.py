@@ -24,7 +24,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from . import pytree
+from . import linalg, pytree
 
 __all__ = [
     "PRUNERS",
@@ -222,7 +222,7 @@ def condition(C: jax.Array, keep: jax.Array, remove: jax.Array) -> jax.Array:
     # C_RR padded with the identity outside R, so the solve is well-posed at fixed shape.
     c_rr = jnp.where(rr, C, 0) + jnp.diag(jnp.where(remove, 0, 1).astype(C.dtype))
     c_rk = jnp.where(remove[:, None] & keep[None, :], C, 0)
-    x = jnp.linalg.solve(c_rr, c_rk)  # C_RR^-1 C_RK, zero rows outside R
+    x = linalg.solve(c_rr, c_rk)  # C_RR^-1 C_RK, zero rows outside R
     out = C - c_rk.T @ x
     out = 0.5 * (out + out.T)
     return jnp.where(keep[:, None] & keep[None, :], out, 0)

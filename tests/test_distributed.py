@@ -97,12 +97,12 @@ def test_one_sharded_iteration_equals_unsharded():
 
 
 def test_two_cpu_devices_with_several_structures_each_do_not_hang():
-    """On two cores, two CPU devices each running a batch of eigendecompositions held both
-    threads of XLA's pool while jaxlib's batched LAPACK kernel waited on that pool for its
-    batch: this run hung in its first chunk, under some timings, not in every attempt
-    (kernels/eigen.py, `eigh`). The subprocess's timeout turns a hang into a failure. With
-    several CPU devices `eigh` decomposes a batch one matrix at a time: the same bits as the
-    batched kernel, checked here on fresh random matrices."""
+    """On two cores, two CPU devices each running a batch of eigendecompositions (or of the
+    pruner's solves: an LU) held both threads of XLA's pool while jaxlib's batched LAPACK
+    kernel waited on that pool for its batch: this run hung in its first chunk, under some
+    timings, not in every attempt (kernels/linalg.py). The subprocess's timeout turns a hang
+    into a failure. With several CPU devices `eigh` and `solve` take a batch one matrix at a
+    time: the same bits as the batched kernels, checked here on fresh random matrices."""
     out = _python(
         """
         from eant2_jax.kernels import eigen
@@ -111,6 +111,14 @@ def test_two_cpu_devices_with_several_structures_each_do_not_hang():
         got, want = jax.jit(jax.vmap(eigen.eigh))(m), jax.jit(jax.vmap(jnp.linalg.eigh))(m)
         assert all(np.array_equal(np.asarray(g), np.asarray(w)) for g, w in zip(got, want))
         assert "scan" in str(jax.make_jaxpr(jax.vmap(eigen.eigh))(m))  # one at a time
+        from eant2_jax.kernels import linalg
+        b = jnp.asarray(np.random.default_rng().normal(size=(5, 7, 3)).astype(np.float32))
+        got, want = jax.jit(jax.vmap(linalg.solve))(m, b), jax.jit(jax.vmap(jnp.linalg.solve))(m, b)
+        assert np.array_equal(np.asarray(got), np.asarray(want))
+        shared = (jax.vmap(f, in_axes=(0, None)) for f in (linalg.solve, jnp.linalg.solve))
+        one, ref = (np.asarray(jax.jit(f)(m, b[0])) for f in shared)  # b shared by the batch
+        assert np.array_equal(one, ref)
+        assert "scan" in str(jax.make_jaxpr(jax.vmap(linalg.solve))(m, b))
         from bench.common import random_population
         from eant2_jax import exploitation as ex
         r = np.random.default_rng(0)

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from docs_outputs import same
 
 import eant2_jax
 from eant2_jax import EANT2Config, ExploitConfig, pytree, tasks
@@ -439,4 +440,4 @@ def test_the_docs_example_prints_what_the_docs_show():
     doc = (ROOT / "docs" / "tasks-custom.md").read_text()
     shown = doc.split("<!-- output of docs/examples/point_mass.py -->\n```text\n")[1]
     shown = shown.split("```")[0]
-    assert _mask_times(proc.stdout) == _mask_times(shown)
+    assert same(_mask_times(proc.stdout), _mask_times(shown)), proc.stdout

@@ -5,8 +5,11 @@ its default, on four small noiseless regressions whose redundancy is known: an i
 effect, a duplicated bias, two parallel connections, a duplicated hidden neuron. Each case
 on the protocol's reported seeds 6000-6019 (the rule was chosen on seeds 100-199): a seed
 holds if the redundant connection is gone from the returned network and nothing it needs
-is; the protocol asks for at least 18 of 20. And: ``add_bias`` never gives a neuron a
-second bias.
+is; the protocol asks for at least 18 of 20, a claim measured on one machine: another CPU
+model rounds differently and its searches take other paths (docs/algorithm.md,
+"Determinism and keys"; docs/pruning.md, section 11), so elsewhere the suite asks for three
+in four. Nothing needed may ever be lost, on any machine. And: ``add_bias`` never gives a
+neuron a second bias.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import functools
 import jax
 import numpy as np
 import pytest
+from docs_outputs import recording_machine
 from hypothesis import given
 from hypothesis import strategies as st
 from strategies import genomes
@@ -26,7 +30,8 @@ from eant2_jax.genome import GeneKind, Genome
 from eant2_jax.tasks import regression
 
 SEEDS = range(6000, 6020)  # docs/protocol.md: the plain cases' reported seeds
-HELD = 18  # of 20: the protocol's 90%
+HELD = 18  # of 20: the protocol's 90%, on the machine the docs were recorded on
+FLOOR = 15  # of 20, on another CPU model (docs/pruning.md, section 11)
 N_SAMPLES = 64
 
 
@@ -125,7 +130,8 @@ def test_plain_case_is_pruned_with_defaults(name, output):
         if gone and kept:
             held.append(seed)
     assert not lost, lost  # nothing needed is ever removed
-    assert len(held) >= HELD, (name, output, sorted(set(SEEDS) - set(held)))
+    need = HELD if recording_machine() else FLOOR
+    assert len(held) >= need, (name, output, sorted(set(SEEDS) - set(held)))
 
 
 # ------------------------------------------------------------------------------- add_bias

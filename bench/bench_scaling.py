@@ -6,10 +6,13 @@ axis. Weak scaling: S grows with the device count (``--per-device`` structures e
 scaling: S is fixed (``--strong``). Each case is timed after a warm-up call that compiles.
 
 Each row also times the engine alone (`eant2_jax.exploitation.run` on a prepared batch: the
-devices' loops and the host's one read per chunk) and gives the rest of a generation, the
-host's handover (compiling the genomes, the engine start, turning the results back into
-genomes), which grows with the structures and is not split over devices: where it is a large
-share, more devices cannot help (docs/design.md, "Many devices").
+batch's placement on the devices, the devices' loops and the host's one read per chunk), the
+loops alone (the same call on a batch placed beforehand, so that engine minus loops is the
+placement) and gives the rest of a generation, the host's handover (compiling the genomes,
+the engine start, turning the results back into genomes), which grows with the structures
+and is not split over devices: where it is a large share, more devices cannot help
+(docs/design.md, "Many devices"). ``loops speed-up`` is the loops' structures per second
+against one device's: what the devices' programs alone scale by.
 
 Run: ``python -m bench scaling [--devices 1 2 4] [--quick]``.
 """
@@ -28,11 +31,13 @@ from eant2_jax import distributed, tasks, tuning
 from eant2_jax import exploitation as ex
 
 
-def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float, float, float]:
-    """``(first call s, median s per tune, median s of the engine alone)``: the engine alone
-    is `exploitation.run` on a prepared batch (the devices' loops and the host's one read
-    per chunk); the rest of a tune is the host's handover (compile the genomes, start the
-    engine, turn the results back into genomes), which the devices do not split."""
+def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float, ...]:
+    """``(first call s, median s per tune, median s of the engine alone, median s of the
+    loops alone)``: the engine alone is `exploitation.run` on a prepared batch (placing it
+    on the devices, the devices' loops and the host's one read per chunk), the loops alone
+    the same call on a batch placed beforehand; the rest of a tune is the host's handover
+    (compile the genomes, start the engine, turn the results back into genomes), which the
+    devices do not split."""
     mesh = distributed.make_mesh(devices) if devices > 1 else None
     key = jax.random.key(0)
     t0 = time.perf_counter()
@@ -49,15 +54,22 @@ def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float,
     prep = tuning.prepare(
         genomes, task, key=init_key, config=config, multiple_of=distributed.size(mesh)
     )
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        st, _ = ex.run(
-            prep.state, prep.batch.layout, task, key=run_key, config=config,
-            tables=prep.tables, mesh=mesh,
-        )  # fmt: skip
-        jax.block_until_ready(st)
-        engine.append(time.perf_counter() - t0)
-    return first, sorted(times)[len(times) // 2], sorted(engine)[len(engine) // 2]
+    # Placed as `run` places them: `run` then finds every array where it belongs already.
+    st0, layout, tables, on_devices = ex.placed(
+        prep.state, prep.batch.layout, prep.tables, task, mesh
+    )
+    loops = []
+    for batch, out in (((prep.state, prep.batch.layout, prep.tables, task), engine),
+                       ((st0, layout, tables, on_devices), loops)):  # fmt: skip
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            st, _ = ex.run(
+                batch[0], batch[1], batch[3], key=run_key, config=config, tables=batch[2],
+                mesh=mesh,
+            )  # fmt: skip
+            jax.block_until_ready(st)
+            out.append(time.perf_counter() - t0)
+    return first, *(sorted(x)[len(x) // 2] for x in (times, engine, loops))
 
 
 def _options(p: argparse.ArgumentParser) -> None:
@@ -87,8 +99,8 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
         for d in counts:
             s = args.per_device * d if kind == "weak" else args.strong
             genomes = random_population(1, s, args.genes)
-            first, t, engine = time_case(task, genomes, config, d, args.repeats)
-            base = base or (t, s)
+            first, t, engine, loops = time_case(task, genomes, config, d, args.repeats)
+            base = base or (t, s, loops)
             # Speed-up in structures processed per second relative to 1 device.
             speedup = (s / t) / (base[1] / base[0])
             rows.append(
@@ -99,9 +111,12 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
                     "first_s": first,
                     "seconds": t,
                     "engine_s": engine,
+                    "loops_s": loops,
+                    "placement_s": engine - loops,
                     "host_s": t - engine,
                     "structures_per_s": s / t,
                     "speedup": speedup,
+                    "loops_speedup": (s / loops) / (base[1] / base[2]),
                 }
             )
     return {"environment": environment(), "config": harness.settings(args), "rows": rows}
@@ -114,9 +129,12 @@ COLUMNS = [
     Column("first_s", "first call s", "{:.1f}"),
     Column("seconds", "s / generation", "{:.3f}"),
     Column("engine_s", "engine s", "{:.3f}"),
+    Column("loops_s", "loops s", "{:.3f}"),
+    Column("placement_s", "placement s", "{:.3f}"),
     Column("host_s", "handover s", "{:.3f}"),
     Column("structures_per_s", "structures/s", "{:.1f}"),
     Column("speedup", "speed-up", "{:.2f}x"),
+    Column("loops_speedup", "loops speed-up", "{:.2f}x"),
 ]
 
 SUITE = harness.Suite(

@@ -1,0 +1,42 @@
+"""`python -m bench scaling`: weak and strong rows on two (virtual CPU) devices, with the
+engine split into the placement of the batch and the devices' loops."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+def test_quick_rows_split_the_engine_into_placement_and_loops(tmp_path):
+    out = tmp_path / "scaling.json"
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    proc = subprocess.run(
+        [sys.executable, "-m", "bench", "scaling", "--quick", "--devices", "1", "2",
+         "--out", str(out)],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["scaling"], r["devices"], r["structures"]) for r in rows] == [
+        ("weak", 1, 2), ("weak", 2, 4), ("strong", 1, 4), ("strong", 2, 4)
+    ]  # fmt: skip
+    for r in rows:
+        assert 0 < r["loops_s"] and 0 < r["engine_s"] and 0 < r["seconds"]
+        assert r["placement_s"] == pytest.approx(r["engine_s"] - r["loops_s"])
+        assert r["host_s"] == pytest.approx(r["seconds"] - r["engine_s"])
+    for first in (rows[0], rows[2]):  # one device is the base of both speed-ups
+        assert first["speedup"] == pytest.approx(1) and first["loops_speedup"] == pytest.approx(1)
+    weak2 = rows[1]  # twice the structures on two devices
+    assert weak2["loops_speedup"] == pytest.approx(
+        (4 / weak2["loops_s"]) / (2 / rows[0]["loops_s"])
+    )
+    md = out.with_suffix(".md").read_text()
+    assert "| loops s | placement s |" in md and "loops speed-up" in md

@@ -20,14 +20,13 @@ Run: ``python -m bench scaling [--devices 1 2 4] [--quick]``.
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
 from typing import Any
 
 import jax
 
 from bench import harness
-from bench.common import Column, environment, markdown_table, random_population, time_call
+from bench.common import Column, environment, markdown_table, random_population
 from eant2_jax import distributed, tasks, tuning
 from eant2_jax import exploitation as ex
 
@@ -44,7 +43,7 @@ def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float,
     t0 = time.perf_counter()
     tuning.tune(genomes, task, key=key, config=config, mesh=mesh)
     first = time.perf_counter() - t0
-    times = []
+    times, engine = [], []
     # The keys are made before the clock starts: a first fold_in compiles a small program.
     keys = [jax.random.fold_in(key, r + 1) for r in range(repeats)]
     for k in keys:
@@ -55,17 +54,22 @@ def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float,
     prep = tuning.prepare(
         genomes, task, key=init_key, config=config, multiple_of=distributed.size(mesh)
     )
-
-    def engine_s(st, layout, tables, on) -> float:
-        def call():
-            return ex.run(st, layout, on, key=run_key, config=config, tables=tables, mesh=mesh)[0]
-
-        return time_call(call, warmup=0, repeats=repeats).median_s
-
-    engine = engine_s(prep.state, prep.batch.layout, prep.tables, task)
     # Placed as `run` places them: `run` then finds every array where it belongs already.
-    loops = engine_s(*ex.placed(prep.state, prep.batch.layout, prep.tables, task, mesh))
-    return first, statistics.median(times), engine, loops
+    st0, layout, tables, on_devices = ex.placed(
+        prep.state, prep.batch.layout, prep.tables, task, mesh
+    )
+    loops = []
+    for batch, out in (((prep.state, prep.batch.layout, prep.tables, task), engine),
+                       ((st0, layout, tables, on_devices), loops)):  # fmt: skip
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            st, _ = ex.run(
+                batch[0], batch[1], batch[3], key=run_key, config=config, tables=batch[2],
+                mesh=mesh,
+            )  # fmt: skip
+            jax.block_until_ready(st)
+            out.append(time.perf_counter() - t0)
+    return first, *(sorted(x)[len(x) // 2] for x in (times, engine, loops))
 
 
 def _options(p: argparse.ArgumentParser) -> None:

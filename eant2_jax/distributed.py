@@ -100,16 +100,18 @@ def shard(tree, mesh: Mesh | None):
     """Place a pytree whose leaves have a leading structure axis, split along it."""
     if mesh is None:
         return tree
-    split = NamedSharding(mesh, P(AXIS))
-    return _put_tree(tree, lambda a: split)
+    leaves, treedef = jax.tree.flatten(tree)
+    specs = [NamedSharding(mesh, P(AXIS))] * len(leaves)
+    return jax.tree.unflatten(treedef, _put_all(leaves, specs))
 
 
 def replicate(tree, mesh: Mesh | None):
     """Place a pytree whole on every device of the mesh."""
     if mesh is None:
         return tree
-    whole = NamedSharding(mesh, P())
-    return _put_tree(tree, lambda a: whole)
+    leaves, treedef = jax.tree.flatten(tree)
+    specs = [NamedSharding(mesh, P())] * len(leaves)
+    return jax.tree.unflatten(treedef, _put_all(leaves, specs))
 
 
 def place(tree, mesh: Mesh | None, rows: int):
@@ -117,21 +119,23 @@ def place(tree, mesh: Mesh | None, rows: int):
     if mesh is None:
         return tree
     split, whole = NamedSharding(mesh, P(AXIS)), NamedSharding(mesh, P())
-    return _put_tree(tree, lambda a: split if np.ndim(a) >= 1 and np.shape(a)[0] == rows else whole)
+    leaves, treedef = jax.tree.flatten(tree)
+    specs = [split if np.ndim(a) >= 1 and np.shape(a)[0] == rows else whole for a in leaves]
+    return jax.tree.unflatten(treedef, _put_all(leaves, specs))
 
 
-def _put_tree(tree, sharding_of):
-    """Every leaf placed by ``sharding_of(leaf)``. In one process, the arrays go in ONE
+def _put_all(leaves: list, specs: list[NamedSharding]) -> list:
+    """Every leaf placed by its sharding. In one process, the arrays go in ONE
     ``jax.device_put`` (its copies batched, not one call and wait per leaf); keys and
     multi-process placement go leaf by leaf (`_put`)."""
-    leaves, treedef = jax.tree.flatten(tree)
-    specs = [sharding_of(a) for a in leaves]
     if jax.process_count() > 1:
-        return jax.tree.unflatten(treedef, [_put(a, s) for a, s in zip(leaves, specs, strict=True)])
-    pairs = [(a, s) for a, s in zip(leaves, specs, strict=True) if not _is_key(a)]
-    placed = iter(jax.device_put([a for a, _ in pairs], [s for _, s in pairs]))
-    out = [_put(a, s) if _is_key(a) else next(placed) for a, s in zip(leaves, specs, strict=True)]
-    return jax.tree.unflatten(treedef, out)
+        return [_put(a, s) for a, s in zip(leaves, specs, strict=True)]
+    plain = [i for i, a in enumerate(leaves) if not _is_key(a)]
+    placed = jax.device_put([leaves[i] for i in plain], [specs[i] for i in plain])
+    out = [_put(a, s) if _is_key(a) else None for a, s in zip(leaves, specs, strict=True)]
+    for i, a in zip(plain, placed, strict=True):
+        out[i] = a
+    return out
 
 
 def _is_key(a) -> bool:

@@ -323,8 +323,8 @@ def _prepare(args: argparse.Namespace) -> None:
         _check_tensorneat(args)
         args.deadline_s = args.deadline_s or 3600.0
         return field_protocol.prepare(args)
-    if args.resume or args.checkpoint:
-        raise BenchInputError("--checkpoint and --resume belong to --protocol")
+    if args.resume or args.checkpoint or args.peer_runs:
+        raise BenchInputError("--checkpoint, --resume and --peer-runs belong to --protocol")
     if args.width is not None:
         raise BenchInputError("--width belongs to --protocol (a trial's option)")
     args.seeds = 3 if args.seeds is None else args.seeds

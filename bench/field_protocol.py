@@ -13,6 +13,12 @@ TensorNEAT run starts again (a device call's time limit loses at most that). The
 (bench/field_stats.py) and the result file ``bench/results/field-protocol-<device>.{json,md}``
 are rewritten after every seed.
 
+With ``--peer-runs DIR`` TensorNEAT's finished runs are also copied into DIR (kept there when
+their seed is judged), and a later call with the same DIR judges a run found there, made with
+the same TensorNEAT settings, in place of training TensorNEAT again (bench/field_peers.py):
+the width candidates of docs/protocol.md section 6 train TensorNEAT once per seed. The
+result file names the runs it reused (``reused_peer_runs``).
+
 Without overrides it runs the protocol's seeds (4000-4009 gymnax, 4000-4004 brax). Any of
 ``--seeds/--first-seed/--budget/--population/--max-iters/--width/--tensorneat-pop`` makes it a
 **trial**: written to ``field-protocol-trial-<device>`` and labelled as not the protocol's.
@@ -30,7 +36,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench import harness
+from bench import field_peers, harness
 from bench.common import BenchInputError, default_out, environment
 from bench.field_settings import ENVS, SEEDS, budgets, table
 
@@ -49,12 +55,22 @@ __all__ = [
 TRIAL = ("budget", "population", "max_iters", "width", "tensorneat_pop")
 
 
+def _tensorneat_size(args: argparse.Namespace, env: str) -> tuple[int, int]:
+    """TensorNEAT's population and generations: the frozen ones, or a trial's ``--budget``
+    (with ``--tensorneat-pop``, which alone changes nothing)."""
+    tn = ENVS[env]["tensorneat"]
+    if not args.budget:
+        return tn["pop_size"], tn["generations"]
+    pop = args.tensorneat_pop or tn["pop_size"]
+    return pop, max(1, args.budget // pop)
+
+
 def _train_argv(method: str, args: argparse.Namespace, env: str, seed: int, out: Path) -> list:
     argv = [sys.executable, "-m", "bench.field_workers", "train", "--method", method, "--env",
             env, "--seed", str(seed), "--out", str(out)]  # fmt: skip
-    pop = args.tensorneat_pop or ENVS[env]["tensorneat"]["pop_size"]
     if args.budget:
-        argv += ["--pop", str(pop), "--generations", str(max(1, args.budget // pop))]
+        pop, generations = _tensorneat_size(args, env)
+        argv += ["--pop", str(pop), "--generations", str(generations)]
     eant2 = (("--population", args.population), ("--max-iters", args.max_iters),
              ("--width", args.width))  # fmt: skip
     for flag, v in eant2:
@@ -78,6 +94,9 @@ def add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true",
                    help="--protocol: skip the seeds and runs the checkpoint holds "
                         "(with --force)")  # fmt: skip
+    p.add_argument("--peer-runs", default=None, metavar="DIR",
+                   help="--protocol: share TensorNEAT's finished training runs through DIR "
+                        "(reused where made with the same settings)")  # fmt: skip
 
 
 def trial_overrides(args: argparse.Namespace) -> list[str]:
@@ -108,6 +127,9 @@ def prepare(args: argparse.Namespace) -> None:
         args.checkpoint = str(Path(args.out).with_suffix("")) + ".checkpoint.jsonl"
     if Path(args.checkpoint).exists() and not args.resume:
         raise BenchInputError(f"{args.checkpoint} exists: --resume --force goes on from it")
+    if args.peer_runs is not None and Path(args.peer_runs).exists():
+        if not Path(args.peer_runs).is_dir():
+            raise BenchInputError(f"--peer-runs must name a folder, got {args.peer_runs}")
 
 
 def _seeds(args: argparse.Namespace, env: str) -> list[int]:
@@ -130,7 +152,8 @@ def _budgets(args: argparse.Namespace) -> dict[str, list[int]]:
 
 def call_settings(args: argparse.Namespace) -> dict[str, Any]:
     """What a checkpoint must share with the call that resumes it: the frozen settings, the
-    call's options and its seeds."""
+    call's options and its seeds (not ``--peer-runs``: a reused run is the run it would
+    train, and each record names its reused runs)."""
     keep = ("envs", "methods", "seeds", "first_seed", *TRIAL)
     # --width came later: left out while unset, so a checkpoint written before it still
     # matches the call that resumes it.
@@ -192,12 +215,26 @@ def _call(argv: list[str], timeout: float) -> str:
     return ""
 
 
-def _train(method, args, env, seed, runs: Path) -> dict:
+def _train(method, args, env, seed, runs: Path, device: dict) -> dict:
     out = runs / f"{env}-s{seed}-{method}.json"
-    if out.is_file():
-        kept = json.loads(out.read_text())
-        if kept.get("done") or kept.get("deadline"):
-            return kept  # a finished run (or one stopped at its deadline) of an earlier call
+    share = args.peer_runs is not None and method == field_peers.METHOD
+    if share:
+        pop, generations = _tensorneat_size(args, env)
+        want = field_peers.settings(env, seed, pop=pop, generations=generations,
+                                    src=args.tensorneat, device=device)  # fmt: skip
+    run = json.loads(out.read_text()) if out.is_file() else {}
+    if not (run.get("done") or run.get("deadline")):  # else a finished (or stopped) run kept
+        found = field_peers.find(args.peer_runs, env, seed, want) if share else None
+        run = found or _launch(method, args, env, seed, out)
+        if found:
+            out.write_text(json.dumps(found))  # kept until judged, as a run trained here
+    if share:
+        field_peers.publish(args.peer_runs, run, want)
+    return run
+
+
+def _launch(method, args, env, seed, out: Path) -> dict:
+    """A training run in its own process; the run's JSON with its ``process_s``."""
     t0 = time.time()
     err = _call([*METHODS[method](method, args, env, seed, out), "--t0", repr(t0)],
                 args.deadline_s)  # fmt: skip
@@ -206,12 +243,18 @@ def _train(method, args, env, seed, runs: Path) -> dict:
     if err:
         # Stopped at --deadline-s: final, judged on the generations it completed.
         run["deadline" if err.startswith("killed after") else "error"] = err
-        out.write_text(json.dumps(run))
+    out.write_text(json.dumps(run))  # with process_s: a resuming call judges the same run
     return run
 
 
-def _seed(args, env: str, seed: int, runs: Path, budget_list: list[int]) -> dict:
-    trained = {m: _train(m, args, env, seed, runs) for m in args.methods}
+def _reused(records: list[dict]) -> list[dict]:
+    """The training runs of ``records`` judged from a ``--peer-runs`` file."""
+    return [{"env": r["env"], "seed": r["seed"], "method": m, "file": run["reused_from"]}
+            for r in records for m, run in r["runs"].items() if run.get("reused_from")]  # fmt: skip
+
+
+def _seed(args, env: str, seed: int, runs: Path, budget_list: list[int], device: dict) -> dict:
+    trained = {m: _train(m, args, env, seed, runs, device) for m in args.methods}
     paths = [runs / f"{env}-s{seed}-{m}.json" for m in args.methods]
     judged_path = runs / f"{env}-s{seed}-judged.json"
     argv = [sys.executable, "-m", "bench.field_workers", "judge", "--env", env,
@@ -243,20 +286,21 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     payload: dict[str, Any] = {"protocol": True, "trial": args.trial,
                                "overrides": trial_overrides(args), "environment": environment(),
                                "config": harness.settings(args), **settings,
-                               "seeds": records}  # fmt: skip
+                               "seeds": records, "reused_peer_runs": _reused(records)}  # fmt: skip
     done = {(r["env"], r["seed"]) for r in records}
     for env in args.envs:
         for seed in _seeds(args, env):
             if (env, seed) in done:
                 continue
             harness.log(f"field protocol: {env} seed {seed}")
-            rec = _seed(args, env, seed, runs, all_budgets[env])
+            rec = _seed(args, env, seed, runs, all_budgets[env], payload["environment"])
             with ckpt.open("a") as f:
                 f.write(json.dumps(rec) + "\n")
             for m in args.methods:
                 (runs / f"{env}-s{seed}-{m}.json").unlink(missing_ok=True)
                 shutil.rmtree(runs / f"{env}-s{seed}-{m}.rundir", ignore_errors=True)
             payload["seeds"].append(rec)
+            payload["reused_peer_runs"] = _reused(payload["seeds"])
             payload["summary"] = summarise(payload["seeds"], all_budgets)
             save(payload)
     payload["summary"] = summarise(payload["seeds"], all_budgets)
@@ -290,4 +334,12 @@ def render(payload: dict[str, Any]) -> str:
     if stopped:
         note += "\nRuns stopped or failed (judged on what they completed):\n\n"
         note += "".join(f"* {line}\n" for line in stopped)
+    reused = payload.get("reused_peer_runs", [])
+    if reused:
+        note += (
+            "\nTraining runs judged from a `--peer-runs` file, not trained again (the same "
+            "run, made with the same settings; its measured wall times):\n\n"
+        )
+        note += "".join(f"* {r['env']} seed {r['seed']} {r['method']}: {r['file']}\n"
+                        for r in reused)  # fmt: skip
     return head + render_summary(rows) + "\n" + note + "\nFrozen settings:\n\n" + frozen

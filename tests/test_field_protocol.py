@@ -329,6 +329,109 @@ def test_protocol_resumes_from_its_checkpoint(tmp_path, monkeypatch, capsys):
     capsys.readouterr()
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_GYMNAX, reason="gymnax not installed")
+def test_width_candidates_share_tensorneats_runs_through_peer_runs(tmp_path, monkeypatch, capsys):
+    """docs/protocol.md section 6: a second call with another --width and the same
+    ``--peer-runs`` judges TensorNEAT's run of the first (not trained again), with the same
+    results, and its payload names the reuse; the shared file outlives the judging."""
+    argv, calls = fake_tensorneat(tmp_path)
+    monkeypatch.setitem(field_protocol.METHODS, "tensorneat", argv)
+    _fake_src(tmp_path)
+    peers = tmp_path / "peers"
+    shared = ("--seeds", "1", "--methods", "tensorneat", "--peer-runs", str(peers))
+    first = _protocol(tmp_path, *shared)
+    assert calls == [0] and first["reused_peer_runs"] == []
+    file = peers / "cartpole-s0-tensorneat.json"
+    assert json.loads(file.read_text())["peer_settings"]["generations"] == 4
+    second = _protocol(tmp_path, *shared, "--width", "1024", "--out", str(tmp_path / "w.json"))
+    assert calls == [0]  # not trained again
+    (a,), (b,) = first["seeds"], second["seeds"]
+    assert b["runs"]["tensorneat"].pop("reused_from") == str(file)
+    assert b["runs"] == a["runs"] and b["judged"] == a["judged"]  # wall times included
+    want = [{"env": "cartpole", "seed": 0, "method": "tensorneat", "file": str(file)}]
+    assert second["reused_peer_runs"] == want
+    assert "--peer-runs" in (tmp_path / "w.md").read_text()
+    assert file.is_file()  # judged, and still shared
+    assert not (tmp_path / "w.checkpoint.jsonl.runs" / file.name).exists()  # its own copy
+    capsys.readouterr()
+
+
+def _planted(tmp_path: Path, monkeypatch) -> Path:
+    """A module that, if imported, would leave a file behind (found by name, by anyone)."""
+    plant = tmp_path / "plant"
+    plant.mkdir()
+    sentinel = tmp_path / "imported"
+    (plant / "planted_peer.py").write_text(f"open({str(sentinel)!r}, 'w').close()\n")
+    monkeypatch.syspath_prepend(str(plant))
+    monkeypatch.setenv("PYTHONPATH", str(plant), prepend=os.pathsep)  # and for any child
+    return sentinel
+
+
+class _Unpickled:
+    """Unpickling it touches ``path``."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def __reduce__(self):
+        return Path.touch, (self.path,)
+
+
+def test_a_peer_file_is_data_and_a_mismatch_is_refused(tmp_path, monkeypatch):
+    """A shared TensorNEAT run naming a module is read as JSON and nothing else (the module
+    never imported, pickle bytes refused unread); a file made with other settings is refused
+    with the settings that differ named, before any training; only finished runs are shared."""
+    import pickle
+
+    from bench import field_peers
+    from bench.common import environment
+
+    _fake_src(tmp_path)
+    sentinel = _planted(tmp_path, monkeypatch)
+    peers = tmp_path / "peers"
+    kw = {"pop": 100, "generations": 4, "src": tmp_path / "tn", "device": environment()}
+    want = field_peers.settings("cartpole", 0, **kw)
+    run = {"method": "tensorneat", "kind": "planted_peer", "module": "planted_peer",
+           "done": True, "curve": [], "candidates": {}, "process_s": 2.5}  # fmt: skip
+    path = field_peers.publish(peers, run, want)
+    assert path == peers / "cartpole-s0-tensorneat.json"
+    assert field_peers.publish(peers, {**run, "process_s": 9.0}, want) is None  # kept as it is
+    found = field_peers.find(peers, "cartpole", 0, want)
+    assert found == {**run, "reused_from": str(path)}
+    assert not sentinel.exists() and "planted_peer" not in sys.modules
+
+    # Made with other settings: refused by the protocol's command, nothing trained.
+    path.write_text(json.dumps({**run, "peer_settings": field_peers.settings(
+        "cartpole", 0, **{**kw, "generations": 8})}))  # fmt: skip
+    argv, calls = fake_tensorneat(tmp_path)
+    monkeypatch.setitem(field_protocol.METHODS, "tensorneat", argv)
+    with pytest.raises(BenchInputError, match="generations 8 in the file, 4 asked"):
+        _protocol(tmp_path, "--seeds", "1", "--methods", "tensorneat", "--peer-runs", str(peers))
+    assert calls == []
+    (tmp_path / "tn" / "tensorneat" / "pipeline.py").write_text("# another TensorNEAT\n")
+    with pytest.raises(BenchInputError, match="source_sha256"):
+        field_peers.find(peers, "cartpole", 0, field_peers.settings("cartpole", 0, **kw))
+
+    # Not JSON (here a pickle that would touch a file): refused, never unpickled.
+    touched = tmp_path / "unpickled"
+    path.write_bytes(pickle.dumps(_Unpickled(touched)))
+    with pytest.raises(BenchInputError, match="not a JSON run file"):
+        field_peers.find(peers, "cartpole", 0, want)
+    assert not touched.exists()
+    pickle.loads(path.read_bytes())
+    assert touched.exists()  # the plant was armed
+
+    # Only finished runs: not a stopped or failed one, nor one never finished.
+    for bad in ({"deadline": "killed after 3600 s"}, {"error": "exit 1"}, {"done": False}):
+        assert field_peers.publish(tmp_path / "other", {**run, **bad}, want) is None
+    path.write_text(json.dumps({**run, "done": False, "peer_settings": want}))
+    with pytest.raises(BenchInputError, match="not a finished run"):
+        field_peers.find(peers, "cartpole", 0, want)
+    with pytest.raises(BenchInputError, match="--peer-runs belong to --protocol"):
+        bench_field.main(["--peer-runs", str(peers), "--quick", "--out", str(tmp_path / "g.json")])
+
+
 @pytest.mark.parametrize(
     "argv,phrase",
     [

@@ -8,7 +8,9 @@ import pytest
 
 
 @pytest.mark.slow
-def test_reproduce_short_servo(tmp_path):
+def test_reproduce_short_servo(tmp_path, capsys, monkeypatch):
+    from eant2_jax.app.cli import main
+
     out = tmp_path / "rep"
     cmd = [
         sys.executable, "-m", "eant2_jax.app.cli", "reproduce", "--runs", "2", "--generations", "2",
@@ -34,13 +36,16 @@ def test_reproduce_short_servo(tmp_path):
         for seed in (0, 1):
             gens = (out / f"{arm}-s{seed}" / "generations.jsonl").read_text().splitlines()
             assert len(gens) == 3  # generations 0, 1, 2
+    # Both refusals come before anything runs: in this process (two fewer process starts).
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")  # in-process: leave the JAX configuration alone
+    capsys.readouterr()
     # An unknown arm is one line before anything runs.
-    bad = subprocess.run([*cmd[:-1], str(tmp_path / "bad"), "--pruners", "covariance-exact"],
-                         capture_output=True, text=True, timeout=300)  # fmt: skip
-    assert bad.returncode == 2 and "unknown arm" in bad.stderr and not (tmp_path / "bad").exists()
+    argv = [*cmd[3:-1], str(tmp_path / "bad"), "--pruners", "covariance-exact"]
+    assert main(argv) == 2 and not (tmp_path / "bad").exists()
+    assert "unknown arm" in capsys.readouterr().err
     # The output directory is never overwritten.
-    again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    assert again.returncode == 2 and "not overwriting" in again.stderr
+    assert main(cmd[3:]) == 2
+    assert "not overwriting" in capsys.readouterr().err
 
 
 def test_arms_name_a_pruner_and_its_rule():

@@ -5,14 +5,20 @@ moves each, pruning on — is timed on 1, 2, 4, ... devices of a 1-D mesh along 
 axis. Weak scaling: S grows with the device count (``--per-device`` structures each); strong
 scaling: S is fixed (``--strong``). Each case is timed after a warm-up call that compiles.
 
-Each row also times the engine alone (`eant2_jax.exploitation.run` on a prepared batch: the
-batch's placement on the devices, the devices' loops and the host's one read per chunk), the
-loops alone (the same call on a batch placed beforehand, so that engine minus loops is the
-placement) and gives the rest of a generation, the host's handover (compiling the genomes,
-the engine start, turning the results back into genomes), which grows with the structures
-and is not split over devices: where it is a large share, more devices cannot help
-(docs/design.md, "Many devices"). ``loops speed-up`` is the loops' structures per second
-against one device's: what the devices' programs alone scale by.
+Each row also times the engine alone (`eant2_jax.exploitation.run` on a batch that
+`tuning.prepare` made on the devices, as `tune` makes it: the devices' loops, the host's one
+read per chunk and whatever `run` still has to place), the loops alone (the same call on
+arguments placed beforehand, the task too, so that engine minus loops is that placement)
+and gives the rest of a generation, the host's handover (compiling the genomes, starting
+the engine on the devices, turning the results back into genomes), which grows with the
+structures and is not split over devices: where it is a large share, more devices cannot
+help (docs/design.md, "Many devices"). ``loops speed-up`` is the loops' structures per
+second against one device's: what the devices' programs alone scale by.
+
+``--rounds R`` times every case R times, interleaved (all cases once, then again), so that
+a drift of the machine reaches every device count alike. A row gives each timing's median
+round, the median round's speed-up and the range of the R rounds' speed-ups: with 5 rounds
+the chance that the range misses the median speed-up is 2 x 0.5^5, about 6%.
 
 Run: ``python -m bench scaling [--devices 1 2 4] [--quick]``.
 """
@@ -20,13 +26,21 @@ Run: ``python -m bench scaling [--devices 1 2 4] [--quick]``.
 from __future__ import annotations
 
 import argparse
+import statistics
 import time
 from typing import Any
 
 import jax
 
 from bench import harness
-from bench.common import Column, environment, markdown_table, random_population
+from bench.common import (
+    BenchInputError,
+    Column,
+    environment,
+    markdown_table,
+    random_population,
+    time_call,
+)
 from eant2_jax import distributed, tasks, tuning
 from eant2_jax import exploitation as ex
 
@@ -43,7 +57,7 @@ def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float,
     t0 = time.perf_counter()
     tuning.tune(genomes, task, key=key, config=config, mesh=mesh)
     first = time.perf_counter() - t0
-    times, engine = [], []
+    times = []
     # The keys are made before the clock starts: a first fold_in compiles a small program.
     keys = [jax.random.fold_in(key, r + 1) for r in range(repeats)]
     for k in keys:
@@ -51,25 +65,19 @@ def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float,
         tuning.tune(genomes, task, key=k, config=config, mesh=mesh)
         times.append(time.perf_counter() - t0)
     init_key, run_key = jax.random.split(key)
-    prep = tuning.prepare(
-        genomes, task, key=init_key, config=config, multiple_of=distributed.size(mesh)
-    )
+    # Made on the devices as `tune` makes it (`tuning.prepare`'s mesh).
+    prep = tuning.prepare(genomes, task, key=init_key, config=config, mesh=mesh)
+
+    def engine_s(st, layout, tables, on) -> float:
+        def call():
+            return ex.run(st, layout, on, key=run_key, config=config, tables=tables, mesh=mesh)[0]
+
+        return time_call(call, warmup=0, repeats=repeats).median_s
+
+    engine = engine_s(prep.state, prep.batch.layout, prep.tables, task)
     # Placed as `run` places them: `run` then finds every array where it belongs already.
-    st0, layout, tables, on_devices = ex.placed(
-        prep.state, prep.batch.layout, prep.tables, task, mesh
-    )
-    loops = []
-    for batch, out in (((prep.state, prep.batch.layout, prep.tables, task), engine),
-                       ((st0, layout, tables, on_devices), loops)):  # fmt: skip
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            st, _ = ex.run(
-                batch[0], batch[1], batch[3], key=run_key, config=config, tables=batch[2],
-                mesh=mesh,
-            )  # fmt: skip
-            jax.block_until_ready(st)
-            out.append(time.perf_counter() - t0)
-    return first, *(sorted(x)[len(x) // 2] for x in (times, engine, loops))
+    loops = engine_s(*ex.placed(prep.state, prep.batch.layout, prep.tables, task, mesh))
+    return first, statistics.median(times), engine, loops
 
 
 def _options(p: argparse.ArgumentParser) -> None:
@@ -79,11 +87,17 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--genes", type=int, default=50)
     p.add_argument("--iters", type=int, default=200)
     p.add_argument("--moves", type=int, default=1023)
+    p.add_argument("--rounds", type=int, default=3,
+                   help="times every case this often, interleaved; the rows give the "
+                        "median round and the range of the speed-ups")  # fmt: skip
 
 
 def _prepare(args: argparse.Namespace) -> None:
+    if args.rounds < 1:
+        raise BenchInputError(f"--rounds must be at least 1, got {args.rounds}")
     if args.quick:
         args.per_device, args.strong, args.iters, args.moves, args.repeats = 2, 4, 4, 8, 1
+        args.rounds = 2
 
 
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
@@ -93,33 +107,43 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
         max_iters=args.iters, chunk=args.iters, patience=10**6, sigma_tol=0.0,
         tolfun=None, pruner="covariance", prune_window=50,
     )  # fmt: skip
+    cases = [(kind, d, args.per_device * d if kind == "weak" else args.strong)
+             for kind in ("weak", "strong") for d in counts]  # fmt: skip
+    populations = {s: random_population(1, s, args.genes) for _, _, s in cases}
+    # Every round times every case once, so that a drift of the machine's speed reaches
+    # each device count alike; a round's speed-ups are against its own one-device case.
+    rounds = []
+    for _ in range(args.rounds):
+        timed = {c: _timed(c, time_case(task, populations[c[2]], config, c[1], args.repeats))
+                 for c in cases}  # fmt: skip
+        for c in cases:
+            base = next(timed[b] for b in cases if b[0] == c[0])  # the scaling's first case
+            for k, t in (("speedup", "seconds"), ("loops_speedup", "loops_s")):
+                timed[c][k] = (c[2] / timed[c][t]) / (base["structures"] / base[t])
+        rounds.append(timed)
     rows = []
-    for kind in ("weak", "strong"):
-        base = None
-        for d in counts:
-            s = args.per_device * d if kind == "weak" else args.strong
-            genomes = random_population(1, s, args.genes)
-            first, t, engine, loops = time_case(task, genomes, config, d, args.repeats)
-            base = base or (t, s, loops)
-            # Speed-up in structures processed per second relative to 1 device.
-            speedup = (s / t) / (base[1] / base[0])
-            rows.append(
-                {
-                    "scaling": kind,
-                    "devices": d,
-                    "structures": s,
-                    "first_s": first,
-                    "seconds": t,
-                    "engine_s": engine,
-                    "loops_s": loops,
-                    "placement_s": engine - loops,
-                    "host_s": t - engine,
-                    "structures_per_s": s / t,
-                    "speedup": speedup,
-                    "loops_speedup": (s / loops) / (base[1] / base[2]),
-                }
-            )
+    for c in cases:
+        each = [r[c] for r in rounds]
+        row = {k: statistics.median(x[k] for x in each) for k in _MEDIANS}
+        row = {**each[0], **row}  # the case, and the first round's first call
+        for k in ("speedup", "loops_speedup"):
+            row[f"{k}_rounds"] = [x[k] for x in each]
+            row[f"{k}_range"] = f"{min(row[f'{k}_rounds']):.2f}-{max(row[f'{k}_rounds']):.2f}x"
+        rows.append(row)
     return {"environment": environment(), "config": harness.settings(args), "rows": rows}
+
+
+_MEDIANS = ("seconds", "engine_s", "loops_s", "placement_s", "host_s", "structures_per_s",
+            "speedup", "loops_speedup")  # fmt: skip
+
+
+def _timed(case: tuple, timed: tuple) -> dict[str, Any]:
+    """One case of one round (`time_case`'s timings), before its speed-ups."""
+    kind, d, s = case
+    first, t, engine, loops = timed
+    return {"scaling": kind, "devices": d, "structures": s, "first_s": first, "seconds": t,
+            "engine_s": engine, "loops_s": loops, "placement_s": engine - loops,
+            "host_s": t - engine, "structures_per_s": s / t}  # fmt: skip
 
 
 COLUMNS = [
@@ -134,7 +158,9 @@ COLUMNS = [
     Column("host_s", "handover s", "{:.3f}"),
     Column("structures_per_s", "structures/s", "{:.1f}"),
     Column("speedup", "speed-up", "{:.2f}x"),
+    Column("speedup_range", "range"),
     Column("loops_speedup", "loops speed-up", "{:.2f}x"),
+    Column("loops_speedup_range", "range"),
 ]
 
 SUITE = harness.Suite(

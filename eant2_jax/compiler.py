@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import pytree
+from . import distributed, pytree
 from .genome import GeneKind, Genome
 from .kernels.network import Layout, Network, buffer_size, network
 
@@ -165,6 +165,7 @@ def compile_genomes(
     pad_count: bool = True,
     min_rows: int = 1,
     multiple_of: int = 1,
+    mesh: jax.sharding.Mesh | None = None,
 ) -> CompiledBatch:
     """Compile genomes into one padded batch.
 
@@ -177,6 +178,9 @@ def compile_genomes(
       min_rows: pad to at least this many rows (a caller that knows its usual batch size
         keeps one program for all of them).
       multiple_of: round the rows up to a multiple of this (the devices they split over).
+      mesh: put the arrays straight from the host onto this device mesh, split along the
+        structure axis (`eant2_jax.distributed.shard`; the rows are then rounded up to a
+        multiple of its size); default JAX's default device.
 
     Returns:
       The `CompiledBatch`.
@@ -185,22 +189,19 @@ def compile_genomes(
     n_out = _check_genomes(genomes, n_inputs)
     bucket = _check_bucket(genomes, bucket, n_inputs, n_out)
     count = len(genomes)
+    if mesh is not None:
+        multiple_of = distributed.size(mesh)
     rows = batch_rows(count, min_rows=min_rows, pad_count=pad_count, multiple_of=multiple_of)
     tables = _tables(genomes, rows, bucket, n_inputs, n_out)
     slot, gene_mask, is_root, neuron_mask, depth, weights = tables
     # device_put, not jnp.asarray: the latter compiles a small program per new shape (a
-    # cold-start cost on a GPU); the arrays already have their final dtypes.
-    layout = Layout(
-        slot=jax.device_put(slot),
-        gene_mask=jax.device_put(gene_mask),
-        is_root=jax.device_put(is_root),
-        neuron_mask=jax.device_put(neuron_mask),
-        depth=jax.device_put(depth),
-        n_inputs=int(n_inputs),
-        n_outputs=int(n_out),
-        sweeps=bucket.sweeps,
-    )
-    return CompiledBatch(layout=layout, weights=jax.device_put(weights), count=count, bucket=bucket)
+    # cold-start cost on a GPU); the arrays already have their final dtypes. One call for all.
+    host = {"slot": slot, "gene_mask": gene_mask, "is_root": is_root,
+            "neuron_mask": neuron_mask, "depth": depth, "weights": weights}  # fmt: skip
+    put = jax.device_put(host) if mesh is None else distributed.shard(host, mesh)
+    weights = put.pop("weights")
+    layout = Layout(**put, n_inputs=int(n_inputs), n_outputs=int(n_out), sweeps=bucket.sweeps)
+    return CompiledBatch(layout=layout, weights=weights, count=count, bucket=bucket)
 
 
 def _check_genomes(genomes: list[Genome], n_inputs: int) -> int:

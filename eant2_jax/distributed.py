@@ -23,7 +23,18 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-__all__ = ["AXIS", "P", "gather", "initialize", "make_mesh", "place", "replicate", "shard", "size"]
+__all__ = [
+    "AXIS",
+    "P",
+    "constrain",
+    "gather",
+    "initialize",
+    "make_mesh",
+    "place",
+    "replicate",
+    "shard",
+    "size",
+]
 
 AXIS = "s"
 
@@ -100,28 +111,44 @@ def shard(tree, mesh: Mesh | None):
     """Place a pytree whose leaves have a leading structure axis, split along it."""
     if mesh is None:
         return tree
-    leaves, treedef = jax.tree.flatten(tree)
-    specs = [NamedSharding(mesh, P(AXIS))] * len(leaves)
-    return jax.tree.unflatten(treedef, _put_all(leaves, specs))
+    split = NamedSharding(mesh, P(AXIS))
+    return _put_tree(tree, lambda a: split)
 
 
 def replicate(tree, mesh: Mesh | None):
     """Place a pytree whole on every device of the mesh."""
     if mesh is None:
         return tree
-    leaves, treedef = jax.tree.flatten(tree)
-    specs = [NamedSharding(mesh, P())] * len(leaves)
-    return jax.tree.unflatten(treedef, _put_all(leaves, specs))
+    whole = NamedSharding(mesh, P())
+    return _put_tree(tree, lambda a: whole)
 
 
 def place(tree, mesh: Mesh | None, rows: int):
     """Split the leaves whose leading axis has length ``rows``; replicate the others."""
     if mesh is None:
         return tree
+    return _put_tree(tree, _placement(mesh, rows))
+
+
+def constrain(tree, mesh: Mesh | None, rows: int):
+    """Inside a jitted function: `place`'s rule as sharding constraints, so that a program
+    makes its outputs where `place` would put them (nothing moves afterwards)."""
+    if mesh is None:
+        return tree
+    rule = _placement(mesh, rows)
+    return jax.tree.map(lambda a: jax.lax.with_sharding_constraint(a, rule(a)), tree)
+
+
+def _placement(mesh: Mesh, rows: int):
+    """`place`'s rule: a leaf whose leading axis has length ``rows`` is split along it."""
     split, whole = NamedSharding(mesh, P(AXIS)), NamedSharding(mesh, P())
+    return lambda a: split if np.ndim(a) >= 1 and np.shape(a)[0] == rows else whole
+
+
+def _put_tree(tree, sharding_of):
+    """Every leaf of ``tree`` placed by ``sharding_of(leaf)`` (`_put_all`)."""
     leaves, treedef = jax.tree.flatten(tree)
-    specs = [split if np.ndim(a) >= 1 and np.shape(a)[0] == rows else whole for a in leaves]
-    return jax.tree.unflatten(treedef, _put_all(leaves, specs))
+    return jax.tree.unflatten(treedef, _put_all(leaves, [sharding_of(a) for a in leaves]))
 
 
 def _put_all(leaves: list, specs: list[NamedSharding]) -> list:
@@ -143,6 +170,8 @@ def _is_key(a) -> bool:
 
 
 def _put(a, sharding: NamedSharding):
+    if isinstance(a, jax.Array) and a.sharding == sharding:
+        return a  # placed already (made on the mesh: `tuning.prepare`)
     if _is_key(a):
         return jax.random.wrap_key_data(
             _put(jax.random.key_data(a), sharding), impl=jax.random.key_impl(a)

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import pruning, pytree
+from . import distributed, pruning, pytree
 from .config import ExploitConfig
 from .kernels import cmaes
 from .rows import where_rows
@@ -168,6 +168,7 @@ def init(
     active: jax.Array | None = None,
     cov: jax.Array | None = None,
     sigma: jax.Array | None = None,
+    mesh: jax.sharding.Mesh | None = None,
 ) -> ExploitState:
     """Start S CMA-ES runs.
 
@@ -183,6 +184,8 @@ def init(
         iteration). Default: ``C = I``.
       sigma: optional ``[S]`` initial step sizes (default: ``config.sigma0``); given with
         ``cov``.
+      mesh: make the state on this device mesh, each device its own structures (split as
+        `eant2_jax.distributed.place` splits), the arguments placed so beforehand.
 
     Returns:
       The `ExploitState`.
@@ -199,20 +202,31 @@ def init(
         raise ValueError("a warm start needs both cov and sigma")
     if cov is not None:  # device_put: jnp.asarray would compile a program per new shape
         dtype = np.dtype(config.dtype)
-        cov = jax.device_put(np.asarray(cov, dtype))
-        sigma = jax.device_put(np.asarray(sigma, dtype))
+        cov, sigma = (
+            a if isinstance(a, jax.Array) and a.dtype == dtype  # placed already (a mesh)
+            else jax.device_put(np.asarray(a, dtype))
+            for a in (cov, sigma)
+        )  # fmt: skip
     return _init(
         keys, mean, jnp.asarray(mask, bool), jnp.asarray(active, bool), config, popsize,
-        cov, sigma,
+        cov, sigma, mesh,
     )  # fmt: skip
 
 
 # One program per batch shape: run op by op, the ~40 small operations of ``init`` would each
 # compile a program of their own for every new bucket and dispatch one by one in every
 # generation (docs/design.md, "CMA-ES initialisation is one program").
-@functools.partial(jax.jit, static_argnames=("popsize",))
+@functools.partial(jax.jit, static_argnames=("popsize", "mesh"))
 def _init(
-    keys, mean, mask, active, config: ExploitConfig, popsize: int, cov=None, sigma=None
+    keys,
+    mean,
+    mask,
+    active,
+    config: ExploitConfig,
+    popsize: int,
+    cov=None,
+    sigma=None,
+    mesh=None,
 ) -> ExploitState:
     n = jnp.sum(mask, axis=-1)
     make_params = functools.partial(
@@ -233,7 +247,7 @@ def _init(
     smoothing = config.smoothing
     g = smoothing_for(n) if smoothing is None else jnp.full(s, smoothing)
     zeros = jnp.zeros(s, jnp.int32)
-    return ExploitState(
+    st = ExploitState(
         cma=cma,
         params=params,
         key=keys,
@@ -255,6 +269,7 @@ def _init(
         if config.pruner == "none"
         else pruning.Attempt.idle(cma, params, config.prune_candidates),
     )
+    return distributed.constrain(st, mesh, s)
 
 
 def record(st: ExploitState, running, phase, nonfinite, prune) -> StepRecord:

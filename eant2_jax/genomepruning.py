@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 import jax
 import numpy as np
 
+from . import distributed
 from .genome import Gene, GeneKind, Genome
 from .jsonio import typed_fields
 from .kernels.pruning import Tables
@@ -22,13 +23,20 @@ if TYPE_CHECKING:
 __all__ = ["PruneAttempt", "attempt_records", "kept_genes", "prune_genome", "tables_for"]
 
 
-def tables_for(genomes: Sequence[Genome], genes: int, rows: int | None = None) -> Tables:
+def tables_for(
+    genomes: Sequence[Genome],
+    genes: int,
+    rows: int | None = None,
+    mesh: jax.sharding.Mesh | None = None,
+) -> Tables:
     """Pruner tables for a batch, ``[rows, genes]`` (padding rows and slots are inert).
 
     Args:
       genomes: the structures.
       genes: padded number of gene slots ``P``.
       rows: padded number of structures (default ``len(genomes)``).
+      mesh: put the tables straight from the host onto this device mesh, split along the
+        rows (`eant2_jax.distributed.shard`); default JAX's default device.
     """
     rows = len(genomes) if rows is None else rows
     idx = np.arange(genes, dtype=np.int32)
@@ -46,12 +54,9 @@ def tables_for(genomes: Sequence[Genome], genes: int, rows: int | None = None) -
                 subtree_end[r, i] = g.subtree_end(i)
             elif gene.kind in (GeneKind.FORWARD, GeneKind.RECURRENT):
                 reads[r, i] = pos[gene.ref]
-    return Tables(  # device_put: no per-shape program to compile (see compile_genomes)
-        parent=jax.device_put(parent),
-        subtree_end=jax.device_put(subtree_end),
-        reads=jax.device_put(reads),
-        is_neuron=jax.device_put(is_neuron),
-    )
+    # device_put: no per-shape program to compile (see compile_genomes); one call for all.
+    host = Tables(parent=parent, subtree_end=subtree_end, reads=reads, is_neuron=is_neuron)
+    return jax.device_put(host) if mesh is None else distributed.shard(host, mesh)
 
 
 def kept_genes(original: Genome, pruned: Genome) -> list[int]:

@@ -112,13 +112,20 @@ def prepare(
     multiple_of: int = 1,
     start: Sequence[Search | None] | None = None,
     abstract: bool = False,
+    mesh: jax.sharding.Mesh | None = None,
 ) -> Prepared:
     """Compile, choose the popsize, build the tables and start the engine (no iteration).
 
-    Args: as for `tune`; ``multiple_of`` rounds the rows up for a device mesh;
-    ``abstract``: the start keys and the engine state as shapes only (`jax.eval_shape`:
-    nothing computed, no program compiled; ``key`` may be a shape too).
+    Args: as for `tune`; ``multiple_of`` rounds the rows up (the devices they will split
+    over); ``abstract``: the start keys and the engine state as shapes only
+    (`jax.eval_shape`: nothing computed, no program compiled; ``key`` may be a shape too);
+    ``mesh``: the batch is made on this device mesh, split along the structure axis as
+    `eant2_jax.exploitation.run` holds it: the host's arrays go straight to their devices
+    and each device starts its own structures' CMA-ES, so nothing is moved between devices
+    afterwards (docs/design.md, "Many devices"). Not with ``abstract``.
     """
+    if mesh is not None and abstract:
+        raise ValueError("prepare: a mesh needs arrays, not shapes (abstract=True)")
     if start is not None and len(start) != len(genomes):
         raise ValueError(f"start: {len(start)} searches for {len(genomes)} genomes")
     batch = compile_genomes(
@@ -128,6 +135,7 @@ def prepare(
         min_rows=min_rows,
         pad_count=pad_count,
         multiple_of=multiple_of,
+        mesh=mesh,
     )
     rows = batch.layout.slot.shape[0]
     # The rows one device would hold: a mesh does not change the popsize (`popsize_for`).
@@ -139,7 +147,8 @@ def prepare(
     elif keys.shape[0] != rows:
         raise ValueError(f"keys: {keys.shape[0]} keys for a batch of {rows} rows")
     # Made on the host and transferred: no program to compile (`jnp` would compile two).
-    active = jax.device_put(np.arange(rows) < batch.count)
+    active = np.arange(rows) < batch.count
+    active = jax.device_put(active) if mesh is None else distributed.shard(active, mesh)
     cov = sigma = None
     if start is not None and any(w is not None for w in start):
         width = batch.weights.shape[-1]
@@ -151,10 +160,14 @@ def prepare(
                 w.check(g.n_params, f"start[{i}]")
                 cov[i, : g.n_params, : g.n_params] = w.cov
                 sigma[i] = w.sigma
-    init = functools.partial(ex.init, config=config, popsize=popsize)
+        if mesh is not None:
+            cov, sigma = distributed.shard((cov, sigma.astype(dtype)), mesh)
+    if mesh is not None:
+        keys = distributed.shard(keys, mesh)
+    init = functools.partial(ex.init, config=config, popsize=popsize, mesh=mesh)
     init = functools.partial(jax.eval_shape, init) if abstract else init
     st = init(keys, batch.weights, batch.layout.gene_mask, active=active, cov=cov, sigma=sigma)
-    return Prepared(batch, st, tables_for(genomes, batch.bucket.genes, rows), popsize)
+    return Prepared(batch, st, tables_for(genomes, batch.bucket.genes, rows, mesh), popsize)
 
 
 def compile_ahead(
@@ -314,8 +327,8 @@ def tune(
         bucket=bucket,
         min_rows=min_rows,
         pad_count=pad_count,
-        multiple_of=distributed.size(mesh),
         start=start,
+        mesh=mesh,
     )
     watch = None if solution_test is None else _Watch(genomes, solution_test)
     rescorer = None

@@ -1,5 +1,6 @@
 """`python -m bench scaling`: weak and strong rows on two (virtual CPU) devices, with the
-engine split into the placement of the batch and the devices' loops."""
+engine split into the placement of the batch and the devices' loops, over interleaved
+rounds."""
 
 from __future__ import annotations
 
@@ -34,9 +35,11 @@ def test_quick_rows_split_the_engine_into_placement_and_loops(tmp_path):
         assert r["host_s"] == pytest.approx(r["seconds"] - r["engine_s"])
     for first in (rows[0], rows[2]):  # one device is the base of both speed-ups
         assert first["speedup"] == pytest.approx(1) and first["loops_speedup"] == pytest.approx(1)
-    weak2 = rows[1]  # twice the structures on two devices
-    assert weak2["loops_speedup"] == pytest.approx(
-        (4 / weak2["loops_s"]) / (2 / rows[0]["loops_s"])
-    )
+    for r in rows:  # two rounds (--quick): the row is their median, with their range
+        for k in ("speedup", "loops_speedup"):
+            assert len(r[f"{k}_rounds"]) == 2
+            assert r[k] == pytest.approx(sum(r[f"{k}_rounds"]) / 2)
+            lo, hi = min(r[f"{k}_rounds"]), max(r[f"{k}_rounds"])
+            assert r[f"{k}_range"] == f"{lo:.2f}-{hi:.2f}x"
     md = out.with_suffix(".md").read_text()
-    assert "| loops s | placement s |" in md and "loops speed-up" in md
+    assert "| loops s | placement s |" in md and "| loops speed-up | range |" in md

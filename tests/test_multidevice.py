@@ -84,6 +84,17 @@ for k in range(8):
 split = [a for a in jax.tree.leaves(st8) if a.ndim >= 1 and a.shape[0] == rows]
 shards = [[(s.device.id, s.data.shape[0]) for s in a.addressable_shards] for a in split]
 
+# A batch prepared on the mesh is the same batch, made where `run` holds it: `run` moves
+# none of its arrays (each is handed on as it is).
+born = tuning.prepare(genomes, task, key=jax.random.key(0), config=cfg, min_rows=16,
+                      mesh=mesh)
+born_same = (bits((born.state, born.batch, born.tables))
+             == bits((prep.state, prep.batch, prep.tables)))
+ours = (born.state, born.batch.layout, born.tables)
+kept = [a is b for a, b in zip(jax.tree.leaves(ex.placed(*ours, task, mesh)[:3]),
+                               jax.tree.leaves(ours))
+        if not jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key)]
+
 # A chunk call moves nothing: not between host and devices, not between devices.
 args = (*ex.placed(prep.state, prep.batch.layout, prep.tables, task, mesh), run_key, cfg)
 chunk = ex.split_chunk(mesh, rows, args, cfg.chunk)
@@ -96,6 +107,7 @@ crossing = sorted(set(re.findall(
     r"\\b(all-reduce|all-gather|all-to-all|collective-permute|reduce-scatter|send|recv|"
     r"outfeed|infeed)(?:-start|-done)?\\(", text)))
 print(json.dumps({
+    "born_same": born_same, "born_kept": kept,
     "rows": rows, "ticks": ticks, "chunk": cfg.chunk, "trips8": trips8, "trips1": trips1,
     "same_state": same_state, "same_history": same_history,
     "evals": np.asarray(gather(st8.evals)).tolist(),
@@ -142,6 +154,13 @@ def test_each_device_holds_only_its_rows(scenario):
         assert all(n == rows // 8 for _, n in leaf)
     # The per-device program works on its own rows' covariances, never the whole batch's.
     assert scenario["own_cov"] and not scenario["full_cov"]
+
+
+def test_a_batch_prepared_on_the_mesh_is_the_same_and_stays_put(scenario):
+    # `tuning.prepare(mesh=...)`, as `tune` calls it: the same bits as the batch made on one
+    # device, each array made on the devices where `run` holds it, so `run` moves none.
+    assert scenario["born_same"]
+    assert scenario["born_kept"] and all(scenario["born_kept"])
 
 
 def test_nothing_crosses_devices_or_reaches_the_host_within_a_chunk(scenario):

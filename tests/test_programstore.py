@@ -35,6 +35,22 @@ def store(tmp_path, monkeypatch):
     return folder
 
 
+@pytest.fixture(scope="module")
+def stored_run(tmp_path_factory):
+    """``_run(generations=0)`` with the store cold, once for the module: what it computed,
+    and the name and bytes of the one entry it stored. The tests that start from "a run
+    stored its program" put that entry into their own store instead of running again (a
+    run is about 3 s here, nearly all of it compiling the program)."""
+    folder = tmp_path_factory.mktemp("stored") / "programs"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(programstore, "directory", lambda: folder)
+        mp.setattr(programstore, "_PROGRAMS", {})
+        mp.setattr(programstore, "_FAILED", [])
+        first = _run(generations=0)
+    (path,) = folder.glob("*.program")
+    return first, path.name, path.read_bytes()
+
+
 def _forget(monkeypatch):
     """As a new process: no program of the store in memory."""
     monkeypatch.setattr(programstore, "_PROGRAMS", {})
@@ -209,7 +225,7 @@ def _new_entry(store, before: set) -> Path:
     return path
 
 
-def test_a_damaged_entry_is_traced_again_and_replaced(store, monkeypatch):
+def test_a_damaged_entry_is_traced_again_and_replaced(store, monkeypatch, stored_run):
     """Each damage is detected before the bytes are deserialized; a whole run over a flipped
     bit computes the same and leaves a good entry."""
     _store_chunk(CONFIG.exploit)
@@ -219,9 +235,8 @@ def test_a_damaged_entry_is_traced_again_and_replaced(store, monkeypatch):
     for what, bad in _damaged(good):
         path.write_bytes(bad)
         assert programstore.read_entry(path, path.stem, leaves) is None, what
-    first = _run(generations=0)
-    path = _new_entry(store, {path})
-    good = path.read_bytes()
+    first, name, good = stored_run  # the run's own entry, as the run stored it
+    path = store / name
     flipped = dict(_damaged(good))["a flipped bit"]
     path.write_bytes(flipped)
     _forget(monkeypatch)
@@ -229,11 +244,12 @@ def test_a_damaged_entry_is_traced_again_and_replaced(store, monkeypatch):
     assert path.read_bytes() != flipped and _whole(path)  # traced again, written anew
 
 
-def test_a_planted_pickle_runs_nothing(store, monkeypatch, tmp_path):
+def test_a_planted_pickle_runs_nothing(store, monkeypatch, tmp_path, stored_run):
     """A pickle planted under the key (as the entry, or as the older store's ``.pkl``) is
     never unpickled: the run computes the same and the pickle's code never ran."""
-    first = _run(generations=0)
-    (path,) = store.glob("*.program")
+    first, name, _ = stored_run
+    store.mkdir(parents=True, exist_ok=True, mode=0o700)  # as the store makes it
+    path = store / name  # the run's key
     marker = tmp_path / "the pickle ran"
     planted = pickle.dumps(_Plant(str(marker)))
     path.write_bytes(planted)
@@ -254,7 +270,7 @@ class _Plant:
         return (open, (self.marker, "w"))
 
 
-def test_a_foreign_entry_is_not_used(store, monkeypatch):
+def test_a_foreign_entry_is_not_used(store, monkeypatch, stored_run):
     """Another program's valid entry under this key (another engine setting) is refused by
     its manifest; with the manifest's key forged too, by its input shapes. A run over a
     foreign entry computes the same and the entry is replaced by its own."""
@@ -268,8 +284,9 @@ def test_a_foreign_entry_is_not_used(store, monkeypatch):
     manifest, payload = _entry(other)
     path.write_bytes(json.dumps(dict(manifest, key=path.stem)).encode() + b"\n" + payload)
     assert programstore.read_entry(path, path.stem, leaves) is None
-    first = _run(generations=0)
-    mine = _new_entry(store, {path, other})
+    first, name, _ = stored_run
+    mine = store / name  # the run's key
+    assert mine not in (path, other)
     mine.write_bytes(other.read_bytes())
     _forget(monkeypatch)
     assert _run(generations=0) == first

@@ -694,7 +694,8 @@ def test_cli_process_defaults_yield_to_the_environment():
 
 def test_cli_sets_process_defaults_before_mujoco_and_the_backend(tmp_path):
     """In a fresh `eant2 run` process, MuJoCo is imported with MUJOCO_GL=disable (no OpenGL
-    library loaded) and JAX's backend starts without preallocating."""
+    library loaded) and JAX's backend starts without preallocating. (Any task starts the
+    backend: XOR's programs compile fastest.)"""
     probe = (
         "import os, sys\n"
         "from eant2_jax.app import cli\n"
@@ -707,7 +708,7 @@ def test_cli_sets_process_defaults_before_mujoco_and_the_backend(tmp_path):
     env = {k: v for k, v in os.environ.items() if k not in unset}
     env["EANT2_CACHE_DIR"] = ""
     proc = subprocess.run(
-        [sys.executable, "-c", probe, "run", "servo", "--population", "2", "--generations", "0",
+        [sys.executable, "-c", probe, "run", "xor", "--population", "2", "--generations", "0",
          "--max-iters", "2", "--no-prune", "--out", str(tmp_path / "r")],
         capture_output=True, text=True, env=env, timeout=600,
     )  # fmt: skip

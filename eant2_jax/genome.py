@@ -318,9 +318,17 @@ class Genome:
         if not np.all(np.isfinite(w)):
             bad = int(np.flatnonzero(~np.isfinite(w))[0])
             raise GenomeError(f"non-finite weight {w[bad]!r}", bad)
-        return Genome(
-            dataclasses.replace(g, weight=float(x)) for g, x in zip(self._genes, w, strict=True)
+        # The same structure: its derived parts (read-only) are shared, not validated again.
+        new = object.__new__(Genome)
+        new._genes = tuple(
+            Gene(g.kind, g.ref, float(x), g.arity) for g, x in zip(self._genes, w, strict=True)
         )
+        new._parent, new._roots = self._parent, self._roots
+        new._neuron_position = self._neuron_position
+        new._weights = w.copy()
+        new._weights.setflags(write=False)
+        new._hash = None
+        return new
 
     def subtree_end(self, index: int) -> int:
         """One past the last gene of the sub-genome rooted at gene ``index``."""

@@ -88,6 +88,8 @@ def prune_genome(genome: Genome, keep: np.ndarray, weights: np.ndarray | None = 
     if keep.shape != (len(genome),):
         raise ValueError(f"keep must have shape ({len(genome)},), got {keep.shape}")
     w = genome.weights if weights is None else np.asarray(weights, np.float64)
+    if keep.all():  # nothing removed (most structures): the same structure, new weights
+        return genome.with_weights(w)
     parent = genome.parent
     kept_inputs = np.zeros(len(genome), np.int64)
     for i in range(len(genome)):

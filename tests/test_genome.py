@@ -194,6 +194,12 @@ def test_with_weights(g, data):
     assert (h == g) == bool(np.all(w == g.weights))
     assert Genome.parse(str(h)) == h
     np.testing.assert_array_equal(g.weights, [x.weight for x in g])  # g unchanged
+    # Built without validating again: every derived part is what validation derives.
+    ref = Genome(dataclasses.replace(x, weight=float(v)) for x, v in zip(g, w, strict=True))
+    assert h.genes == ref.genes and h.roots == ref.roots and h.depth() == ref.depth()
+    np.testing.assert_array_equal(h.parent, ref.parent)
+    assert h.neuron_position == ref.neuron_position and hash(h) == hash(ref)
+    assert not h.weights.flags.writeable and not h.parent.flags.writeable
 
 
 def test_with_weights_errors():

@@ -30,6 +30,7 @@ be exact.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -44,7 +45,7 @@ import eant2_jax
 from eant2_jax import exploitation as ex
 from eant2_jax import pruning
 from eant2_jax.compiler import compile_genomes
-from eant2_jax.genome import GeneKind, Genome
+from eant2_jax.genome import GeneKind, Genome, GenomeError
 from eant2_jax.kernels import cmaes
 from eant2_jax.kernels import pruning as kp
 from eant2_jax.pruning import attempt_records, prune_genome, tables_for
@@ -520,6 +521,19 @@ def test_removable_matches_reference_and_prune_genome_is_exact(genome, data):
     for hidden in ("tanh", "identity"):
         want = interpret(genome, x, hidden=hidden, weights=np.where(keep, genome.weights, 0))
         np.testing.assert_array_equal(interpret(pruned, x, hidden=hidden), want)
+
+
+@given(genome=genomes(), data=st.data())
+def test_prune_genome_keeping_every_gene_is_the_genome_with_those_weights(genome, data):
+    # The common case (no connection removed) takes `Genome.with_weights`' path, which does
+    # not validate the structure again: the same genome as the general path builds.
+    w = data.draw(st.lists(st.floats(-5, 5), min_size=len(genome), max_size=len(genome)))
+    kept = prune_genome(genome, np.ones(len(genome), bool), np.array(w))
+    ref = Genome(dataclasses.replace(g, weight=float(x)) for g, x in zip(genome, w, strict=True))
+    assert kept == ref and kept.genes == ref.genes and kept.roots == ref.roots
+    np.testing.assert_array_equal(kept.parent, ref.parent)
+    with pytest.raises(GenomeError, match="non-finite weight"):
+        prune_genome(genome, np.ones(len(genome), bool), np.full(len(genome), np.nan))
 
 
 # --------------------------------------------------------------------------------------------

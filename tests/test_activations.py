@@ -41,6 +41,7 @@ def test_builtins_cover_neat_python():
     assert set(BUILTIN) == set(activations.names())  # no user entry left behind
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", BUILTIN)
 @fewer_examples(0.3)
 @given(
@@ -69,6 +70,7 @@ def test_source_is_the_same_function(name):
     np.testing.assert_array_equal(np.asarray(got), np.asarray(act.jax(a)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", BUILTIN)
 def test_network_matches_reference(name):
     """The compiled path resolves every name through the registry (hidden and output)."""
@@ -93,6 +95,7 @@ def _softsign(xp):
     return lambda a: a / (1.0 + xp.abs(a))
 
 
+@pytest.mark.slow
 def test_register_runs_in_the_kernels_and_compiles_once(user_names):
     user_names.append("softsign")
     eant2_jax.register_activation("softsign", _softsign(jnp), _softsign(np))
@@ -105,6 +108,7 @@ def test_register_runs_in_the_kernels_and_compiles_once(user_names):
     assert c.of("rollout_batch") == 0
 
 
+@pytest.mark.slow
 def test_overwrite_drops_programs_of_the_old_function(user_names):
     user_names.append("mine")
     eant2_jax.register_activation("mine", lambda a: 2.0 * a, lambda a: 2.0 * a)

@@ -48,6 +48,7 @@ def test_dimensions_spread_over_the_grid():
     assert sorted(set(bench_cmaes.dimensions(32, grid))) == grid
 
 
+@pytest.mark.slow
 def test_the_lazy_variant_is_the_scan_variant_when_every_iteration_decomposes():
     """An interval under one iteration decomposes every C every iteration: the lazy engine's
     trajectory is then exactly the eager one; with pycma's F = 0.5 it is another (the

@@ -64,6 +64,7 @@ def test_quick_run_writes_json_and_markdown(tmp_path, capsys):
     assert "M steps/s" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_random_genomes_are_deterministic_and_evaluate_like_the_reference():
     a = random_population(7, 3, 80)
     b = random_population(7, 3, 80)

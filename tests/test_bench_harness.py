@@ -95,6 +95,7 @@ def test_repeats_below_the_suite_minimum_are_refused():
         harness.parse_args(_suite([]), ["--repeats", "1"])
 
 
+@pytest.mark.slow
 def test_command_line_refusal_is_one_line_and_exit_2(tmp_path):
     out = tmp_path / "scaling.json"
     out.write_text("{}\n")

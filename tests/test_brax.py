@@ -110,6 +110,7 @@ def test_bad_brax_options_are_one_line(spec, options, phrase):
     assert phrase in str(e.value) and "\n" not in str(e.value)
 
 
+@pytest.mark.slow
 def test_params_reach_the_environment():
     task = tasks.make("brax:hopper", backend="spring", params={"healthy_z_range": [0.5, 9.0]})
     assert task.params == (("healthy_z_range", (0.5, 9.0)),)

@@ -44,6 +44,7 @@ def test_task_options_read_the_real_factory():
         tasks.options("nope")
 
 
+@pytest.mark.slow
 def test_mjx_import_prints_nothing_when_warp_is_absent():
     # warp made absent in the child whether or not it is installed (the test extra installs
     # it with playground): MJX's import would print "Failed to import warp" to stdout.

@@ -172,6 +172,7 @@ def test_default_params_match_evosax_random(n, popsize):
     _assert_params_match(n, popsize, cmaes.default_params(n, popsize))
 
 
+@pytest.mark.slow
 def test_default_params_traced_n():
     """n may be traced (vmap over structures) and gives the same values as a Python int."""
     ns = [3, 7, 12, 50]
@@ -207,6 +208,7 @@ def tutorial_params(n: int, popsize: int, diagonal: bool = False) -> dict[str, n
 LARGE = [(20, 1000), (100, 4096), (5, 1000)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("n", "popsize"), LARGE)
 def test_large_population_params_are_the_tutorial_s_and_pycma_s(n, popsize):
     """At large lambda the weights and rates are Hansen's tutorial's (float32, 1e-5
@@ -331,6 +333,7 @@ def test_one_tell_matches_evosax(n, kind, nan_last):
     np.testing.assert_allclose((B * D**2) @ B.T, new.C, atol=1e-5 * scale)
 
 
+@pytest.mark.slow
 def test_ask_is_symmetric_sqrt_times_fold_in_normals():
     n, P = 4, 8
     _, _, es_state, _, _, _ = _evosax_state(n, "random")
@@ -490,6 +493,7 @@ def test_lazy_eigendecomposition_statistically_equivalent(case):
     assert abs(lazy - eager) <= 0.10 * eager, msg
 
 
+@pytest.mark.slow
 def test_lazy_tell_then_decompose_equals_tell():
     """tell(decompose=False) keeps the last decomposition, and decompose afterwards gives
     exactly tell's state: the lazy path's decompositions are the eager ones, only fewer."""
@@ -510,6 +514,7 @@ def test_lazy_tell_then_decompose_equals_tell():
         state = eager
 
 
+@pytest.mark.slow
 def test_eigen_interval_rule():
     """The lazy interval is factor / (n (c_1 + c_mu)), never below one iteration."""
     for n in (2, 10, 48, 160):
@@ -519,6 +524,7 @@ def test_eigen_interval_rule():
             assert float(cmaes.eigen_interval(p, factor)) == pytest.approx(expected, rel=1e-6)
 
 
+@pytest.mark.slow
 def test_eigen_period_is_the_largest_power_of_two_within_the_interval():
     """eigen_period = the largest 2^k <= ceil(interval), against a plain loop, over n and
     factors that put the interval on both sides of powers of two; capped at 2^30."""
@@ -646,6 +652,7 @@ def _run_diverging(key):
     return jax.lax.scan(step, state, jax.random.split(key, gens))
 
 
+@pytest.mark.slow
 def test_nonfinite_costs_rank_last_and_never_poison():
     state, (means, sigmas, nonfinite) = _run_diverging(jax.random.key(0))
     assert int(nonfinite.sum()) > 40, "the test should exercise divergence"
@@ -741,6 +748,7 @@ def test_vmapped_step_compiles_once():
     assert np.all(np.asarray(states.generation) == 3)
 
 
+@pytest.mark.slow
 def test_float32_state_stays_float32_under_x64_params():
     with jax.enable_x64(True):
         params = cmaes.default_params(5, 8)  # float64 leaves
@@ -811,6 +819,7 @@ def test_eigen_bounds_condition_number():
     assert np.all(np.asarray(C2)[n:] == 0)
 
 
+@pytest.mark.slow
 def test_condition_bound_reported_in_state():
     """On an ellipsoid of Hessian condition 1e6, cond(C) grows towards 1e6 unless bounded."""
     n, P = 6, 8

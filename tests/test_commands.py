@@ -32,6 +32,7 @@ TINY = ["--population", "3", "--max-iters", "20", "--no-prune"]
 _main = run_main
 
 
+@pytest.mark.slow
 def test_report_refuses_to_overwrite_a_report_unless_forced(tmp_path, capsys, monkeypatch):
     dirs = [make_run(tmp_path / f"{p}-0", pruner=p) for p in ("covariance", "none")]
     out = tmp_path / "rep"
@@ -72,6 +73,7 @@ def test_report_never_writes_into_any_run_directory(tmp_path, capsys, monkeypatc
     assert sorted(p.name for p in bystander.iterdir()) == before
 
 
+@pytest.mark.slow
 def test_a_broken_pipe_ends_quietly_with_exit_0(tmp_path):
     """``eant2 tasks | head -1``: the reader goes after one line; nothing on stderr, exit 0
     (the rest of the output is dropped)."""
@@ -197,6 +199,7 @@ def test_an_unwritable_place_is_named_as_the_user_named_it(tmp_path, capsys, mon
     assert err[0] == f"eant2: error: {ro / 'x.png'}: cannot write it (Permission denied)"
 
 
+@pytest.mark.slow
 def test_an_int_key_is_the_seed_s_key_and_anything_else_is_one_line(tmp_path):
     """``run(task, key=0)`` is ``run(task, key=jax.random.key(0))`` (``eant2 run --seed
     0``'s key); a bool, a negative or too large seed, or another type is one line."""
@@ -255,6 +258,7 @@ def _records(d: Path) -> list[dict]:
     return [{k: v for k, v in r.items() if k not in RUN_DEPENDENT} for r in rows]
 
 
+@pytest.mark.slow
 def test_resume_records_its_new_generations_and_reports_agree(
     xor_runs, tmp_path, capsys, monkeypatch
 ):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from compiles import count_compiles, nondeterministic_scatters
 
 
@@ -31,6 +32,7 @@ def test_counts_each_new_program_once_by_name():
     assert c.of("counted_program") == 2 and again.count == 0
 
 
+@pytest.mark.slow
 def test_compilation_cache_keeps_programs_between_processes(tmp_path):
     # In fresh processes (the cache is a global JAX setting): the first compiles and writes
     # every program, the second loads them (JAX counts cache hits through jax.monitoring).

@@ -49,6 +49,7 @@ def _task(seed=0, n=128):
     return regression(x, 0.8 * x[:, :1] - 0.3 * x[:, 1:] + 0.2 * np.tanh(x[:, :1] * x[:, 1:]))
 
 
+@pytest.mark.slow
 def test_iterate_is_the_engine_iteration_in_float32():
     """With networks in float32 (the engine's evaluation), `iterate` records the engine's
     cond(C) to the bit: the same keys, ask/tell and cost call."""
@@ -93,6 +94,7 @@ def _grow(genome, w, iters=150):
     return np.log10(cond[:, 0])
 
 
+@pytest.mark.slow
 def test_an_exact_duplicate_makes_cond_grow_faster():
     """The positive control on a tiny network: with one connection duplicated (same source,
     same neuron, same weight) the sum is all the cost sees, an exactly flat direction, and

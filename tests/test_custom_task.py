@@ -224,6 +224,7 @@ def user_dir(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "form", ["--task-file", "positional", pytest.param("module", marks=pytest.mark.slow)]
 )
@@ -288,6 +289,7 @@ class Coin:
         return jnp.broadcast_to(jax.random.uniform(key), nets.bias.shape[:-1])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("noisy", [True, pytest.param(False, marks=pytest.mark.slow)])
 def test_noisy_costs_are_reevaluated_on_fresh_episodes(noisy):
     """Legacy settings (``recommend="best"``, ``rescore=1``): one fresh draw, of the key
@@ -309,6 +311,7 @@ def test_noisy_costs_are_reevaluated_on_fresh_episodes(noisy):
         assert res.costs == res.search_costs and res.evaluations[0] == engine_evals
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ahead", [False, True])
 def test_default_rescoring_averages_fresh_draws_of_both_points(monkeypatch, ahead):
     """Default settings: the best point and the mean are each scored on ``rescore`` = 4

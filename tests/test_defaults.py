@@ -39,6 +39,7 @@ def test_a_run_directory_without_a_pruner_field_reads_as_it_ran():
     assert EANT2Config.from_dict(d, complete=True).exploit.pruner == "covariance"
 
 
+@pytest.mark.slow
 def test_a_default_run_prunes():
     """The docs example's configuration (only max_iters given) prunes on XOR."""
     res = eant2_jax.run(tasks.make("xor"), key=jax.random.key(0), config=SOLVING, generations=1)
@@ -132,6 +133,7 @@ def _records(out):
     return [GenerationRecord.from_json(json.loads(x)) for x in lines]
 
 
+@pytest.mark.slow
 def test_eant2_run_xor_stops_at_the_solved_generation(tmp_path, capsys, monkeypatch):
     """README's first command stops where XOR is solved, and records the target it used."""
     out = tmp_path / "xor"
@@ -150,6 +152,7 @@ def test_eant2_run_xor_stops_at_the_solved_generation(tmp_path, capsys, monkeypa
     assert json.loads((off / "config.json").read_text())["config"]["target_cost"] is None
 
 
+@pytest.mark.slow
 def test_a_failed_solution_test_keeps_a_run_going_past_the_solved_level(tmp_path):
     """dpv's seeds 5003 and 5014 (docs/pole.md): a training cost at the task's solved level
     whose network fails the solution test does not end the run; the test decides."""

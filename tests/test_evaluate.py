@@ -155,6 +155,7 @@ def test_evaluate_matches_reference(batch, shape, acts, data):
     assert_close(got, reference(batch, x, *acts))
 
 
+@pytest.mark.slow
 def test_text_and_genomes_are_accepted():
     text = "N0/2*1 I1*0.5 B*-1"
     x = np.random.default_rng(1).normal(size=(3, 2, 2))
@@ -178,6 +179,7 @@ def _vmapped_rollout(hidden: str, output: str):
     return jax.jit(jax.vmap(one, in_axes=(None, 0, None)))
 
 
+@pytest.mark.slow
 @fewer_examples(0.1)
 @given(
     g=genomes(n_outputs=2),  # one program (numbers of outputs: the tests above)
@@ -202,6 +204,7 @@ def test_vmap_over_params_matches_reference(g, w, x):
 
 
 # ------------------------------------------------------------------------- compiled only once
+@pytest.mark.slow
 def test_same_bucket_does_not_compile_again():
     # Shapes no other test uses (T=7, M=5, 4 inputs), so the counts below are this test's.
     x = np.random.default_rng(2).normal(size=(7, 5, 4)).astype(np.float32)
@@ -250,6 +253,7 @@ def test_same_bucket_does_not_compile_again():
 LOOPED_SWEEPS = 96
 
 
+@pytest.mark.slow
 @fewer_examples(0.1)  # two programs in all (one number of outputs; the others: above)
 @given(batch=genome_batches(max_size=ROWS, n_outputs=2), x=inputs(4, 2))
 def test_sweeps_as_a_loop_match_reference_and_the_written_out_program(batch, x):
@@ -331,6 +335,7 @@ def test_other_bad_arguments():
 
 
 # ------------------------------------------------------------------------ non-finite inputs
+@pytest.mark.slow
 def test_unread_nan_input_does_not_poison_outputs():
     """Issue 16: one NaN in an input no gene reads made every output NaN (0 * nan in the
     dense product); the reference leaves the outputs alone."""

@@ -122,6 +122,7 @@ def test_initial_genome_weights_and_determinism():
     assert b == c and str(b) == str(c)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n_in,n_out,connectivity", [(1, 1, 1.0), (3, 1, 1.0), (6, 3, 0.5)])
 def test_recurrent_start_computes_the_plain_start(n_in, n_out, connectivity):
     """The recurrent-ready start is the plain start plus one weight-0 self-jumper per
@@ -154,6 +155,7 @@ def test_recurrent_start_computes_the_plain_start(n_in, n_out, connectivity):
 
 
 # -------------------------------------------------------------------------------- mutation
+@pytest.mark.slow
 @given(genomes(n_inputs=N_INPUTS, max_neurons=5, max_id=20), st.integers(0, 2**32 - 1))
 def test_every_operator_on_random_parents(parent, seed):
     """Validity, weight-0 joins, fewer genes on removal, next_id, no cycles (5 x DRAWS)."""

@@ -79,6 +79,7 @@ def max_diff(spec: GenomeFile, xs: np.ndarray) -> float:
     return float(np.max(np.abs(got[both] - want[both]), initial=0.0))
 
 
+@pytest.mark.slow
 def test_xor_network_matches_and_solves():
     spec = GenomeFile.from_task(Genome.parse(XOR_GENOME), eant2_jax.tasks.make("xor"), name="xor")
     patterns = np.array([[[0, 0], [0, 1], [1, 0], [1, 1]]], np.float32)
@@ -89,6 +90,7 @@ def test_xor_network_matches_and_solves():
     assert max_diff(spec, xs) <= 1e-5
 
 
+@pytest.mark.slow
 def test_recurrent_pole_controller_state_in_and_out():
     """The dpnv controller of test_pole (it balances 100,000 steps with recurrent jumpers):
     outputs over 40 steps of 16 streams, and the state the graph hands back equals the
@@ -112,6 +114,7 @@ def test_recurrent_pole_controller_state_in_and_out():
     assert [o.name for o in model.graph.output] == ["y", "h"]
 
 
+@pytest.mark.slow
 def test_pole_controller_on_its_own_trajectory():
     """The dpnv controller balancing the double pole (the library's closed loop,
     `pole.trajectory`, 500 steps): the ONNX graph, fed the observations of that trajectory
@@ -129,6 +132,7 @@ def test_pole_controller_on_its_own_trajectory():
     np.testing.assert_allclose(got[:, 0, 0], np.asarray(actions), rtol=RTOL, atol=ATOL)
 
 
+@pytest.mark.slow
 def test_servo_network_from_a_run():
     """A servo network evolved by a run (10 inputs, 3 outputs, forward and recurrent
     jumpers), 30 steps of 32 streams."""
@@ -157,6 +161,7 @@ def test_random_networks_every_activation_and_nonfinite_inputs(genome, hidden, o
     max_diff(spec, xs)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(activations.BUILTIN))
 def test_every_builtin_activation_against_its_reference(name):
     """A one-neuron network ``y = act(x0)``: the graph's activation against the registry's
@@ -171,6 +176,7 @@ def test_every_builtin_activation_against_its_reference(name):
     np.testing.assert_allclose(y[:, 0], want, rtol=RTOL, atol=ATOL)
 
 
+@pytest.mark.slow
 def test_refusals_are_one_line(tmp_path):
     g = Genome.parse("N0/2*1.0 I0*0.5 I1*-0.5")
     with pytest.raises(GenomeFileError, match="names no activations"):
@@ -202,6 +208,7 @@ def test_opset_and_save_never_overwrite(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["link.onnx", "net.onnx"]
 
 
+@pytest.mark.slow
 def test_cli_export_onnx(tmp_path, capsys):
     genome = tmp_path / "servo.genome"
     genome.write_text(SERVO.read_text())
@@ -232,6 +239,7 @@ def test_missing_extra_is_one_line(monkeypatch, tmp_path, capsys):
     assert not (tmp_path / "net.genome.onnx").exists()
 
 
+@pytest.mark.slow
 def test_cli_file_without_header_takes_activations(tmp_path, capsys):
     """bench/inputs/servo-none-s1-best.genome has no header: eant2 export asks for
     --activations in one line, and with them exports the network the library loads so."""

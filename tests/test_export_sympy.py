@@ -56,6 +56,7 @@ def grown_network(seed: int, n_neurons: int = 20) -> Genome:
     return g.with_weights(rng.normal(0, 1, g.n_params))
 
 
+@pytest.mark.slow
 def test_twenty_neuron_network_grown_by_mutation():
     """The fast lane's 20-neuron network (depth > 2): outputs of the inputs alone,
     lambdified, against the library on 256 fresh random inputs."""
@@ -104,6 +105,7 @@ def test_every_builtin_activation_against_its_numpy_reference(name):
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_recurrent_step_with_its_state():
     """The dpnv controller of test_pole: one step from a random state, the state symbols
     ``hp<id>`` fed with the library's state slots (slot order of `export.dense`)."""

@@ -90,6 +90,7 @@ def tn_reference(nodes, conns, x, n_in, n_out, activations):
     return np.array([vals.get(o, np.nan) for o in range(n_in, n_in + n_out)])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("activation", ["tanh", "scaled_tanh"])
 def test_tensorneat_network_matches_a_numpy_reference(activation):
     from eant2_jax.kernels import network as kn
@@ -119,6 +120,7 @@ def test_tensorneat_network_matches_a_numpy_reference(activation):
     np.testing.assert_allclose(got[~np.isnan(got)], want[~np.isnan(want)], rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_tensorneat_candidates_on_a_task_of_raw_observations():
     """A brax task keeps raw observations (``obs_offset`` None): TensorNEAT's candidates are
     judged on the same raw inputs (hopper's first judging failed on the None)."""
@@ -166,6 +168,7 @@ def test_archive_and_choice_match_a_plain_reference():
 
 
 # ------------------------------------------------------------ intervals and verdicts
+@pytest.mark.slow
 def test_median_interval_matches_a_numpy_loop_and_scipy():
     import scipy.stats
 
@@ -185,6 +188,7 @@ def test_median_interval_matches_a_numpy_loop_and_scipy():
     assert field_stats.median_interval([None, None]) is None
 
 
+@pytest.mark.slow
 def test_verdicts_need_the_interval_to_exclude_zero():
     rng = np.random.default_rng()
     up = rng.uniform(1, 2, 10)

@@ -86,6 +86,7 @@ def _reference_cost(genome: Genome, w: jax.Array, task: tasks.Regression) -> jax
 _value_and_grad = jax.jit(value_and_grad)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [11, 12])
 def test_gradient_matches_unpadded_reference(seed):
     task, genomes = _task(seed), _genomes(seed)
@@ -102,6 +103,7 @@ def test_gradient_matches_unpadded_reference(seed):
     assert np.all(grads[len(genomes) :] == 0)  # padding rows
 
 
+@pytest.mark.slow
 def test_gradient_matches_numpy_finite_difference():
     task, (g, *_) = _task(21), _genomes(21)
     x, y = np.asarray(task.inputs, np.float64), np.asarray(task.targets, np.float64)
@@ -119,6 +121,7 @@ def test_gradient_matches_numpy_finite_difference():
     np.testing.assert_allclose(np.asarray(grads[0, : g.n_params]), fd, rtol=1e-3, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_padding_stays_zero_and_batch_equals_one_at_a_time():
     task, genomes = _task(31), _genomes(31)
     together = finetune(
@@ -143,6 +146,7 @@ def test_padding_stays_zero_and_batch_equals_one_at_a_time():
         np.testing.assert_array_equal(alone.history[:, 0], together.history[:, i])
 
 
+@pytest.mark.slow
 def test_deterministic_and_never_worse():
     task, genomes = _task(41), _genomes(41)
     # CLIPPED: the program the test above compiled (the default optimiser is the slow
@@ -179,6 +183,7 @@ def test_bad_arguments_one_line(kwargs, error, words):
     assert "\n" not in str(info.value)
 
 
+@pytest.mark.slow
 def test_nonfinite_row_skips_its_steps():
     task, genomes = _task(61), _genomes(61, 2)
     batch = compile_genomes(genomes, N_IN, bucket=BUCKET, min_rows=ROWS)

@@ -54,6 +54,7 @@ def test_header_round_trip(g, hidden, output, extra, task):
     assert Genome.parse(text) == g  # any reader of the bare text form reads the file too
 
 
+@pytest.mark.slow
 def test_file_without_header_stays_readable(tmp_path):
     path = tmp_path / "best.genome"
     path.write_text(EXAMPLE + "\n")  # as run directories held it before the header
@@ -120,6 +121,7 @@ def test_unknown_activation_in_a_header(tmp_path):
 
 
 # -------------------------------------------------------------------------- the loaded net
+@pytest.mark.slow
 def test_loaded_network_shapes_and_state(tmp_path):
     net = load(_spec().write(tmp_path / "a.genome"))
     rng = np.random.default_rng(1)
@@ -139,6 +141,7 @@ def test_loaded_network_shapes_and_state(tmp_path):
         net(xs[..., :3])
 
 
+@pytest.mark.slow
 def test_reload_reproduces_the_task_outputs_exactly(tmp_path):
     """What a run's task computes (its predict, through the compiler's route) equals what the
     reloaded file computes, bit for bit, with non-default activations on both neuron kinds;
@@ -180,6 +183,7 @@ def test_run_writes_a_header_and_reload_matches_the_run(tmp_path):
 TAME = st.sampled_from(["tanh", "sigmoid", "relu", "identity", "elu", "selu", "clamped", "hat"])
 
 
+@pytest.mark.slow
 @fewer_examples(0.1)
 @given(g=genomes(n_inputs=3, max_neurons=4), hidden=TAME, seed=st.integers(0, 99))
 def test_jax_export_matches_reference(g, hidden, seed):
@@ -292,6 +296,7 @@ def _hostile_tasks(marker: Path) -> list[str]:
     ]
 
 
+@pytest.mark.slow
 def test_to_jax_of_a_hostile_header_runs_nothing(tmp_path):
     """A genome file's strings never reach generated code: for each hostile task name
     (written by an attacker into a real header), the exported source holds none of it, its

@@ -109,6 +109,7 @@ def test_genome_file_fuzz(tmp):
     assert sum(seen.values()) >= FUZZ_CASES and min(seen.values()) > FUZZ_CASES // 20, seen
 
 
+@pytest.mark.slow
 @settings(suppress_health_check=[HealthCheck.too_slow])
 @given(
     g=genomes(n_inputs=2, max_neurons=3),

@@ -32,6 +32,7 @@ def _nets(task, *genomes):
     return networks([eant2_jax.Genome.parse(g) for g in genomes], task.n_inputs)
 
 
+@pytest.mark.slow
 def test_cartpole_controllers_get_the_returns_they_should():
     task = tasks.make("gymnax:CartPole-v1")
     assert (task.n_inputs, task.n_outputs, task.max_steps, task.discrete) == (4, 2, 500, True)
@@ -44,6 +45,7 @@ def test_cartpole_controllers_get_the_returns_they_should():
     assert cost[0] == -500.0 and -30 <= cost[1] <= -5
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "name,options,n_in,n_out",
     [

@@ -119,6 +119,7 @@ def test_the_engine_starts_from_the_given_search():
                 config, popsize=4, cov=np.eye(4)[None])  # fmt: skip
 
 
+@pytest.mark.slow
 def test_tune_returns_the_final_searches_on_the_tuned_genes():
     """XOR with pruning: each returned search covers exactly the genes of the returned
     (possibly pruned) genome, matches the engine's final C on those genes, and starts the

@@ -88,6 +88,7 @@ def dense_numpy(g: Genome, h: int, n_in: int) -> dict[str, np.ndarray]:
 _network = jax.jit(kn.network)
 
 
+@pytest.mark.slow
 @given(g=genomes(), junk=hnp.arrays(np.float32, P, elements=st.floats(-9, 9, width=32)))
 # Found by hypothesis: three recurrent genes on one edge cancel to 0.0016.
 @example(
@@ -134,6 +135,7 @@ def _example():
     return layout, w, xs
 
 
+@pytest.mark.slow
 def test_rollout_matches_reference_and_steps():
     layout, w, xs = _example()
     net = kn.network(layout, w)
@@ -149,6 +151,7 @@ def test_rollout_matches_reference_and_steps():
         np.testing.assert_allclose(np.asarray(y), np.asarray(ys[t]), rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("hidden", "output"), [("tanh", "identity"), ("relu", "sigmoid")])
 def test_step_and_rollout_jit_equal_eager(hidden, output):
     layout, w, xs = _example()
@@ -167,6 +170,7 @@ def test_step_and_rollout_jit_equal_eager(hidden, output):
     )
 
 
+@pytest.mark.slow
 def test_step_and_rollout_under_vmap():
     layout, w, xs = _example()
     net = kn.network(layout, w)
@@ -189,6 +193,7 @@ def test_step_and_rollout_under_vmap():
         np.testing.assert_allclose(np.asarray(ys[k]), np.asarray(alone), rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.slow
 def test_no_retrace_for_new_values():
     chex.clear_trace_counter()
 
@@ -215,6 +220,7 @@ def test_no_retrace_for_new_values():
 
 
 # ---------------------------------------------------------------------------------- padding
+@pytest.mark.slow
 @given(
     g=genomes(max_neurons=3),
     h_prev=hnp.arrays(np.float32, H, elements=st.floats(-3, 3, width=32)),
@@ -277,6 +283,7 @@ def _assert_loop_equals_written_out(layout, params, x, h):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=form)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="the exact claim is the CPU's")
 @fewer_examples(0.1)  # six programs, compiled once
 @given(
@@ -298,6 +305,7 @@ def test_sweeps_as_a_loop_equal_the_sweeps_written_out(g, x, h, bad):
     _assert_loop_equals_written_out(batch[0], batch[1], jnp.asarray(x), batch[2])
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="the exact claim is the CPU's")
 @pytest.mark.parametrize("seed", [0, 1])
 def test_sweeps_as_a_loop_equal_the_sweeps_written_out_with_dots(seed):
@@ -330,6 +338,7 @@ def test_deep_step_is_one_loop_whose_program_does_not_grow():
 
 
 # -------------------------------------------------------------------------------- gradients
+@pytest.mark.slow
 @fewer_examples(0.1)
 @given(
     g=genomes(max_outputs=2),  # one compilation of the gradient per number of outputs
@@ -393,6 +402,7 @@ def _summed_product(w, v, reads):
     return jnp.sum(netdot.dot(w, reads, v))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("k", [1, 3, 6, kn.UNROLL_MAX, kn.UNROLL_MAX + 1, 40])
 def test_product_short_unrolled_and_long_dot_match_numpy(k):
     """Both ways `netdot.dot` is written (an unrolled sum up to `netdot.UNROLL_MAX` terms, XLA's dot
@@ -428,6 +438,7 @@ def test_product_short_unrolled_and_long_dot_match_numpy(k):
             assert all(np.all(np.isfinite(np.asarray(g))) for g in grad)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("branch_min", [0, 10**12])
 @pytest.mark.parametrize("nonfinite", [False, True])
 def test_long_product_batched_matches_numpy(monkeypatch, branch_min, nonfinite):
@@ -521,6 +532,7 @@ def _batched_step_fn(rule: bool, hidden: str, output: str):
     return jax.jit(jax.vmap(per_net, in_axes=(0, 0, None, 0)))
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="the branch is taken on CPUs only")
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_cpu_step_equals_the_rule_with_finite_and_non_finite_values(seed):
@@ -576,6 +588,7 @@ def _conditionals(text: str) -> int:
 _TRITON = "xla.gpu.triton"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("neurons", [8, 16])
 def test_gpu_step_branches_only_large_batches_of_dot_networks(monkeypatch, neurons):
     """Off the CPU (traced as a GPU backend would) a network of at most `kn.UNROLL_MAX`
@@ -639,6 +652,7 @@ def _ruled(layout, params, x, h, hidden="tanh", output="identity", shared=True):
     return jax.vmap(one, in_axes=(0, 0, None if shared else 0, 0))(layout, params, x, h)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("neurons", "shared"), [(6, False), (7, True), (kn.UNROLL_MAX, True)])
 def test_fused_step_equals_the_rule(neurons, shared):
     """`netfused.step_batch` (run in Pallas' interpreter) against `kn.step_inline` with the
@@ -664,6 +678,7 @@ def test_fused_step_equals_the_rule(neurons, shared):
     _assert_same_values(_fused(nets, xs, bad_h), _ruled(layout, params, x, bad_h, shared=shared))
 
 
+@pytest.mark.slow
 def test_fused_step_takes_the_rule_when_a_value_inside_overflows():
     """Finite inputs, weights of 1e20 and identity neurons: sums overflow to inf inside
     the networks, where the kernel's plain products alone would give NaN (checked); the
@@ -681,6 +696,7 @@ def test_fused_step_takes_the_rule_when_a_value_inside_overflows():
     assert not np.array_equal(np.isnan(np.asarray(plain[0])), np.isnan(np.asarray(want[0])))
 
 
+@pytest.mark.slow
 def test_fused_step_lowers_for_cuda_with_each_activation(monkeypatch):
     """Every activation of `netfused.ACTIVATIONS` lowers to one Triton kernel (the CUDA
     lowering, on any machine): the names listed there are the ones Triton lowers."""
@@ -691,6 +707,7 @@ def test_fused_step_lowers_for_cuda_with_each_activation(monkeypatch):
         assert text.count(_TRITON) == 1, activation
 
 
+@pytest.mark.slow
 def test_fused_step_applies_only_where_it_can(monkeypatch):
     """The kernel is left out (the rule stays inline) for buckets of fewer than 8 neuron
     slots (`kn.FUSED_NEURONS`), for a registered activation Triton is not known to lower,
@@ -727,6 +744,7 @@ def test_fused_step_applies_only_where_it_can(monkeypatch):
     assert text.count(_TRITON) == 1
 
 
+@pytest.mark.slow
 def test_step_gradient_is_the_rules():
     """Differentiation of `kn.step` takes the rule's own path: the gradient of a batched loss
     in the parameters equals the one through `kn.step_inline` with the rule. (Second order works
@@ -744,6 +762,7 @@ def test_step_gradient_is_the_rules():
 
 
 # --------------------------------------------------------------------- threefry written out
+@pytest.mark.slow
 def test_threefry_draws_equal_jax_random():
     """`kernels.threefry`'s ``fold_in`` and scalar ``normal`` give `jax.random`'s bits on
     fresh keys and data (the full uint32 range), jitted and vmapped, with partitionable
@@ -796,6 +815,7 @@ def test_kernels_resolve_to_this_repository():
     assert Path(eant2_jax.kernels.__file__).resolve() == KERNELS / "__init__.py"
 
 
+@pytest.mark.slow
 def test_kernels_resolve_in_a_fresh_interpreter(tmp_path):
     out = _run_python(
         """
@@ -820,6 +840,7 @@ def test_kernels_resolve_in_a_fresh_interpreter(tmp_path):
     assert top_level == "None" or not Path(top_level).resolve().is_relative_to(REPO)
 
 
+@pytest.mark.slow
 def test_kernels_import_nothing_from_the_package(tmp_path):
     # Statically: no import names eant2_jax, and no relative import leaves kernels/.
     for path in sorted(KERNELS.glob("*.py")):
@@ -997,6 +1018,7 @@ def test_wheel_installs_kernels_inside_the_package(tmp_path):
     assert imported == "False"
 
 
+@pytest.mark.slow
 def test_network_build_is_deterministic_by_construction():
     """No float scatter with repeated indices in the build, batched as the engine batches it
     (structures x candidates): a GPU would add such entries in any order, and XLA's

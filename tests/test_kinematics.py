@@ -57,6 +57,7 @@ def _models(seed: int):
         yield f"random chain of {links}", m, mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, "tip")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_forward_equals_mjx_kinematics_and_mujoco_c(seed):
     from eant2_jax.tasks.mjx_quiet import mjx
@@ -140,6 +141,7 @@ def test_a_fixed_base_is_composed_on_the_host():
         )
 
 
+@pytest.mark.slow
 def test_kinematic_servo_never_imports_mjx():
     """The kinematic servo task (the default) builds and scores without importing MJX; the
     dynamic mode imports it. A fresh process: other tests here import MJX."""

@@ -44,6 +44,7 @@ def _same_networks(a: E.RunResult, b: E.RunResult):
     )
 
 
+@pytest.mark.slow
 def test_each_run_is_the_run_alone_at_a_fixed_popsize():
     # With the popsize fixed, the group's shared padding changes only float rounding (wider
     # sums and eigendecompositions): each structure starts from its solo key and draws its
@@ -60,6 +61,7 @@ def test_each_run_is_the_run_alone_at_a_fixed_popsize():
     assert len({str(r.best) for r in group}) > 1  # independent runs, not copies
 
 
+@pytest.mark.slow
 def test_a_group_of_one_is_the_run_alone():
     task, cfg = _task(), _config()  # default popsize: follows the (same) bucket
     key = jax.random.key(7)
@@ -71,6 +73,7 @@ class _Kill(Exception):
     pass
 
 
+@pytest.mark.slow
 def test_a_killed_group_resumes_exactly(tmp_path):
     task, cfg = _task(), _config()
     keys = [jax.random.key(s) for s in (1, 2)]
@@ -106,6 +109,7 @@ def test_bad_input():
         run_lockstep(task, [jax.random.key(0)], config=E.EANT2Config(devices=1), generations=1)
 
 
+@pytest.mark.slow
 def test_warm_starts_and_reexploited_parents_go_to_their_own_runs():
     # inherit_search + reexploit: each brood's warm starts and kept searches are sliced
     # back to its own run (a slip would hand one run's covariance to another's structure).
@@ -125,6 +129,7 @@ def test_warm_starts_and_reexploited_parents_go_to_their_own_runs():
                 np.testing.assert_allclose(a.search.cov, b.search.cov, rtol=1e-2, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_each_run_stops_at_its_own_target():
     task = E.tasks.make("xor")
     cfg = E.EANT2Config(
@@ -143,6 +148,7 @@ def test_each_run_stops_at_its_own_target():
     assert len(set(counts)) > 1  # the runs did stop at different generations
 
 
+@pytest.mark.slow
 def test_programs_compiled_ahead_are_used_and_change_nothing(monkeypatch):
     """On an accelerator a group compiles generation 0's program from shapes and, during
     each generation, its guessed next bucket's (`programs.guesses.compile_next_bucket` over every

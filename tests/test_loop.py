@@ -642,6 +642,7 @@ def test_cli_run_refuses_an_existing_target(kind, tmp_path, capsys, monkeypatch)
     assert after == before
 
 
+@pytest.mark.slow
 def test_cli_errors_in_a_real_process(tmp_path):
     """The installed entry point: exit code 2 and a one-line message, no traceback."""
     cmd = [sys.executable, "-m", "eant2_jax.app.cli", "resume", str(tmp_path / "nowhere")]
@@ -692,6 +693,7 @@ def test_cli_process_defaults_yield_to_the_environment():
         assert process_defaults(env) == {} and env == {var: "0.5", "MUJOCO_GL": "egl"}
 
 
+@pytest.mark.slow
 def test_cli_sets_process_defaults_before_mujoco_and_the_backend(tmp_path):
     """In a fresh `eant2 run` process, MuJoCo is imported with MUJOCO_GL=disable (no OpenGL
     library loaded) and JAX's backend starts without preallocating. (Any task starts the
@@ -754,6 +756,7 @@ def test_bucket_grows_with_headroom_and_is_kept_while_it_fits():
     assert grow_bucket([deeper], floored, (5, 40, 3)) == Bucket(neurons=6, genes=48, sweeps=6)
 
 
+@pytest.mark.slow
 def test_min_bucket_compiles_once_and_is_a_checked_option(tmp_path):
     """A run with a bucket floor large enough for its networks compiles its engine program
     in generation 0 only (the default grows into new buckets, each compiled), repeats with
@@ -847,6 +850,7 @@ def test_solution_test_stops_the_run_at_the_first_pass(xor_run, tmp_path):
     assert len(_jsonl(run_dir, GENERATIONS)) == GENERATIONS_API + 1
 
 
+@pytest.mark.slow
 def test_max_evaluations_stops_after_the_generation_that_reaches_it(xor_run, tmp_path):
     """An evaluation budget ends the run after the generation in which it is reached: the
     generations up to there are exactly the reference's, and a resume asked for more
@@ -873,6 +877,7 @@ def test_max_evaluations_stops_after_the_generation_that_reaches_it(xor_run, tmp
     assert loaded.max_evaluations == 7
 
 
+@pytest.mark.slow
 def test_solution_test_halts_every_structure_and_counts_only_evaluations():
     """Through `tune`: the test halts the whole batch after the chunk in which a network
     passes; the evaluations are those spent until then (the test's work is not counted)."""
@@ -991,6 +996,7 @@ def _record_json() -> dict:
     }  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["xor", "servo"])
 def test_first_program_compiled_ahead_from_shapes_is_used_and_changes_nothing(monkeypatch, task):
     """On an accelerator generation 0's engine program starts compiling from shapes alone,
@@ -1023,6 +1029,7 @@ def test_first_program_compiled_ahead_from_shapes_is_used_and_changes_nothing(mo
     assert not programs.REGISTRY.ahead
 
 
+@pytest.mark.slow
 def test_cli_starts_the_first_program_before_the_key_exists(monkeypatch, tmp_path):
     """`eant2 run` starts generation 0's program from the seed's key shape before it makes
     the key; the run then uses that program (strictly: no fallback to jit)."""
@@ -1048,6 +1055,7 @@ def test_cli_starts_the_first_program_before_the_key_exists(monkeypatch, tmp_pat
     assert len(used) == 1 and len(programs.REGISTRY.ahead) == 1
 
 
+@pytest.mark.slow
 def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
     """On an accelerator the loop guesses the next bucket and compiles its engine program in
     a background thread (`programs.guesses.compile_next_bucket`). Forced on here, with the threads

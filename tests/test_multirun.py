@@ -16,6 +16,7 @@ def _task():
     return E.tasks.regression(x, y, hidden="tanh", output="tanh")
 
 
+@pytest.mark.slow
 def test_cpu_workers_warn_and_run_one_at_a_time():
     task = _task()
     cfg = E.EANT2Config(

@@ -71,6 +71,7 @@ def _rows(seen: np.ndarray, lengths: np.ndarray) -> np.ndarray:
     return seen[live].astype(np.float64)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,options", [("CartPole-v1", CARTPOLE), ("Pendulum-v1", PENDULUM)])
 def test_statistics_equal_numpy_over_the_recorded_random_observations(name, options):
     seed = _fresh_seed()
@@ -102,6 +103,7 @@ def test_statistics_equal_numpy_over_the_recorded_random_observations(name, opti
     assert task.obs_offset.dtype == task.obs_scale.dtype == jnp.float32
 
 
+@pytest.mark.slow
 def test_the_same_seed_gives_the_same_bits_and_a_resume_rebuilds_them(tmp_path):
     seed = _fresh_seed()
     options = {"normalize": "random", "norm_episodes": 5, "norm_seed": seed, **CARTPOLE}
@@ -121,6 +123,7 @@ def test_the_same_seed_gives_the_same_bits_and_a_resume_rebuilds_them(tmp_path):
         assert np.asarray(getattr(rebuilt, name)).tobytes() == bits
 
 
+@pytest.mark.slow
 def test_the_network_sees_obs_minus_mean_over_std():
     seed = _fresh_seed()
     task = tasks.make("gymnax:Pendulum-v1", normalize="random", norm_episodes=6,
@@ -267,6 +270,7 @@ def test_bad_normalisation_options_are_one_line(spec, options, phrase):
     assert phrase in str(e.value) and "\n" not in str(e.value), str(e.value)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "spec,options", [("brax:hopper", {"backend": "spring"}), ("playground:CartpoleBalance", {})]
 )

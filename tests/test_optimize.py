@@ -17,6 +17,7 @@ from eant2_jax.tuning import cost, optimize
 START = Genome.parse("N0/4*1 N1/3*0.1 I0*0.1 I1*-0.1 B*0.05 I0*0.1 I1*0.1 B*0.0")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sigma0", [1e3, 1e12, 1e30])
 def test_a_large_sigma0_never_returns_worse_than_the_start(sigma0):
     """With a step size so large that every sample's network saturates or overflows (cost
@@ -30,6 +31,7 @@ def test_a_large_sigma0_never_returns_worse_than_the_start(sigma0):
     assert float(cost(res.genome, task, key=jax.random.key(2))[0]) == pytest.approx(res.cost)
 
 
+@pytest.mark.slow
 def test_a_search_that_improves_returns_its_best():
     """The usual case is unchanged: a search that finds better weights returns them."""
     task = xor()

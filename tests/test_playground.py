@@ -97,6 +97,7 @@ def test_an_unknown_environment_lists_the_known_ones():
         tasks.make("playground:Nope")
 
 
+@pytest.mark.slow
 def test_config_reaches_the_environment():
     task = tasks.make("playground:CartpoleBalance", config={"episode_length": 300})
     assert task.max_steps == 300 and ("episode_length", 300) in task.overrides

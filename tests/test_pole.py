@@ -228,6 +228,7 @@ trajectory_of = jax.jit(pole.trajectory, static_argnames="steps")
 rollout_of = jax.jit(lambda task, net: task.rollout(net, task.start))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("j", [0, 1, 2])
 def test_dpnv_network_sees_scaled_x_th1_th2(j):
     """A network whose output is tanh(input j) (the DPNV structure with every weight 0 but
@@ -264,6 +265,7 @@ def _first_failure(states: np.ndarray) -> int:
     return int(bad[0]) if bad.size else len(states)
 
 
+@pytest.mark.slow
 @fewer_examples(0.2)
 @given(st.lists(st.floats(0.5, 1.5), min_size=6, max_size=6))
 def test_rollout_matches_trajectory(mult):
@@ -338,6 +340,7 @@ def test_damping_cost_batched_and_chunk_does_not_change_it(chunk):
 
 
 # ---------------------------------------------------------------- controllers, solution check
+@pytest.mark.slow
 def test_linear_controller_balances_through_the_public_cost():
     task = eant2_jax.tasks.make("dpv", max_steps=2000)
     assert float(eant2_jax.cost(LQR_GENOME, task, key=jax.random.key(0))[0]) == -2000
@@ -399,6 +402,7 @@ def _net(genome):
     return jax.tree.map(lambda a: a[0], networks([genome], 3))
 
 
+@pytest.mark.slow
 def test_recurrent_start_gene_is_tuned_and_used_on_dpnv():
     """The recurrent-ready start's self-jumper is a parameter like any other: a few CMA-ES
     iterations on dpnv move it off 0, and the tuned network's cost depends on it."""

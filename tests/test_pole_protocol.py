@@ -42,6 +42,7 @@ def _fixed(records) -> list[dict]:
     return [{k: v for k, v in r.to_json().items() if k not in RUN_DEPENDENT} for r in records]
 
 
+@pytest.mark.slow
 def test_champion_rule_tests_each_generation_champion_once_and_changes_nothing_else():
     """Under ``champion`` a test that never passes is called once per generation, on that
     generation's champion after selection, never during tuning; the run is the one that
@@ -64,6 +65,7 @@ def test_champion_rule_tests_each_generation_champion_once_and_changes_nothing_e
     ]
 
 
+@pytest.mark.slow
 def test_champion_rule_stops_at_the_first_champion_that_passes(tmp_path):
     """A champion that passes ends the run after its generation, counting all of that
     generation's evaluations; it is the solution, announced after the generation's event.

@@ -10,7 +10,10 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
 
+
+@pytest.mark.slow
 def test_the_package_imports_without_flax_or_fcntl(tmp_path):
     code = f"""
     import sys

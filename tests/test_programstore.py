@@ -75,6 +75,7 @@ def _no_tracing(monkeypatch):
     monkeypatch.setattr(programstore.export, "export", refuse)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["xor", "servo"])
 def test_off_cold_and_warm_store_give_the_same_run(store, monkeypatch, task):
     small = dataclasses.replace(CONFIG, exploit=CONFIG.exploit.replace(max_iters=6))
@@ -106,6 +107,7 @@ def _chunk_args(task_name: str, config: ExploitConfig):
     return task, args
 
 
+@pytest.mark.slow
 def test_the_engine_state_is_equal_to_the_last_bit(store):
     """One chunk of the engine: the stored program's outputs equal jit's, every leaf."""
     task, args = _chunk_args("servo", ExploitConfig(max_iters=30, pruner="covariance"))
@@ -128,6 +130,7 @@ def _store_chunk(config: ExploitConfig) -> None:
     assert programstore.lookup(exploitation.run_chunk, args, {"length": 5}, task=task)
 
 
+@pytest.mark.slow
 def test_what_shapes_the_program_keys_it(store, monkeypatch):
     _store_chunk(CONFIG.exploit)
     assert len(_keys(store)) == 1
@@ -191,6 +194,7 @@ def _stored_leaves():
     return jax.tree.leaves(args)
 
 
+@pytest.mark.slow
 def test_an_entry_is_a_manifest_and_bytes(store):
     """One line of strict JSON naming the key, versions and the bytes' hash, then the
     bytes `jax.export` wrote; no pickle anywhere in the entry."""
@@ -225,6 +229,7 @@ def _new_entry(store, before: set) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_a_damaged_entry_is_traced_again_and_replaced(store, monkeypatch, stored_run):
     """Each damage is detected before the bytes are deserialized; a whole run over a flipped
     bit computes the same and leaves a good entry."""
@@ -244,6 +249,7 @@ def test_a_damaged_entry_is_traced_again_and_replaced(store, monkeypatch, stored
     assert path.read_bytes() != flipped and _whole(path)  # traced again, written anew
 
 
+@pytest.mark.slow
 def test_a_planted_pickle_runs_nothing(store, monkeypatch, tmp_path, stored_run):
     """A pickle planted under the key (as the entry, or as the older store's ``.pkl``) is
     never unpickled: the run computes the same and the pickle's code never ran."""
@@ -270,6 +276,7 @@ class _Plant:
         return (open, (self.marker, "w"))
 
 
+@pytest.mark.slow
 def test_a_foreign_entry_is_not_used(store, monkeypatch, stored_run):
     """Another program's valid entry under this key (another engine setting) is refused by
     its manifest; with the manifest's key forged too, by its input shapes. A run over a
@@ -334,6 +341,7 @@ def test_a_file_not_owned_alone_is_not_read(store):
     assert programstore.read_entry(path, path.stem, leaves) is None
 
 
+@pytest.mark.slow
 def test_an_unwritable_store_still_runs(tmp_path, monkeypatch):
     blocker = tmp_path / "file"
     blocker.write_text("a file where the folder would be")
@@ -378,6 +386,7 @@ def test_the_store_follows_the_compilation_cache(tmp_path, monkeypatch):
     assert "eant2_jax.programs.store" in sys.modules
 
 
+@pytest.mark.slow
 def test_the_store_holds_a_gpu_engine_program_with_its_triton_kernel(monkeypatch):
     """A GPU engine program holds the network step's Triton kernel, a custom call that
     jax.export refuses by default (its form is not promised across versions). The store

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import jax
 import numpy as np
+import pytest
 
 from eant2_jax.app.heldout import fresh_servo_poses, fresh_servo_task, held_out_costs
 from eant2_jax.compiler import networks
@@ -35,6 +36,7 @@ def test_fresh_poses_follow_the_tasks_rule_and_repeat_for_their_key():
         assert not np.any(np.all(np.isclose(known[:, None], q[None]), axis=-1))
 
 
+@pytest.mark.slow
 def test_the_held_out_cost_is_the_tasks_cost_on_the_new_poses():
     """The cost on the new poses is the task's: a task given the same poses as its held-out
     set scores the same as `held_out_costs` (the training poses swapped in by

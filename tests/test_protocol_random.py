@@ -62,6 +62,7 @@ def test_random_scores_choose_uniformly_among_the_candidates():
     assert stats.chisquare(counts[candidates]).pvalue > 1e-4
 
 
+@pytest.mark.slow
 def test_random_scores_need_a_key_and_repeat_for_the_same_key():
     z = jnp.zeros(P)
     args = (z, 1.0, jnp.eye(P), jnp.eye(P), z + 1, z > -1, z > -1)
@@ -80,6 +81,7 @@ def _state(genomes, keys, config):
     return st, batch.layout, tables_for(genomes, P)
 
 
+@pytest.mark.slow
 def test_propose_draws_from_each_structures_key():
     """Many structures of one genome, each its own key: the genes tried are the removable
     ones, about equally often; the same keys give the same genes; and the draw does not

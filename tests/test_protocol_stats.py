@@ -79,6 +79,7 @@ def _numpy_bootstrap(samples, statistic, key, resamples, confidence):
     return np.percentile(values, [alpha, 100 - alpha])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", range(2))
 def test_bootstrap_is_the_plain_loop_over_the_same_resamples(seed):
     rng = np.random.default_rng(seed + 200)
@@ -102,6 +103,7 @@ def test_bootstrap_is_the_plain_loop_over_the_same_resamples(seed):
     assert rs.BOOTSTRAP_RESAMPLES == 10_000
 
 
+@pytest.mark.slow
 def test_bootstrap_agrees_with_scipy_on_a_large_sample():
     rng = np.random.default_rng(300)
     x = rng.exponential(size=1500)

@@ -65,6 +65,7 @@ def cartpole():
     return tasks.make("gymnax:CartPole-v1")
 
 
+@pytest.mark.slow
 def test_gymnax_episode_states_are_the_tasks_own(cartpole):
     task, rng = cartpole, np.random.default_rng()
     env, params = task.env, task.env_params
@@ -95,6 +96,7 @@ def test_gymnax_episode_states_are_the_tasks_own(cartpole):
     assert render.gymnax_episode(task, net, key, steps=5).states.theta.shape == (5,)
 
 
+@pytest.mark.slow
 def test_cartpole_episode_is_drawn_with_one_frame_per_step(cartpole, tmp_path):
     net = render.network_of(GenomeFile(eant2_jax.Genome.parse(BALANCE), "tanh", "identity", 4),
                             cartpole)  # fmt: skip
@@ -109,6 +111,7 @@ def test_cartpole_episode_is_drawn_with_one_frame_per_step(cartpole, tmp_path):
         draw.gymnax_animation(cartpole, ep, out, dpi=40, size=(3, 2))
 
 
+@pytest.mark.slow
 def test_catch_is_drawn_by_gymnaxs_own_visualizer(tmp_path):
     pytest.importorskip("gymnax")
     task = tasks.make("gymnax:Catch-bsuite")
@@ -127,6 +130,7 @@ def servo():
     return tasks.make("servo", n_starts=12, moves_per_start=3)
 
 
+@pytest.mark.slow
 def test_servo_moves_are_the_tasks_own(servo):
     task, rng = servo, np.random.default_rng()
     genome = _random_genome(rng, 10, 3)
@@ -158,6 +162,7 @@ def test_servo_moves_are_the_tasks_own(servo):
         render.servo_moves(task, net, jax.random.key(0), starts=13, moves=1)
 
 
+@pytest.mark.slow
 def test_render_command_writes_the_servo_arm(tmp_path, capsys):
     genome = _random_genome(np.random.default_rng(0), 10, 3)
     src = _write(tmp_path / "arm.genome", genome, "servo", {"n_starts": 8}, n_in=10)

@@ -153,6 +153,7 @@ def test_network_drawing_has_a_legend_and_no_unused_bias(tmp_path):
     assert "1" in nodes and "bias (1)" in legend and "x2" in nodes
 
 
+@pytest.mark.slow
 def test_evaluations_to_the_reference_fitness_match_a_plain_count(tmp_path):
     """Each arm's evaluations to 99% of the reference arm's mean final fitness: the first
     generation whose best cost is within 1% of that cost, averaged over the runs that got

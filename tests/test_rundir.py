@@ -254,6 +254,7 @@ time.sleep(600)
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("delay", [0.0, 0.05, 0.1, 0.15, 0.3])
 def test_kill_during_creation_leaves_nothing_half_made(delay, tmp_path):
     """SIGKILL at points through creation (every fsync slowed): the path is absent or a

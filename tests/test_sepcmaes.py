@@ -123,6 +123,7 @@ def numpy_tell(m, sigma, p_s, p_c, c, generation, x, cost, p, max_condition):
 # 1. Hyper-parameters and one step.
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("n", "popsize"), [(1, 4), (2, 64), (3, 6), (7, 9), (40, 15), (300, 21)])
 def test_default_params_are_the_separable_rates(n, popsize):
     """c_1 and c_mu times (n + 2) / 3, c_mu capped at 1 - c_1 (it bites at n = 2, popsize
@@ -160,6 +161,7 @@ def _random_state(rng, n: int, P: int = P16, popsize: int = POP12):
     return _decompose(state, params), params
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("nan", [False, True])
 def test_one_tell_matches_numpy(seed, nan):
@@ -255,6 +257,7 @@ def _prepared(config, genomes=(XOR_GENOME, XOR_OTHER)):
     )  # fmt: skip
 
 
+@pytest.mark.slow
 def test_no_eigendecomposition_in_the_kernel_or_a_diagonal_engine_iteration():
     """ask, tell and decompose of a diagonal Params, and an engine iteration of a diagonal
     run (the covariance pruner's attempt, its reduced structure's spectrum, and the default
@@ -292,6 +295,7 @@ def _run(state, scale, shift, key, gens, params):
     return jax.lax.scan(step, state, jax.random.split(key, gens))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("P", [16, 64])
 def test_padded_equals_unpadded(P):
     """A structure of n = 7 padded to P follows its unpadded trajectory (same key) on a
@@ -406,6 +410,7 @@ def test_statistically_equivalent_to_pycma_cma_diagonal(case):
 # 5. The pruner on a diagonal run.
 
 
+@pytest.mark.slow
 def test_covariance_pruner_on_a_diagonal_run_moves_only_coordinate_i():
     """With B = I the shift of eqs. 5-8 can only run along axis j = i: s_ii = -m_i / d_i,
     and m~ = m + s_ii d_i e_i is m with coordinate i set to 0, every other coordinate exactly

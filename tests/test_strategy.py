@@ -30,6 +30,7 @@ def _same_records(a, b):
     assert strip == [{k: v for k, v in r.to_json().items() if k not in RUN_DEPENDENT} for r in b]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "config", [CONFIG, INHERIT, SOLVING], ids=["default", "reexploit-inherit", "solved-stop"]
 )
@@ -62,6 +63,7 @@ def test_a_ten_line_driver_is_the_run(config):
         assert len(records) == generations + 1
 
 
+@pytest.mark.slow
 def test_the_steps_are_functions_of_their_inputs():
     """The same key and state give the same brood, and asking twice changes nothing."""
     task, key = tasks.make("xor"), jax.random.key(1)

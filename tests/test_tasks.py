@@ -26,6 +26,7 @@ SMALL = {
 SLOW = {"servo"}  # MJX compiles for tens of seconds on a small CPU
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "name",
     [pytest.param(n, marks=pytest.mark.slow) if n in SLOW else n for n in tasks.names()],

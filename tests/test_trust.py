@@ -26,6 +26,7 @@ def make_task():
 """
 
 
+@pytest.mark.slow
 def test_resume_runs_no_module_a_directory_names(tmp_path):
     """``os:system`` with a command, in a complete directory with recomputed checksums and in
     a stub: resume refuses in one line and the command never ran."""
@@ -48,6 +49,7 @@ def test_resume_runs_no_module_a_directory_names(tmp_path):
     assert not marker.exists()
 
 
+@pytest.mark.slow
 def test_resume_imports_no_task_file_shipped_in_the_directory(tmp_path, monkeypatch):
     """A directory naming ``task.py:make_task`` beside its own files, resumed from inside
     it (``cd DIR; eant2 resume .``): nothing imported, the marker its module body would

@@ -32,11 +32,13 @@ def _check(sigma0: float) -> None:
     assert again == pytest.approx(res.cost), sigma0  # the cost it reports is the genome's
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sigma0", [TINY, 1e-20, LARGEST])
 def test_the_ends_of_the_valid_sigma0_range(sigma0):
     _check(sigma0)
 
 
+@pytest.mark.slow
 @settings(max_examples=8)
 @given(st.floats(math.log10(TINY), math.log10(LARGEST)))
 def test_any_valid_sigma0_never_returns_worse_than_the_start(exponent):

@@ -59,6 +59,7 @@ except rundir.RunDirError as e:
 """
 
 
+@pytest.mark.slow
 def test_forty_processes_creating_one_directory(tmp_path):
     """40 processes create one run directory at the same instant: exactly one wins, the 39
     others are refused in one line each, and the directory is the winner's, whole."""
@@ -111,6 +112,7 @@ class _FullDisk:
         return self.real(fd, data)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="needs /proc/self/fd")
 def test_a_full_disk_mid_run_loses_nothing_and_resume_finishes(tmp_path, capsys, monkeypatch):
     """The disk fills while generation 1 is being committed (half a record written):

@@ -82,6 +82,7 @@ def _wide_tune(key: jax.Array):
     return tune([START] * 3, xor(), key=key, config=config)
 
 
+@pytest.mark.slow
 def test_a_wide_batch_evaluates_rows_times_its_popsize_and_repeats_to_the_bit():
     res = _wide_tune(jax.random.key(3))
     rows, genes = res.history.running.shape[1], int(res.state.cma.mean.shape[-1])
@@ -134,11 +135,13 @@ def test_a_device_mesh_changes_placement_only_not_the_popsize():
     np.testing.assert_allclose(out["costs"][1], out["costs"][0], rtol=1e-3)
 
 
+@pytest.mark.slow
 def test_optimize_takes_width_as_its_one_row_s_popsize():
     res = optimize(START, xor(), key=jax.random.key(1), width=40, max_iters=2, pruner="none")
     np.testing.assert_array_equal(np.asarray(res.history.evaluations), [40, 80])
 
 
+@pytest.mark.slow
 def test_a_run_with_width_compiles_the_rule_s_popsize_and_repeats():
     config = EANT2Config(
         population=3, exploit=ExploitConfig(width=96, max_iters=5, pruner="none")
@@ -159,6 +162,7 @@ def test_a_run_with_width_compiles_the_rule_s_popsize_and_repeats():
     assert [r.evaluations for r in again.generations] == [r.evaluations for r in res.generations]
 
 
+@pytest.mark.slow
 def test_eant2_run_sets_width_from_the_command_line(tmp_path, capsys, monkeypatch):
     out = tmp_path / "run"
     argv = ["run", "xor", "--set", "exploit.width=64", "--population", "3", "--max-iters", "5"]

@@ -383,6 +383,16 @@ def _check_fields(g: object, i: int) -> None:
     gene of an unknown kind would fail; a float index would make ``n_inputs`` a float)."""
     if not isinstance(g, Gene):
         raise GenomeError(f"expected a Gene, got {type(g).__name__}", i)
+    # The usual gene (as parsing and the library build them) passes every check below.
+    if (
+        type(g.kind) is GeneKind
+        and type(g.ref) is int
+        and type(g.arity) is int
+        and type(g.weight) is float
+        and abs(g.ref) <= MAX_ID
+        and abs(g.arity) <= MAX_ID
+    ):
+        return
     # A GeneKind, or its integer code (an IntEnum equals its code, so both work alike).
     if not (isinstance(g.kind, GeneKind) or (_is_int(g.kind) and 0 <= g.kind < len(GeneKind))):
         raise GenomeError(

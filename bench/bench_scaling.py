@@ -10,8 +10,9 @@ Each row also times the engine alone (`eant2_jax.exploitation.run` on a batch th
 read per chunk and whatever `run` still has to place), the loops alone (the same call on
 arguments placed beforehand, the task too, so that engine minus loops is that placement)
 and gives the rest of a generation, the host's handover (compiling the genomes, starting
-the engine on the devices, turning the results back into genomes), which grows with the
-structures and is not split over devices: where it is a large share, more devices cannot
+the engine on the devices, turning the results back into genomes; ``start s`` times
+`tuning.prepare` alone, ``hand-back s`` is the rest), which grows with the structures and is
+not split over devices: where it is a large share, more devices cannot
 help (docs/design.md, "Many devices"). ``loops speed-up`` is the loops' structures per
 second against one device's: what the devices' programs alone scale by.
 
@@ -47,11 +48,12 @@ from eant2_jax import exploitation as ex
 
 def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float, ...]:
     """``(first call s, median s per tune, median s of the engine alone, median s of the
-    loops alone)``: the engine alone is `exploitation.run` on a prepared batch (placing it
-    on the devices, the devices' loops and the host's one read per chunk), the loops alone
-    the same call on a batch placed beforehand; the rest of a tune is the host's handover
-    (compile the genomes, start the engine, turn the results back into genomes), which the
-    devices do not split."""
+    loops alone, median s of the start)``: the engine alone is `exploitation.run` on a batch
+    `tuning.prepare` made on the devices (the devices' loops, the host's one read per chunk
+    and whatever `run` still places), the loops alone the same call on arguments placed
+    beforehand; the rest of a tune is the host's handover, which the devices do not split:
+    the start (`tuning.prepare`: compile the genomes, build the tables, start the engine on
+    the devices) and the hand-back (gather the results, turn them back into genomes)."""
     mesh = distributed.make_mesh(devices) if devices > 1 else None
     key = jax.random.key(0)
     t0 = time.perf_counter()
@@ -74,10 +76,15 @@ def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float,
 
         return time_call(call, warmup=0, repeats=repeats).median_s
 
+    start = time_call(
+        lambda: tuning.prepare(genomes, task, key=init_key, config=config, mesh=mesh).state,
+        warmup=0,
+        repeats=repeats,
+    ).median_s
     engine = engine_s(prep.state, prep.batch.layout, prep.tables, task)
     # Placed as `run` places them: `run` then finds every array where it belongs already.
     loops = engine_s(*ex.placed(prep.state, prep.batch.layout, prep.tables, task, mesh))
-    return first, statistics.median(times), engine, loops
+    return first, statistics.median(times), engine, loops, start
 
 
 def _options(p: argparse.ArgumentParser) -> None:
@@ -133,17 +140,18 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     return {"environment": environment(), "config": harness.settings(args), "rows": rows}
 
 
-_MEDIANS = ("seconds", "engine_s", "loops_s", "placement_s", "host_s", "structures_per_s",
-            "speedup", "loops_speedup")  # fmt: skip
+_MEDIANS = ("seconds", "engine_s", "loops_s", "placement_s", "host_s", "start_s", "back_s",
+            "structures_per_s", "speedup", "loops_speedup")  # fmt: skip
 
 
 def _timed(case: tuple, timed: tuple) -> dict[str, Any]:
     """One case of one round (`time_case`'s timings), before its speed-ups."""
     kind, d, s = case
-    first, t, engine, loops = timed
+    first, t, engine, loops, start = timed
     return {"scaling": kind, "devices": d, "structures": s, "first_s": first, "seconds": t,
             "engine_s": engine, "loops_s": loops, "placement_s": engine - loops,
-            "host_s": t - engine, "structures_per_s": s / t}  # fmt: skip
+            "host_s": t - engine, "start_s": start, "back_s": t - engine - start,
+            "structures_per_s": s / t}  # fmt: skip
 
 
 COLUMNS = [
@@ -156,6 +164,8 @@ COLUMNS = [
     Column("loops_s", "loops s", "{:.3f}"),
     Column("placement_s", "placement s", "{:.3f}"),
     Column("host_s", "handover s", "{:.3f}"),
+    Column("start_s", "start s", "{:.3f}"),
+    Column("back_s", "hand-back s", "{:.3f}"),
     Column("structures_per_s", "structures/s", "{:.1f}"),
     Column("speedup", "speed-up", "{:.2f}x"),
     Column("speedup_range", "range"),

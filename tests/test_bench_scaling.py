@@ -33,6 +33,9 @@ def test_quick_rows_split_the_engine_into_placement_and_loops(tmp_path):
         assert 0 < r["loops_s"] and 0 < r["engine_s"] and 0 < r["seconds"]
         assert r["placement_s"] == pytest.approx(r["engine_s"] - r["loops_s"])
         assert r["host_s"] == pytest.approx(r["seconds"] - r["engine_s"])
+        # The handover's start (`tuning.prepare`) and its hand-back (the rest); the median of
+        # two rounds is their mean, so the row's parts add up as each round's do.
+        assert 0 < r["start_s"] and r["back_s"] == pytest.approx(r["host_s"] - r["start_s"])
     for first in (rows[0], rows[2]):  # one device is the base of both speed-ups
         assert first["speedup"] == pytest.approx(1) and first["loops_speedup"] == pytest.approx(1)
     for r in rows:  # two rounds (--quick): the row is their median, with their range
@@ -43,3 +46,4 @@ def test_quick_rows_split_the_engine_into_placement_and_loops(tmp_path):
             assert r[f"{k}_range"] == f"{lo:.2f}-{hi:.2f}x"
     md = out.with_suffix(".md").read_text()
     assert "| loops s | placement s |" in md and "| loops speed-up | range |" in md
+    assert "| handover s | start s | hand-back s |" in md

@@ -222,6 +222,38 @@ def test_two_processes_agree():
         assert abs(a - b) <= 1e-3 * abs(a)
 
 
+def test_a_warm_started_batch_is_made_on_the_mesh_with_the_same_bits():
+    """`tune(start=...)` on a mesh (inherited searches, as ``inherit_search`` passes them):
+    `tuning.prepare` puts the covariances and step sizes straight onto the devices and
+    starts the engine there, with the bits one device gives; the tune then agrees."""
+    out = _python(
+        """
+        from eant2_jax import exploitation as ex
+        c = ex.ExploitConfig(max_iters=12, chunk=4, pruner="none")
+        first = tuning.tune(genomes, task, key=jax.random.key(3), config=c, keep_search=True)
+        mesh = distributed.make_mesh(2)
+        args = dict(key=jax.random.key(4), config=c, start=first.searches)
+        def bits(st):
+            st = jax.tree.map(lambda t: jax.random.key_data(t)
+                              if jax.dtypes.issubdtype(t.dtype, jax.dtypes.prng_key) else t, st)
+            return [np.asarray(a).tobytes() for a in jax.tree.leaves(st)]
+        one = tuning.prepare(first.genomes, task, multiple_of=2, **args).state
+        two = tuning.prepare(first.genomes, task, mesh=mesh, **args).state
+        a = tuning.tune(first.genomes, task, **args)
+        b = tuning.tune(first.genomes, task, mesh=mesh, **args)
+        print(json.dumps({"same": bits(one) == bits(two),
+                          "devices": sorted({len(x.sharding.device_set)
+                                             for x in jax.tree.leaves(two)}),
+                          "costs": [a.costs, b.costs], "evals": [a.evaluations, b.evaluations]}))
+        """,
+        devices=2,
+    )
+    assert out["same"] and out["devices"] == [2]
+    assert out["evals"][0] == out["evals"][1]
+    for x, y in zip(*out["costs"], strict=True):  # float reduction order only (see above)
+        assert abs(x - y) <= 1e-3 * abs(x)
+
+
 def test_make_mesh_errors():
     from eant2_jax import distributed
 

@@ -185,7 +185,8 @@ def init(
       sigma: optional ``[S]`` initial step sizes (default: ``config.sigma0``); given with
         ``cov``.
       mesh: make the state on this device mesh, each device its own structures (split as
-        `eant2_jax.distributed.place` splits), the arguments placed so beforehand.
+        `eant2_jax.distributed.place` splits); ``mean`` and ``mask`` placed so beforehand
+        (`eant2_jax.compiler.compile_genomes`' mesh), the other arguments placed here.
 
     Returns:
       The `ExploitState`.
@@ -202,11 +203,10 @@ def init(
         raise ValueError("a warm start needs both cov and sigma")
     if cov is not None:  # device_put: jnp.asarray would compile a program per new shape
         dtype = np.dtype(config.dtype)
-        cov, sigma = (
-            a if isinstance(a, jax.Array) and a.dtype == dtype  # placed already (a mesh)
-            else jax.device_put(np.asarray(a, dtype))
-            for a in (cov, sigma)
-        )  # fmt: skip
+        put = jax.device_put if mesh is None else functools.partial(distributed.shard, mesh=mesh)
+        cov, sigma = put((np.asarray(cov, dtype), np.asarray(sigma, dtype)))
+    if mesh is not None:  # each device starts its own rows
+        keys, active = distributed.shard((keys, active), mesh)
     return _init(
         keys, mean, jnp.asarray(mask, bool), jnp.asarray(active, bool), config, popsize,
         cov, sigma, mesh,

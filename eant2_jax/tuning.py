@@ -147,8 +147,7 @@ def prepare(
     elif keys.shape[0] != rows:
         raise ValueError(f"keys: {keys.shape[0]} keys for a batch of {rows} rows")
     # Made on the host and transferred: no program to compile (`jnp` would compile two).
-    active = np.arange(rows) < batch.count
-    active = jax.device_put(active) if mesh is None else distributed.shard(active, mesh)
+    active = jax.device_put(np.arange(rows) < batch.count)
     cov = sigma = None
     if start is not None and any(w is not None for w in start):
         width = batch.weights.shape[-1]
@@ -160,10 +159,6 @@ def prepare(
                 w.check(g.n_params, f"start[{i}]")
                 cov[i, : g.n_params, : g.n_params] = w.cov
                 sigma[i] = w.sigma
-        if mesh is not None:
-            cov, sigma = distributed.shard((cov, sigma.astype(dtype)), mesh)
-    if mesh is not None:
-        keys = distributed.shard(keys, mesh)
     init = functools.partial(ex.init, config=config, popsize=popsize, mesh=mesh)
     init = functools.partial(jax.eval_shape, init) if abstract else init
     st = init(keys, batch.weights, batch.layout.gene_mask, active=active, cov=cov, sigma=sigma)

@@ -14,6 +14,7 @@ field (eant2_jax against TensorNEAT on gymnax and brax environments, issue 18).
 runs (many runs of one configuration on one device: lock-step, threads, one at a time).
 determinism (what XLA's deterministic GPU mode costs; whether runs repeat without it).
 throughput (network-episodes and env steps per second against batch width, brax, issue 41).
+width (the batch-width choice of docs/protocol.md section 6 from the field's choice runs).
 Each writes JSON (device, versions, config, compile time apart from steady state) and a
 markdown table, and never over an existing result file unless ``--force`` is given;
 ``--help`` after the suite name lists its options.
@@ -44,6 +45,7 @@ SUITES = {
     "determinism": "bench.bench_determinism",
     "finetune": "bench.bench_finetune",
     "throughput": "bench.bench_throughput",
+    "width": "bench.field_width",
 }
 
 

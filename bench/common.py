@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import hashlib
 import os
 import platform
 import re
@@ -37,6 +38,7 @@ __all__ = [
     "device_tag",
     "eant2_argv",
     "environment",
+    "library_digest",
     "git_commit",
     "markdown_table",
     "minimal_genome",
@@ -72,7 +74,28 @@ def environment() -> dict[str, Any]:
         "python_version": platform.python_version(),
         "machine": platform.machine(),
         "date_utc": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "library_sha256": library_digest(),
     }
+
+
+def library_digest() -> str:
+    """SHA-256 of the code that made a result: the ``.py`` files of the imported packages
+    ``eant2_jax``, ``eant2_jax.kernels`` (the repository's ``kernels/``) and ``bench``, each by
+    its path inside its package, so that a copy without git (a device's) can be matched to a
+    commit: check the commit out and compare ``python -c "from bench.common import
+    library_digest; print(library_digest())"``."""
+    import importlib
+
+    h = hashlib.sha256()
+    for name, label in (("eant2_jax", "eant2_jax"), ("eant2_jax.kernels", "kernels"),
+                        ("bench", "bench")):  # fmt: skip
+        root = Path(importlib.import_module(name).__file__).parent
+        for path in sorted(root.rglob("*.py")):
+            rel = path.relative_to(root).as_posix()
+            if name == "eant2_jax" and rel.startswith("kernels/"):
+                continue  # the kernels installed inside the package: hashed as kernels
+            h.update(f"{label}/{rel}".encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()
 
 
 def unseen_key(seed: int) -> jax.Array:

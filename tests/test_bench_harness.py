@@ -161,3 +161,40 @@ def test_device_tag_names_the_platform_and_the_model():
     assert device_tag("gpu", "NVIDIA H200") == "gpu-h200"
     assert device_tag("gpu", "NVIDIA GeForce RTX 4090") == "gpu-rtx4090"
     assert device_tag("gpu", "NVIDIA A100-SXM4-80GB") == "gpu-a100"
+
+
+@pytest.mark.slow
+def test_library_digest_names_the_code_wherever_it_was_copied(tmp_path):
+    # A device gets the package as a plain copy, `kernels/` placed inside `eant2_jax/`, and no
+    # git: its result files' `library_sha256` must equal this checkout's, and change with one
+    # byte of the library.
+    import shutil
+
+    from bench.common import environment, library_digest
+
+    here = library_digest()
+    assert environment()["library_sha256"] == here and len(here) == 64
+    copy = tmp_path / "pkg"
+    ignore = shutil.ignore_patterns("__pycache__")
+    for name in ("eant2_jax", "bench"):
+        shutil.copytree(ROOT / name, copy / name, ignore=ignore)
+    shutil.copytree(ROOT / "kernels", copy / "eant2_jax" / "kernels", ignore=ignore)
+    probe = "import bench.common as c, eant2_jax; print(eant2_jax.__file__, c.library_digest())"
+
+    def digest():
+        out = subprocess.run(
+            [sys.executable, "-c", probe],
+            cwd=copy,
+            capture_output=True,
+            text=True,
+            env={"PYTHONPATH": str(copy), "JAX_PLATFORMS": "cpu"},
+        )
+        assert out.returncode == 0, out.stderr[-2000:]
+        where, value = out.stdout.split()
+        assert where.startswith(str(copy))  # the copy was hashed, not the installed package
+        return value
+
+    assert digest() == here
+    with open(copy / "eant2_jax" / "kernels" / "cmaes.py", "a") as f:
+        f.write("\n")
+    assert digest() != here

@@ -24,6 +24,7 @@ This replaces, for any size and for recurrent networks, the string printer
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
 import numpy as np
@@ -78,6 +79,44 @@ def _activations(sp) -> dict:
     }
 
 
+@functools.cache
+def _latex_printer() -> type:
+    """sympy's LaTeX printer, without its unbounded question on exponents.
+
+    ``LatexPrinter._print_Mul`` splits a product with ``fraction(expr, exact=True)``, which
+    asks ``ex.is_constant()`` of every ``exp(ex)`` or ``b**ex`` factor whose exponent it can
+    prove negative: ``simplify`` of the exponent, which for a grown network's nested
+    sigmoids (``c * exp(-(w / (1 + exp(...)) + ...))`` with every weight positive) runs for
+    hours. ``is_constant`` answers at once for an exponent with no free symbols; every other
+    such factor is printed here wrapped (an ``UnevaluatedExpr`` sorted as the factor), which
+    ``fraction`` keeps in the numerator without a question: where sympy's answer is "not
+    constant", which it always is for a network's exponents, the LaTeX is the same.
+    """
+    sp = _sympy()
+    from sympy.printing.latex import LatexPrinter
+
+    class Factor(sp.UnevaluatedExpr):
+        is_commutative = True
+
+        def sort_key(self, order=None):
+            return self.args[0].sort_key(order)
+
+    def asks(f) -> bool:  # fraction(exact=True) would ask is_constant() of its exponent
+        return bool(
+            f.is_commutative
+            and (f.is_Pow or isinstance(f, sp.exp))
+            and f.as_base_exp()[1].free_symbols
+        )
+
+    class Printer(LatexPrinter):
+        def _print_Mul(self, expr):
+            if expr.is_Mul and any(asks(f) for f in expr.args):  # (_print_Pow passes Pows)
+                expr = sp.Mul(*[Factor(f) if asks(f) else f for f in expr.args])
+            return super()._print_Mul(expr)
+
+    return Printer
+
+
 @dataclasses.dataclass(frozen=True)
 class SympyNetwork:
     """A network as sympy objects (module docstring).
@@ -99,10 +138,11 @@ class SympyNetwork:
     outputs: tuple
 
     def latex(self, *, substitute: bool = False, digits: int | None = 6) -> str:
-        """LaTeX (``sympy.latex``): an ``aligned`` block of the equations, or with
-        ``substitute`` of the outputs as functions of the inputs; weights to ``digits``
-        significant digits (None: all of them)."""
+        """LaTeX (sympy's printer, as ``sympy.latex``): an ``aligned`` block of the
+        equations, or with ``substitute`` of the outputs as functions of the inputs; weights
+        to ``digits`` significant digits (None: all of them)."""
         sp = _sympy()
+        printer = _latex_printer()()
         if substitute:
             rows = [
                 (sp.Symbol(f"y{k}"), e) for k, e in enumerate(self.outputs)
@@ -115,7 +155,7 @@ class SympyNetwork:
                 return e
             return e.xreplace({f: sp.Float(f, digits) for f in e.atoms(sp.Float)})
 
-        lines = [f"{sp.latex(lhs)} &= {sp.latex(short(rhs))}" for lhs, rhs in rows]
+        lines = [f"{printer.doprint(lhs)} &= {printer.doprint(short(rhs))}" for lhs, rhs in rows]
         return "\\begin{aligned}\n" + " \\\\\n".join(lines) + "\n\\end{aligned}"
 
     def text(self) -> str:

@@ -9,6 +9,8 @@ docs/export.md). Each activation alone is checked against its float64 NumPy refe
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import sys
 
 import hypothesis.strategies as st
@@ -94,6 +96,53 @@ def test_twenty_neuron_feed_forward_network(genome, hidden, seed):
     tex = net.latex()
     assert tex.startswith("\\begin{aligned}") and tex.count("&=") == 22
     assert net.latex(substitute=True).count("&=") == 2
+
+
+# 20 neurons, depth 11: a spine of sigmoids, each over a sigmoid of one input, a bias and the
+# next, every weight positive. In the substituted output every exponent is provably negative
+# and sympy's LaTeX printer asked is_constant() of each: a simplify() of the whole nest below,
+# for hours (the test above drew such networks).
+SIGMOID_SPINE = (
+    "N0/1*0.5 N2/3*0.3 N3/2*0.4 I2*0.5 B*0.25 B*0.5 N4/3*0.5 N5/2*0.6 I0*0.5 B*0.25 B*0.5 "
+    "N6/3*0.7 N7/2*0.8 I2*0.5 B*0.25 B*0.5 N8/3*0.9 N9/2*0.1 I0*0.5 B*0.25 B*0.5 "
+    "N10/3*0.2 N11/2*0.3 I2*0.5 B*0.25 B*0.5 N12/3*0.4 N13/2*0.5 I0*0.5 B*0.25 B*0.5 "
+    "N14/3*0.6 N15/2*0.7 I2*0.5 B*0.25 B*0.5 N16/3*0.8 N17/2*0.9 I0*0.5 B*0.25 B*0.5 "
+    "N18/2*0.1 N19/2*0.2 I2*0.5 B*0.25 B*0.5 N1/2*0.5 I1*0.5 B*0.25"
+)
+
+
+@contextlib.contextmanager
+def time_limit(seconds: float):
+    """TimeoutError in the main thread once ``seconds`` have passed (SIGALRM)."""
+
+    def expire(signum, frame):
+        raise TimeoutError(f"still running after {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+def test_latex_of_nested_positive_sigmoids_is_bounded(monkeypatch):
+    """LaTeX of `SIGMOID_SPINE` in seconds, and the same as sympy's own printer gives once
+    told the answer it would have spent hours on: none of the exponents is constant."""
+    spec = GenomeFile(Genome.parse(SIGMOID_SPINE), hidden="sigmoid", output="identity")
+    net = to_sympy(spec)
+    assert len(net.neurons) == 20
+    with time_limit(10):
+        tex = {sub: net.latex(substitute=sub, digits=None) for sub in (False, True)}
+        assert net.latex(substitute=True).count("e^{") == 18  # the sigmoids, once each
+    monkeypatch.setattr(sympy.Expr, "is_constant", lambda e, *a, **k: not e.free_symbols)
+    for sub, rows in (
+        (False, [(eq.lhs, eq.rhs) for eq in net.equations]),
+        (True, [(sympy.Symbol(f"y{k}"), e) for k, e in enumerate(net.outputs)]),
+    ):
+        lines = [f"{sympy.latex(lhs)} &= {sympy.latex(rhs)}" for lhs, rhs in rows]
+        assert tex[sub] == "\\begin{aligned}\n" + " \\\\\n".join(lines) + "\n\\end{aligned}"
 
 
 @pytest.mark.parametrize("name", sorted(activations.BUILTIN))

@@ -183,6 +183,9 @@ def evosax_loop_engine(
         es, es_params, step = steps[n]
         rot, scale = (jnp.asarray(a) for a in ellipsoid_data(n, cond, seed + s))
         state = es.init(jax.random.key(seed), jnp.ones(n), es_params)
+        # evosax's init leaves weakly typed floats that the step returns strongly typed:
+        # without this each step program compiles twice (the second time in the warm-up).
+        state = jax.tree.map(lambda a: jnp.asarray(a, a.dtype), state)
         structures.append([step, state, rot, scale, jax.random.key(seed + s)])
 
     holder = {"it": 0}

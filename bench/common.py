@@ -40,6 +40,7 @@ __all__ = [
     "environment",
     "library_digest",
     "git_commit",
+    "hash_sources",
     "markdown_table",
     "minimal_genome",
     "random_genome",
@@ -90,12 +91,20 @@ def library_digest() -> str:
     for name, label in (("eant2_jax", "eant2_jax"), ("eant2_jax.kernels", "kernels"),
                         ("bench", "bench")):  # fmt: skip
         root = Path(importlib.import_module(name).__file__).parent
-        for path in sorted(root.rglob("*.py")):
-            rel = path.relative_to(root).as_posix()
-            if name == "eant2_jax" and rel.startswith("kernels/"):
-                continue  # the kernels installed inside the package: hashed as kernels
-            h.update(f"{label}/{rel}".encode() + b"\0" + path.read_bytes() + b"\0")
+        # The kernels installed inside the package are hashed as kernels.
+        skip = "kernels/" if name == "eant2_jax" else None
+        hash_sources(h, root, prefix=f"{label}/", skip=skip)
     return h.hexdigest()
+
+
+def hash_sources(h, root: Path, *, prefix: str = "", skip: str | None = None) -> None:
+    """Feed ``h`` every ``.py`` file under ``root``, in path order, as its path relative to
+    ``root`` (after ``prefix``), a NUL, its bytes and a NUL; paths starting with ``skip``
+    are left out."""
+    for path in sorted(Path(root).rglob("*.py")):
+        rel = path.relative_to(root).as_posix()
+        if skip is None or not rel.startswith(skip):
+            h.update(f"{prefix}{rel}".encode() + b"\0" + path.read_bytes() + b"\0")
 
 
 def unseen_key(seed: int) -> jax.Array:

@@ -20,7 +20,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from bench.common import BenchInputError
+from bench.common import BenchInputError, hash_sources
 from bench.field_settings import ENVS
 
 __all__ = ["METHOD", "find", "finished", "publish", "settings", "source_digest"]
@@ -33,9 +33,7 @@ def source_digest(src: str | Path) -> str:
     """SHA-256 of TensorNEAT's source (the ``.py`` files of ``src/tensorneat``, by relative
     path) and of the bench code that drives it (``bench/field_tensorneat.py``)."""
     h = hashlib.sha256()
-    root = Path(src) / "tensorneat"
-    for path in sorted(root.rglob("*.py")):
-        h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    hash_sources(h, Path(src) / "tensorneat")
     h.update(_TRAINER.read_bytes())
     return h.hexdigest()
 

@@ -146,8 +146,9 @@ def prepare(
         keys = jax.eval_shape(start_keys, key, rows) if abstract else start_keys(key, rows)
     elif keys.shape[0] != rows:
         raise ValueError(f"keys: {keys.shape[0]} keys for a batch of {rows} rows")
-    # Made on the host and transferred: no program to compile (`jnp` would compile two).
-    active = jax.device_put(np.arange(rows) < batch.count)
+    # Made on the host (`jnp` would compile two programs); `init` places it (on a mesh, each
+    # device its own rows).
+    active = np.arange(rows) < batch.count
     cov = sigma = None
     if start is not None and any(w is not None for w in start):
         width = batch.weights.shape[-1]

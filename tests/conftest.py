@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import gc
 import os
+import shutil
 import tempfile
 import warnings
 
@@ -23,10 +24,14 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 # The eant2 command keeps compiled programs in a cache folder (EANT2_CACHE_DIR, default under
-# ~/.cache). The suite runs it in-process and in children: give each test process a folder
-# of its own, so that the suite neither writes to the user's cache nor shares one between
-# workers. A test that studies the cache names its own folder.
-os.environ.setdefault("EANT2_CACHE_DIR", tempfile.mkdtemp(prefix="eant2-test-cache-"))
+# ~/.cache). The suite runs it in-process and in children: give it one folder for the pytest
+# session, so that the suite never writes to the user's cache. The first process that loads
+# this file makes it (the xdist controller, before it starts the workers, which inherit it
+# through the environment; or the single process of -n 0) and removes it at the end
+# (pytest_unconfigure). A test that studies the cache names its own folder.
+_MADE_CACHE = "EANT2_CACHE_DIR" not in os.environ
+if _MADE_CACHE:
+    os.environ["EANT2_CACHE_DIR"] = tempfile.mkdtemp(prefix="eant2-test-cache-")
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
@@ -55,6 +60,11 @@ settings.register_profile(
 settings.load_profile(
     os.environ.get("HYPOTHESIS_PROFILE", "ci" if os.environ.get("CI") else "default")
 )
+
+
+def pytest_unconfigure(config):
+    if _MADE_CACHE:
+        shutil.rmtree(os.environ["EANT2_CACHE_DIR"], ignore_errors=True)
 
 
 @pytest.fixture(autouse=True)

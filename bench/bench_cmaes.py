@@ -50,7 +50,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from bench import harness
-from bench.common import BenchInputError, Column, environment, markdown_table, time_call
+from bench.common import (
+    BenchInputError,
+    Column,
+    environment,
+    evosax_start,
+    markdown_table,
+    time_call,
+)
 from eant2_jax.kernels import cmaes
 
 BUCKETS = (32, 64, 128, 256)
@@ -182,10 +189,7 @@ def evosax_loop_engine(
     for s, n in enumerate(dims):
         es, es_params, step = steps[n]
         rot, scale = (jnp.asarray(a) for a in ellipsoid_data(n, cond, seed + s))
-        state = es.init(jax.random.key(seed), jnp.ones(n), es_params)
-        # evosax's init leaves weakly typed floats that the step returns strongly typed:
-        # without this each step program compiles twice (the second time in the warm-up).
-        state = jax.tree.map(lambda a: jnp.asarray(a, a.dtype), state)
+        state = evosax_start(es, jax.random.key(seed), jnp.ones(n), es_params)
         structures.append([step, state, rot, scale, jax.random.key(seed + s)])
 
     holder = {"it": 0}

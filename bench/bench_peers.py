@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bench import harness
-from bench.common import Column, environment, markdown_table
+from bench.common import Column, environment, evosax_start, markdown_table
 from eant2_jax import exploitation as ex
 from eant2_jax import loop, tasks
 from eant2_jax.compiler import compile_genomes
@@ -163,12 +163,7 @@ def run_evosax(task, hidden: int, budget: int, every: int, seed: int, sigma0: fl
 
     curve = Curve(budget, every)
     key = jax.random.key(seed)
-    with jax.numpy_rank_promotion("allow"):
-        state = es.init(key, jnp.asarray(x0, jnp.float32), params)
-    # evosax's init leaves weakly typed floats (best_solution, best_fitness, std) that the
-    # step returns strongly typed: without this the step compiles twice (3 s on a CPU,
-    # counted in the curve's wall time).
-    state = jax.tree.map(lambda a: jnp.asarray(a, a.dtype), state)
+    state = evosax_start(es, key, jnp.asarray(x0, jnp.float32), params)
     i = 0
     while not curve.done:
         state, c = step(jax.random.fold_in(key, i), state, task)

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from eant2_jax.genome import Gene, GeneKind, Genome
@@ -38,6 +39,7 @@ __all__ = [
     "device_tag",
     "eant2_argv",
     "environment",
+    "evosax_start",
     "library_digest",
     "git_commit",
     "hash_sources",
@@ -105,6 +107,16 @@ def hash_sources(h, root: Path, *, prefix: str = "", skip: str | None = None) ->
         rel = path.relative_to(root).as_posix()
         if skip is None or not rel.startswith(skip):
             h.update(f"{prefix}{rel}".encode() + b"\0" + path.read_bytes() + b"\0")
+
+
+def evosax_start(es, key: jax.Array, x0: jax.Array, params) -> Any:
+    """``es.init(key, x0, params)`` with every leaf strongly typed: evosax's init leaves weakly
+    typed floats that its ask/tell return strongly typed, so a step compiled on the start
+    state would compile a second time on the state it returns (inside a timed loop)."""
+    # evosax broadcasts [n] against [popsize, n]; allow it whatever the global config.
+    with jax.numpy_rank_promotion("allow"):
+        state = es.init(key, x0, params)
+    return jax.tree.map(lambda a: jnp.asarray(a, a.dtype), state)
 
 
 def unseen_key(seed: int) -> jax.Array:

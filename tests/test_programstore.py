@@ -25,6 +25,22 @@ CONFIG = EANT2Config(population=4, exploit=ExploitConfig(max_iters=40, pruner="c
 WALL = eant2_jax.loop.RUN_DEPENDENT
 
 
+@pytest.fixture(scope="module", autouse=True)
+def xla_cache(tmp_path_factory):
+    """JAX's compilation cache on, in a folder of this module, as the store is used (the store
+    follows it: `test_the_store_follows_the_compilation_cache`). What these tests study is
+    the store's tracing and its entries; the same program's XLA compilation, from a stored
+    entry or the one traced again over a damaged one, is read back instead of compiled
+    again (about 3 s each). The store's own folder is each test's (`store`)."""
+    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+    before = [getattr(jax.config, name) for name in names]
+    jax.config.update(names[0], str(tmp_path_factory.mktemp("xla")))
+    jax.config.update(names[1], 1.0)  # the engine's programs, not the small ones
+    yield
+    for name, value in zip(names, before, strict=True):
+        jax.config.update(name, value)
+
+
 @pytest.fixture
 def store(tmp_path, monkeypatch):
     """The store in a fresh folder, with this process's programs forgotten (a new process)."""

@@ -269,6 +269,21 @@ def test_both_methods_start_from_the_same_states_and_a_mismatch_is_refused():
               test_keys={"tensorneat": jax.random.key(9001)})  # fmt: skip
 
 
+def workers_in_process(monkeypatch, what=("train", "judge")):
+    """The protocol's ``python -m bench.field_workers`` processes of the kinds ``what`` run in
+    this process, through the same argv and the workers' ``main`` (sharing this process's
+    compiled programs); other children (the stand-in's script, the rest) stay processes."""
+    child = field_protocol._call
+
+    def call(argv, timeout):
+        if argv[1:3] == ["-m", "bench.field_workers"] and argv[3] in what:
+            assert field_workers.main(argv[3:]) == 0
+            return ""
+        return child(argv, timeout)
+
+    monkeypatch.setattr(field_protocol, "_call", call)
+
+
 def _protocol(tmp_path, *extra):
     return bench_field.main(["--protocol", "--envs", "cartpole", "--first-seed", "0",
                              "--budget", "400", "--tensorneat-pop", "100",
@@ -284,10 +299,14 @@ def _fake_src(tmp_path):
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_GYMNAX, reason="gymnax not installed")
 def test_protocol_end_to_end_on_cartpole(tmp_path, monkeypatch, capsys):
-    """eant2_jax's real run and the stand-in, judged on one task; files and labels."""
+    """eant2_jax's real run and the stand-in, judged on one task; files and labels. The
+    judging runs in its own process, as the protocol runs it (the stand-in too); eant2_jax's
+    training runs here, through the same argv (it shares its compiled programs with
+    `test_eant2_training_goes_on_from_its_run_directory`)."""
     argv, _ = fake_tensorneat(tmp_path)
     monkeypatch.setitem(field_protocol.METHODS, "tensorneat", argv)
     _fake_src(tmp_path)
+    workers_in_process(monkeypatch, what=("train",))
     payload = _protocol(tmp_path, "--seeds", "1", "--population", "2", "--max-iters", "3")
     (rec,) = payload["seeds"]
     assert payload["trial"] and rec["env"] == "cartpole" and rec["seed"] == 0
@@ -314,6 +333,7 @@ def test_protocol_resumes_from_its_checkpoint(tmp_path, monkeypatch, capsys):
     argv, calls = fake_tensorneat(tmp_path)
     monkeypatch.setitem(field_protocol.METHODS, "tensorneat", argv)
     _fake_src(tmp_path)
+    workers_in_process(monkeypatch)
     args = ("--seeds", "2", "--methods", "tensorneat")
     whole = _protocol(tmp_path, *args)
     assert calls == [0, 1]
@@ -342,6 +362,7 @@ def test_width_candidates_share_tensorneats_runs_through_peer_runs(tmp_path, mon
     argv, calls = fake_tensorneat(tmp_path)
     monkeypatch.setitem(field_protocol.METHODS, "tensorneat", argv)
     _fake_src(tmp_path)
+    workers_in_process(monkeypatch)
     peers = tmp_path / "peers"
     shared = ("--seeds", "1", "--methods", "tensorneat", "--peer-runs", str(peers))
     first = _protocol(tmp_path, *shared)

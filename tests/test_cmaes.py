@@ -68,7 +68,8 @@ class Quadratic(NamedTuple):
 
 
 def sphere(n: int) -> Quadratic:
-    return Quadratic(jnp.eye(n), jnp.ones(n), jnp.zeros(n))
+    f32 = np.float32
+    return Quadratic(*map(jnp.asarray, (np.eye(n, dtype=f32), np.ones(n, f32), np.zeros(n, f32))))
 
 
 def ellipsoid(n: int, cond: float, seed: int = 0, shift=None) -> Quadratic:
@@ -90,12 +91,18 @@ def shifted_ellipsoid(n: int, cond: float = 1e2) -> Quadratic:
 
 def padded(prob: Quadratic, P: int) -> Quadratic:
     """The same function of the first n of P coordinates (padded rows, scales, shift are 0)."""
-    n = prob.scale.shape[0]
+    rot, scale, shift = (np.asarray(a) for a in prob)  # in NumPy: no eager programs to compile
     return Quadratic(
-        rot=jnp.zeros((P, P), prob.rot.dtype).at[:n, :n].set(prob.rot),
-        scale=jnp.zeros(P, prob.scale.dtype).at[:n].set(prob.scale),
-        shift=jnp.zeros(P, prob.shift.dtype).at[:n].set(prob.shift),
+        rot=jnp.asarray(_pad_np(rot, (P, P))),
+        scale=jnp.asarray(_pad_np(scale, (P,))),
+        shift=jnp.asarray(_pad_np(shift, (P,))),
     )
+
+
+def _pad_np(a: np.ndarray, shape) -> np.ndarray:
+    out = np.zeros(shape, a.dtype)
+    out[tuple(slice(0, k) for k in a.shape)] = a
+    return out
 
 
 def rosenbrock(x):
@@ -497,8 +504,10 @@ def test_lazy_eigendecomposition_statistically_equivalent(case):
 def test_lazy_tell_then_decompose_equals_tell():
     """tell(decompose=False) keeps the last decomposition, and decompose afterwards gives
     exactly tell's state: the lazy path's decompositions are the eager ones, only fewer."""
-    n, P = 6, 9
-    params = cmaes.default_params(n, 10)
+    # P and popsize as in test_jit_matches_eager_and_compiles_once: the eager operations'
+    # programs (compiled per shape) serve both.
+    n, P = 6, 8
+    params = cmaes.default_params(n, 8)
     state = cmaes.init(jnp.zeros(P), 0.7, jnp.arange(P) < n, params)
     quad = padded(shifted_ellipsoid(n, 1e3), P)
     for i in range(5):
@@ -551,10 +560,12 @@ PAD_KEY = jax.random.key(42)
 def _pad_run(P: int, n: int = PAD_N, key=PAD_KEY, popsize: int | None = None, cond=1e2):
     params = cmaes.default_params(n, popsize or default_popsize(PAD_N))
     state = start(n, P, 0.0, PAD_SIGMA0, params)
-    return run_quadratic(state, padded(shifted_ellipsoid(n, cond), P), key, PAD_GENS, params)
+    run = run_quadratic(state, padded(shifted_ellipsoid(n, cond), P), key, PAD_GENS, params)
+    return jax.tree.map(np.asarray, run)  # NumPy indexing: no eager program per P
 
 
 def _assert_padded_zero(state, n):
+    state = jax.tree.map(np.asarray, state)  # NumPy indexing: no eager program per n
     for a in (state.mean[n:], state.p_sigma[n:], state.p_c[n:], state.best_x[n:]):
         assert np.all(np.asarray(a) == 0)
     assert np.all(np.asarray(state.C[n:, :]) == 0) and np.all(np.asarray(state.C[:, n:]) == 0)
@@ -592,10 +603,13 @@ def test_vmap_structures_match_solo_runs_float64():
     with jax.enable_x64(True):
         ns, P, popsize = [3, PAD_N, 12], 16, default_popsize(PAD_N)
         keys = jnp.stack([jax.random.key(1), PAD_KEY, jax.random.key(2)])
-        probs = [jax.tree.map(lambda a: a.astype(jnp.float64), shifted_ellipsoid(n)) for n in ns]
-        problems = jax.tree.map(lambda *a: jnp.stack(a), *[padded(p, P) for p in probs])
-        masks = jnp.arange(P)[None, :] < jnp.array(ns)[:, None]
-        params = jax.vmap(lambda n: cmaes.default_params(n, popsize))(jnp.array(ns))
+        probs = [
+            jax.tree.map(lambda a: np.asarray(a, np.float64), shifted_ellipsoid(n)) for n in ns
+        ]
+        problems = jax.tree.map(lambda *a: jnp.asarray(np.stack(a)), *[padded(p, P) for p in probs])
+        masks = jnp.asarray(np.arange(P)[None, :] < np.array(ns)[:, None])
+        # Under jit: one program, not one eager program per operation in float64.
+        params = jax.jit(jax.vmap(lambda n: cmaes.default_params(n, popsize)))(jnp.array(ns))
 
         @jax.jit
         def run_batched(keys):
@@ -618,6 +632,7 @@ def test_vmap_structures_match_solo_runs_float64():
 
         batched = run_batched(keys)
         assert batched.mean.dtype == jnp.float64 and batched.C.dtype == jnp.float64
+        batched = jax.tree.map(np.asarray, batched)  # NumPy indexing: no eager programs
         for i, n in enumerate(ns):
             alone = solo(n, P, keys[i])
             np.testing.assert_allclose(batched.mean[i], alone.mean, rtol=1e-10, atol=1e-12)
@@ -681,7 +696,8 @@ def test_nonfinite_count_and_all_failed_generation():
     assert float(w[1]) == float(params.weights[0]) and float(w[2]) == float(params.weights[1])
     assert float(w[0]) == 0 and np.all(np.asarray(w[3:]) <= 0)
     # A generation with no finite cost leaves the distribution as it was.
-    failed = _tell(state, x, jnp.full((popsize,), jnp.nan), params)
+    # float32, not weak-typed: the program compiled for the first tell above.
+    failed = _tell(state, x, jnp.full((popsize,), jnp.nan, jnp.float32), params)
     assert int(failed.num_nonfinite) == popsize and int(failed.generation) == 1
     for name in ("mean", "sigma", "C", "p_sigma", "p_c", "B", "D", "best_cost"):
         np.testing.assert_array_equal(getattr(failed, name), getattr(state, name))
@@ -731,9 +747,15 @@ def test_jit_matches_eager_and_compiles_once():
 @pytest.mark.slow
 def test_vmapped_step_compiles_once():
     S, P, popsize = 3, 8, 8
-    masks = jnp.arange(P)[None, :] < jnp.array([2, 5, 8])[:, None]
-    params = jax.vmap(lambda n: cmaes.default_params(n, popsize))(masks.sum(1))
-    states = jax.vmap(lambda m, p: cmaes.init(jnp.zeros(P), 1.0, m, p))(masks, params)
+    masks = jnp.asarray(np.arange(P)[None, :] < np.array([2, 5, 8])[:, None])
+
+    @jax.jit  # one program, not one eager program per vmapped operation
+    def setup(masks):
+        params = jax.vmap(lambda n: cmaes.default_params(n, popsize))(masks.sum(1))
+        states = jax.vmap(lambda m, p: cmaes.init(jnp.zeros(P), 1.0, m, p))(masks, params)
+        return params, states
+
+    params, states = setup(masks)
 
     @jax.jit
     @chex.assert_max_traces(n=1)

@@ -44,16 +44,27 @@ def _same_networks(a: E.RunResult, b: E.RunResult):
     )
 
 
+# One group, three runs of a fixed popsize, shared by the tests that read it (the same
+# programs: a test that runs this group again, resumed or compiled ahead, compiles nothing
+# new for the usual path).
+SEEDS, GENERATIONS = (3, 4, 5), 3
+
+
+@pytest.fixture(scope="module")
+def group():
+    keys = [jax.random.key(s) for s in SEEDS]
+    return run_lockstep(_task(), keys, config=_config(popsize=8), generations=GENERATIONS)
+
+
 @pytest.mark.slow
-def test_each_run_is_the_run_alone_at_a_fixed_popsize():
+def test_each_run_is_the_run_alone_at_a_fixed_popsize(group):
     # With the popsize fixed, the group's shared padding changes only float rounding (wider
     # sums and eigendecompositions): each structure starts from its solo key and draws its
     # own numbers, so each run evolves the same networks as alone.
     task, cfg = _task(), _config(popsize=8)
-    keys = [jax.random.key(s) for s in (3, 4, 5)]
-    group = run_lockstep(task, keys, config=cfg, generations=3)
+    keys = [jax.random.key(s) for s in SEEDS]
     for k, r in zip(keys, group, strict=True):
-        alone = E.run(task, key=k, config=cfg, generations=3)
+        alone = E.run(task, key=k, config=cfg, generations=GENERATIONS)
         _same_networks(r, alone)
         for a, b in zip(r.population, alone.population, strict=True):
             np.testing.assert_allclose(a.genome.weights, b.genome.weights, rtol=1e-3, atol=1e-4)
@@ -74,22 +85,21 @@ class _Kill(Exception):
 
 
 @pytest.mark.slow
-def test_a_killed_group_resumes_exactly(tmp_path):
-    task, cfg = _task(), _config()
-    keys = [jax.random.key(s) for s in (1, 2)]
-    whole = run_lockstep(task, keys, config=cfg, generations=3)
-    outs = [str(tmp_path / f"r{i}") for i in range(2)]
+def test_a_killed_group_resumes_exactly(tmp_path, group):
+    task, cfg, whole = _task(), _config(popsize=8), group
+    keys = [jax.random.key(s) for s in SEEDS]
+    outs = [str(tmp_path / f"r{i}") for i in range(3)]
 
-    def kill(event):  # run 0 has committed generation 2, run 1 has not
+    def kill(event):  # run 0 has committed generation 2, runs 1 and 2 have not
         if event["event"] == "generation" and event["run"] == 0 and event["generation"] == 2:
             raise _Kill
 
     with pytest.raises(_Kill):
-        run_lockstep(task, keys, config=cfg, generations=3, outs=outs, callback=kill)
-    logs = [tmp_path / r / "generations.jsonl" for r in ("r0", "r1")]
+        run_lockstep(task, keys, config=cfg, generations=GENERATIONS, outs=outs, callback=kill)
+    logs = [tmp_path / r / "generations.jsonl" for r in ("r0", "r1", "r2")]
     lines = [len(p.read_text().splitlines()) for p in logs]
-    assert lines == [3, 2]
-    again = run_lockstep(task, keys, config=cfg, generations=3, outs=outs, resume=True)
+    assert lines == [3, 2, 2]
+    again = run_lockstep(task, keys, config=cfg, generations=GENERATIONS, outs=outs, resume=True)
     for a, b in zip(whole, again, strict=True):
         _same(a, b)
     # Each directory is an ordinary run directory: resume reads a finished one back.
@@ -149,7 +159,7 @@ def test_each_run_stops_at_its_own_target():
 
 
 @pytest.mark.slow
-def test_programs_compiled_ahead_are_used_and_change_nothing(monkeypatch):
+def test_programs_compiled_ahead_are_used_and_change_nothing(monkeypatch, group):
     """On an accelerator a group compiles generation 0's program from shapes and, during
     each generation, its guessed next bucket's (`programs.guesses.compile_next_bucket` over every
     run's pool, for the group's rows). Forced on here, each compilation waited for at once
@@ -158,9 +168,8 @@ def test_programs_compiled_ahead_are_used_and_change_nothing(monkeypatch):
     exactly the group of the usual path."""
     from eant2_jax.programs import guesses as g
 
-    task, cfg = _task(), _config()
-    keys = [jax.random.key(s) for s in (3, 4, 5)]
-    plain = run_lockstep(task, keys, config=cfg, generations=4)
+    task, cfg, plain = _task(), _config(popsize=8), group
+    keys = [jax.random.key(s) for s in SEEDS]
 
     guesses = []
     guess = g.compile_next_bucket
@@ -172,9 +181,9 @@ def test_programs_compiled_ahead_are_used_and_change_nothing(monkeypatch):
     used = force_compile_ahead(monkeypatch, fallback=True)
     monkeypatch.setattr(g, "compile_first_ahead", joined(g.compile_first_ahead))
     monkeypatch.setattr(g, "compile_next_bucket", joined(spy_guess))
-    ahead = run_lockstep(task, keys, config=cfg, generations=4)
+    ahead = run_lockstep(task, keys, config=cfg, generations=GENERATIONS)
     assert guesses and set(guesses) == {3}  # every run's pool, once per generation
-    assert len(guesses) == 4  # not in the last generation
+    assert len(guesses) == GENERATIONS  # not in the last generation
     assert len(used) >= 2, "generation 0 and a guessed bucket ran programs compiled ahead"
     for a, b in zip(ahead, plain, strict=True):
         _same(a, b)

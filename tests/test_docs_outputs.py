@@ -1,6 +1,8 @@
 """The printed outputs in the docs are what the code prints today (see tests/docs_outputs.py;
 docs/genome.md and docs/tasks-custom.md are checked by their own tests)."""
 
+import os
+
 import pytest
 from docs_outputs import ROOT, check, examples, loose, mask
 
@@ -26,7 +28,16 @@ def test_loose_masks_numbers_and_compiling_lines_only():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("page", ["quickstart.md"])
-def test_printed_outputs_match_the_code(page):
+def test_printed_outputs_match_the_code(page, monkeypatch):
+    # The page's Python examples run with JAX's compilation cache on, in the folder and with
+    # the settings its `eant2` commands use (EANT2_CACHE_DIR, programs of any compile time):
+    # as the page advises ("Compile once, across processes"), so that its `eant2_jax.run` of
+    # the `eant2 run` above reads that run's programs instead of compiling them again. What
+    # the examples print does not depend on it.
+    if os.environ.get("EANT2_CACHE_DIR"):
+        monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", os.environ["EANT2_CACHE_DIR"])
+        monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+        monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
     wrong = check(ROOT / "docs" / page)
     assert not wrong, (
         "\n\n".join(f"--- shown\n{ex.shown}--- printed now\n{got}" for ex, got in wrong)

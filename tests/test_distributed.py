@@ -1,7 +1,9 @@
 """Scale-out: 8 virtual CPU devices and 2 local processes (gloo), each in a subprocess.
 
-XLA fixes the number of CPU devices when the backend starts, so every scenario runs in a
-fresh interpreter with ``--xla_force_host_platform_device_count``.
+XLA fixes the number of CPU devices when the backend starts, so the scenarios run in fresh
+interpreters with ``--xla_force_host_platform_device_count``: one interpreter for the
+scenarios of 8 devices and one for those of 2 (module fixtures; each scenario's error is
+its own test's failure), and the two processes of the gloo test.
 """
 
 from __future__ import annotations
@@ -51,31 +53,46 @@ def _python(code: str, *, devices: int = 1, env: dict | None = None, timeout: fl
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def test_sharded_exploitation_matches_single_device():
-    out = _python(
-        """
+# Runs each scenario (code that sets ``out``) in a copy of the prelude's names, in order;
+# one that raises records its traceback and the next still runs.
+RUNNER = """
+import traceback
+results = {}
+for name, body in SCENARIOS.items():
+    scope = dict(globals())
+    try:
+        exec(body, scope)
+        results[name] = scope["out"]
+    except BaseException:
+        results[name] = {"error": traceback.format_exc()}
+print(json.dumps(results))
+"""
+
+
+def _scenarios(scenarios: dict[str, str], *, devices: int, timeout: float) -> dict:
+    """Every scenario in one fresh interpreter of ``devices`` CPU devices: their ``out``s."""
+    code = "SCENARIOS = " + repr({k: textwrap.dedent(v) for k, v in scenarios.items()})
+    return _python(code + "\n" + RUNNER, devices=devices, timeout=timeout)
+
+
+def _out(results: dict, name: str):
+    out = results[name]
+    assert not (isinstance(out, dict) and "error" in out), out["error"][-4000:]
+    return out
+
+
+DEVICES_8 = {
+    "sharded_tune": """
         assert len(jax.devices()) == 8
         one = tuning.tune(genomes, task, key=jax.random.key(3), config=cfg)
         mesh = distributed.make_mesh("all")
         eight = tuning.tune(genomes, task, key=jax.random.key(3), config=cfg, mesh=mesh)
-        print(json.dumps({"one": one.costs, "eight": eight.costs,
-                          "evals": [sum(one.evaluations), sum(eight.evaluations)],
-                          "attempts": [len(one.pruning), len(eight.pruning)],
-                          "sizes": [[g.n_params for g in r.genomes] for r in (one, eight)]}))
+        out = {"one": one.costs, "eight": eight.costs,
+               "evals": [sum(one.evaluations), sum(eight.evaluations)],
+               "attempts": [len(one.pruning), len(eight.pruning)],
+               "sizes": [[g.n_params for g in r.genomes] for r in (one, eight)]}
         """,
-        devices=8,
-    )
-    # Same structures, budgets and stop decisions; the costs agree up to float reduction
-    # order (batched products of 1 vs 8 structures per device may sum in another order),
-    # which CMA-ES amplifies only within the same optimum on this well-posed regression.
-    assert out["evals"][0] == out["evals"][1]
-    for a, b in zip(out["one"], out["eight"], strict=True):
-        assert abs(a - b) <= 1e-3 * abs(a), (out["one"], out["eight"])
-
-
-def test_one_sharded_iteration_equals_unsharded():
-    out = _python(
-        """
+    "one_iteration": """
         from eant2_jax import exploitation as ex
         c1 = ex.ExploitConfig(max_iters=5, chunk=5, pruner="none")
         prep = tuning.prepare(genomes, task, key=jax.random.key(0), config=c1, min_rows=8)
@@ -87,24 +104,12 @@ def test_one_sharded_iteration_equals_unsharded():
         a, s = go(None), go(distributed.make_mesh(8))
         err = [float(np.linalg.norm(np.asarray(u, float) - np.asarray(v, float))
                      / max(np.linalg.norm(np.asarray(u, float)), 1e-30)) for u, v in zip(a, s)]
-        print(json.dumps({"err": err, "evals": np.asarray(s[3]).tolist()}))
+        out = {"err": err, "evals": np.asarray(s[3]).tolist()}
         """,
-        devices=8,
-    )
-    # ||a - b|| / ||a||: float32 reduction-order differences only (~1e-7 per operation).
-    assert max(out["err"]) < 1e-5, out
-    assert out["evals"][:3] == [50, 50, 50] and out["evals"][3:] == [0] * 5
+}
 
-
-def test_two_cpu_devices_with_several_structures_each_do_not_hang():
-    """On two cores, two CPU devices each running a batch of eigendecompositions (or of the
-    pruner's solves: an LU) held both threads of XLA's pool while jaxlib's batched LAPACK
-    kernel waited on that pool for its batch: this run hung in its first chunk, under some
-    timings, not in every attempt (kernels/linalg.py). The subprocess's timeout turns a hang
-    into a failure. With several CPU devices `eigh` and `solve` take a batch one matrix at a
-    time: the same bits as the batched kernels, checked here on fresh random matrices."""
-    out = _python(
-        """
+DEVICES_2 = {
+    "no_hang": """
         from eant2_jax.kernels import eigen
         m = np.random.default_rng().normal(size=(5, 7, 7)).astype(np.float32)
         m = jnp.asarray(m @ m.transpose(0, 2, 1))
@@ -136,27 +141,101 @@ def test_two_cpu_devices_with_several_structures_each_do_not_hang():
         err = [float(np.max(np.abs(np.asarray(u, float) - np.asarray(v, float))))
                for u, v in zip(a, s)]
         evals = [np.asarray(a[2]).tolist(), np.asarray(s[2]).tolist()]
-        print(json.dumps({"err": err, "evals": evals}))
+        out = {"err": err, "evals": evals}
         """,
-        devices=2,
-        timeout=180,
-    )
-    assert out["evals"][0] == out["evals"][1]
-    assert max(out["err"]) < 1e-5, out  # float32 reduction order only
-
-
-def test_run_many_equals_solo_runs():
-    out = _python(
-        """
+    "run_many": """
         cfg2 = E.EANT2Config(population=2, offspring=2,
                              exploit=E.ExploitConfig(max_iters=50, pruner="none"))
         keys = [jax.random.key(i) for i in range(2)]
         many = E.run_many(task, keys, config=cfg2, generations=1, devices=2)
         solo = [E.run(task, key=k, config=cfg2, generations=1) for k in keys]
-        print(json.dumps([[str(m.best), str(s.best)] for m, s in zip(many, solo)]))
+        out = [[str(m.best), str(s.best)] for m, s in zip(many, solo)]
         """,
-        devices=2,
-    )
+    "warm_start": """
+        from eant2_jax import exploitation as ex
+        c = ex.ExploitConfig(max_iters=12, chunk=4, pruner="none")
+        first = tuning.tune(genomes, task, key=jax.random.key(3), config=c, keep_search=True)
+        mesh = distributed.make_mesh(2)
+        args = dict(key=jax.random.key(4), config=c, start=first.searches)
+        def bits(st):
+            st = jax.tree.map(lambda t: jax.random.key_data(t)
+                              if jax.dtypes.issubdtype(t.dtype, jax.dtypes.prng_key) else t, st)
+            return [np.asarray(a).tobytes() for a in jax.tree.leaves(st)]
+        one = tuning.prepare(first.genomes, task, multiple_of=2, **args).state
+        two = tuning.prepare(first.genomes, task, mesh=mesh, **args).state
+        a = tuning.tune(first.genomes, task, **args)
+        b = tuning.tune(first.genomes, task, mesh=mesh, **args)
+        out = {"same": bits(one) == bits(two),
+               "devices": sorted({len(x.sharding.device_set) for x in jax.tree.leaves(two)}),
+               "costs": [a.costs, b.costs], "evals": [a.evaluations, b.evaluations]}
+        """,
+    "own_loop": """
+        from eant2_jax import exploitation as ex
+        c = ex.ExploitConfig(max_iters=80, chunk=32, pruner="none", patience=10)
+        # rows 0-1 (device 0) tune two structures; rows 2-3 (device 1) are padding, which
+        # never runs: device 1's loop ends at once while device 0's runs on
+        two = [genomes[2], genomes[1]]
+        prep = tuning.prepare(two, task, key=jax.random.key(0), config=c, min_rows=4)
+        def go(mesh):
+            st, h = ex.run(prep.state, prep.batch.layout, task, key=jax.random.key(1),
+                           config=c, mesh=mesh)
+            st = distributed.gather(st)
+            return st, h
+        (a, ha), (b, hb) = go(None), go(distributed.make_mesh(2))
+        stop_at = [int(np.argmin(ha.running[:, r])) for r in range(4)]
+        out = {
+            "running": [ha.running.tolist(), hb.running.tolist()],
+            "evals": [ha.evaluations.tolist(), hb.evaluations.tolist()],
+            "sigma": [ha.sigma.tolist(), hb.sigma.tolist()],
+            "tick": [int(a.tick), int(b.tick)], "stop_at": stop_at,
+            "cost": [np.asarray(a.cma.best_cost).tolist(), np.asarray(b.cma.best_cost).tolist()],
+        }
+        """,
+}
+
+
+@pytest.fixture(scope="module")
+def devices_8() -> dict:
+    return _scenarios(DEVICES_8, devices=8, timeout=480)
+
+
+@pytest.fixture(scope="module")
+def devices_2() -> dict:
+    # The hang scenario first, in a fresh process as before; a hang fails at the timeout.
+    return _scenarios(DEVICES_2, devices=2, timeout=600)
+
+
+def test_sharded_exploitation_matches_single_device(devices_8):
+    out = _out(devices_8, "sharded_tune")
+    # Same structures, budgets and stop decisions; the costs agree up to float reduction
+    # order (batched products of 1 vs 8 structures per device may sum in another order),
+    # which CMA-ES amplifies only within the same optimum on this well-posed regression.
+    assert out["evals"][0] == out["evals"][1]
+    for a, b in zip(out["one"], out["eight"], strict=True):
+        assert abs(a - b) <= 1e-3 * abs(a), (out["one"], out["eight"])
+
+
+def test_one_sharded_iteration_equals_unsharded(devices_8):
+    out = _out(devices_8, "one_iteration")
+    # ||a - b|| / ||a||: float32 reduction-order differences only (~1e-7 per operation).
+    assert max(out["err"]) < 1e-5, out
+    assert out["evals"][:3] == [50, 50, 50] and out["evals"][3:] == [0] * 5
+
+
+def test_two_cpu_devices_with_several_structures_each_do_not_hang(devices_2):
+    """On two cores, two CPU devices each running a batch of eigendecompositions (or of the
+    pruner's solves: an LU) held both threads of XLA's pool while jaxlib's batched LAPACK
+    kernel waited on that pool for its batch: this run hung in its first chunk, under some
+    timings, not in every attempt (kernels/linalg.py). The subprocess's timeout turns a hang
+    into a failure. With several CPU devices `eigh` and `solve` take a batch one matrix at a
+    time: the same bits as the batched kernels, checked here on fresh random matrices."""
+    out = _out(devices_2, "no_hang")
+    assert out["evals"][0] == out["evals"][1]
+    assert max(out["err"]) < 1e-5, out  # float32 reduction order only
+
+
+def test_run_many_equals_solo_runs(devices_2):
+    out = _out(devices_2, "run_many")
     for many, solo in out:
         assert many == solo  # each run is exactly the run it would be alone
 
@@ -167,7 +246,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_two_processes_agree():
+def test_two_processes_agree(devices_8):
     # jax.distributed must start before anything touches the backend (the prelude does).
     code = "from eant2_jax import distributed\ndistributed.initialize()\n" + PRELUDE
     code += textwrap.dedent(
@@ -211,43 +290,19 @@ def test_two_processes_agree():
             p.communicate()
     # Both processes run the same host-side loop and see the same gathered results.
     assert outs[0] == outs[1]
-    single = _python(
-        """
-        r = tuning.tune(genomes, task, key=jax.random.key(3), config=cfg)
-        print(json.dumps({"costs": r.costs, "evals": sum(r.evaluations)}))
-        """
-    )
-    assert single["evals"] == outs[0]["evals"]
-    for a, b in zip(single["costs"], outs[0]["costs"], strict=True):
+    # One process's run of the same tune on one device (the 8-device process's run
+    # without a mesh: the one program of one device).
+    single = _out(devices_8, "sharded_tune")
+    assert single["evals"][0] == outs[0]["evals"]
+    for a, b in zip(single["one"], outs[0]["costs"], strict=True):
         assert abs(a - b) <= 1e-3 * abs(a)
 
 
-def test_a_warm_started_batch_is_made_on_the_mesh_with_the_same_bits():
+def test_a_warm_started_batch_is_made_on_the_mesh_with_the_same_bits(devices_2):
     """`tune(start=...)` on a mesh (inherited searches, as ``inherit_search`` passes them):
     `tuning.prepare` puts the covariances and step sizes straight onto the devices and
     starts the engine there, with the bits one device gives; the tune then agrees."""
-    out = _python(
-        """
-        from eant2_jax import exploitation as ex
-        c = ex.ExploitConfig(max_iters=12, chunk=4, pruner="none")
-        first = tuning.tune(genomes, task, key=jax.random.key(3), config=c, keep_search=True)
-        mesh = distributed.make_mesh(2)
-        args = dict(key=jax.random.key(4), config=c, start=first.searches)
-        def bits(st):
-            st = jax.tree.map(lambda t: jax.random.key_data(t)
-                              if jax.dtypes.issubdtype(t.dtype, jax.dtypes.prng_key) else t, st)
-            return [np.asarray(a).tobytes() for a in jax.tree.leaves(st)]
-        one = tuning.prepare(first.genomes, task, multiple_of=2, **args).state
-        two = tuning.prepare(first.genomes, task, mesh=mesh, **args).state
-        a = tuning.tune(first.genomes, task, **args)
-        b = tuning.tune(first.genomes, task, mesh=mesh, **args)
-        print(json.dumps({"same": bits(one) == bits(two),
-                          "devices": sorted({len(x.sharding.device_set)
-                                             for x in jax.tree.leaves(two)}),
-                          "costs": [a.costs, b.costs], "evals": [a.evaluations, b.evaluations]}))
-        """,
-        devices=2,
-    )
+    out = _out(devices_2, "warm_start")
     assert out["same"] and out["devices"] == [2]
     assert out["evals"][0] == out["evals"][1]
     for x, y in zip(*out["costs"], strict=True):  # float reduction order only (see above)
@@ -266,35 +321,11 @@ def test_make_mesh_errors():
         distributed.initialize(coordinator_address="127.0.0.1:1")
 
 
-def test_each_device_runs_its_own_loop_and_records_what_one_device_does():
+def test_each_device_runs_its_own_loop_and_records_what_one_device_does(devices_2):
     """A chunk split over two devices (`exploitation.split_chunk`): the device whose
     structures stop first ends its loop early; its later records must still be those one
     device writes for stopped structures, and the engine counter must end the same."""
-    out = _python(
-        """
-        from eant2_jax import exploitation as ex
-        c = ex.ExploitConfig(max_iters=80, chunk=32, pruner="none", patience=10)
-        # rows 0-1 (device 0) tune two structures; rows 2-3 (device 1) are padding, which
-        # never runs: device 1's loop ends at once while device 0's runs on
-        two = [genomes[2], genomes[1]]
-        prep = tuning.prepare(two, task, key=jax.random.key(0), config=c, min_rows=4)
-        def go(mesh):
-            st, h = ex.run(prep.state, prep.batch.layout, task, key=jax.random.key(1),
-                           config=c, mesh=mesh)
-            st = distributed.gather(st)
-            return st, h
-        (a, ha), (b, hb) = go(None), go(distributed.make_mesh(2))
-        stop_at = [int(np.argmin(ha.running[:, r])) for r in range(4)]
-        print(json.dumps({
-            "running": [ha.running.tolist(), hb.running.tolist()],
-            "evals": [ha.evaluations.tolist(), hb.evaluations.tolist()],
-            "sigma": [ha.sigma.tolist(), hb.sigma.tolist()],
-            "tick": [int(a.tick), int(b.tick)], "stop_at": stop_at,
-            "cost": [np.asarray(a.cma.best_cost).tolist(), np.asarray(b.cma.best_cost).tolist()],
-        }))
-        """,
-        devices=2,
-    )
+    out = _out(devices_2, "own_loop")
     assert out["running"][0] == out["running"][1]
     assert out["evals"][0] == out["evals"][1]
     assert out["tick"][0] == out["tick"][1]

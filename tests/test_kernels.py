@@ -564,13 +564,21 @@ def test_cpu_step_equals_the_rule_with_finite_and_non_finite_values(seed):
     want = _batched_step(*args[:4], rule=True, hidden="identity", output="identity")
     _assert_same_values(got, want)
 
+    ys = _plain_identity_step(*args[:4])[0]
+    assert not np.array_equal(np.isnan(np.asarray(ys)), np.isnan(np.asarray(want[0])))
+
+
+@jax.jit
+def _plain_identity_step(layout, params, x, h):
+    """`kn.step_inline` with plain products only (no rule), identity neurons, batched as
+    `_batched_step` (one program for every seed of the test above and the fused one's)."""
+
     def plain(lay, p, x, h):
         net = kn.network(lay, p).replace(reads=None)
         return kn.step_inline(net, x, h, hidden="identity", output="identity")
 
     per_net = jax.vmap(plain, in_axes=(None, None, 0, 0))
-    ys = jax.jit(jax.vmap(per_net, in_axes=(0, 0, None, 0)))(*args[:4])[0]
-    assert not np.array_equal(np.isnan(np.asarray(ys)), np.isnan(np.asarray(want[0])))
+    return jax.vmap(per_net, in_axes=(0, 0, None, 0))(layout, params, x, h)
 
 
 def _cuda_text(args, hidden="tanh", output="identity") -> str:
@@ -612,9 +620,10 @@ def test_gpu_step_branches_only_large_batches_of_dot_networks(monkeypatch, neuro
     monkeypatch.setattr(kn, "GPU_BRANCH_MIN", 0)
     assert _conditionals(_cuda_text(args)) == (not small)
     bad = x.at[1, 2].set(np.nan)
+    fast, ruled = fresh(False), fresh(True)  # each traced once, under the settings above
     for inputs in (x, bad):
         args = (layout, params, inputs, h)
-        _assert_same_values(fresh(False)(*args), fresh(True)(*args))
+        _assert_same_values(fast(*args), ruled(*args))
 
 
 # ----------------------------------------------- a GPU step: the batch as one fused kernel
@@ -688,11 +697,7 @@ def test_fused_step_takes_the_rule_when_a_value_inside_overflows():
     want = _ruled(layout, params, x, h, "identity", "identity")
     assert not np.all(np.isfinite(np.asarray(want[1])))
     _assert_same_values(_fused(nets, xs, h, "identity", "identity"), want)
-    plain = jax.vmap(
-        lambda n, hs: jax.vmap(lambda a, b: kn.step_inline(n.replace(reads=None), a, b,
-                                                           hidden="identity",
-                                                           output="identity"))(x, hs)
-    )(nets, h)  # fmt: skip
+    plain = _plain_identity_step(layout, params, x, h)  # the networks of `nets`, built again
     assert not np.array_equal(np.isnan(np.asarray(plain[0])), np.isnan(np.asarray(want[0])))
 
 
@@ -756,7 +761,7 @@ def test_step_gradient_is_the_rules():
         ys, hs = _batched_step(layout, p, x, h, rule=rule)
         return jnp.sum(jnp.sin(ys)) + jnp.sum(hs**2)
 
-    got, want = (jax.grad(lambda p, r=rule: loss(p, r))(params) for rule in (False, True))
+    got, want = (jax.jit(jax.grad(lambda p, r=rule: loss(p, r)))(params) for rule in (False, True))
     assert np.all(np.isfinite(np.asarray(got)))
     np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-4, atol=1e-5)
 

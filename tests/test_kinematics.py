@@ -15,6 +15,7 @@ MuJoCo C.
 
 from __future__ import annotations
 
+import functools
 import subprocess
 import sys
 
@@ -57,6 +58,18 @@ def _models(seed: int):
         yield f"random chain of {links}", m, mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, "tip")
 
 
+@functools.partial(jax.jit, static_argnums=1)
+@functools.partial(jax.vmap, in_axes=(None, None, 0))
+def _mjx_kinematics(model, site: int, q):
+    """MJX's poses of ``model`` at the joint angles ``q`` (the model an argument: one
+    program for the models of one shape, the random chains of both seeds)."""
+    from eant2_jax.tasks.mjx_quiet import mjx
+
+    with jax.numpy_rank_promotion("allow"), jax.default_matmul_precision("highest"):
+        d = mjx.kinematics(model, mjx.make_data(model).replace(qpos=q))
+    return d.xanchor, d.xaxis, d.site_xpos[site], d.site_xmat[site]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_forward_equals_mjx_kinematics_and_mujoco_c(seed):
@@ -68,13 +81,8 @@ def test_forward_equals_mjx_kinematics_and_mujoco_c(seed):
         model = mjx.put_model(mj)
         qs = rng.uniform(-7.0, 7.0, size=(64, mj.nq)).astype(np.float32)
 
-        def theirs(q, model=model, site=site):
-            with jax.numpy_rank_promotion("allow"), jax.default_matmul_precision("highest"):
-                d = mjx.kinematics(model, mjx.make_data(model).replace(qpos=q))
-            return d.xanchor, d.xaxis, d.site_xpos[site], d.site_xmat[site]
-
         ours = jax.jit(jax.vmap(lambda q, chain=chain: tuple(kin.forward(chain, q))))(qs)
-        ref = jax.jit(jax.vmap(theirs))(qs)
+        ref = _mjx_kinematics(model, site, qs)
         for field, a, b in zip(kin.ChainPose._fields, ours, ref, strict=True):
             a, b = np.asarray(a), np.asarray(b)
             np.testing.assert_allclose(a, b, rtol=2e-6, atol=6e-7, err_msg=f"{name}: {field}")

@@ -20,8 +20,9 @@ INHERIT = EANT2Config(
     inherit_search=True,
     exploit=CONFIG.exploit,
 )
-# The default stop: XOR's solved level (it solves XOR at generation 1 of 3).
-SOLVING = EANT2Config(population=6, exploit=ExploitConfig(max_iters=100))
+# The default stop: XOR's solved level (it solves XOR at generation 1 of 3). CONFIG's sizes
+# and exploit settings, so that its programs are CONFIG's.
+SOLVING = EANT2Config(population=4, exploit=CONFIG.exploit)
 
 
 def _same_records(a, b):

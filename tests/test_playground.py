@@ -23,7 +23,6 @@ from episodes import batch_costs, episode_batch, plain_returns
 import eant2_jax
 from eant2_jax import tasks
 from eant2_jax.compiler import networks
-from eant2_jax.tasks.episodic import returns
 
 # CartpoleBalance: inputs cart position, cos and sin of the pole angle, cart and pole
 # velocities; the one output pushes the cart.
@@ -31,9 +30,14 @@ PUSH = "N0/5*1 I0*0.5 I2*4 I3*0.5 I4*1 R0*0.1"
 NOTHING = "N0/1*1 I0*0"
 
 
+# One task configuration and one network count (2) for the episode programs of the two tests
+# below: the second checks its costs with the first's compiled `episode_batch`.
+OPTIONS = {"max_steps": 40, "chunk": 16, "episodes": 2}
+
+
 @pytest.mark.slow
 def test_returns_equal_a_plain_loop_over_playground_steps():
-    task = tasks.make("playground:CartpoleBalance", max_steps=40, chunk=16)
+    task = tasks.make("playground:CartpoleBalance", **OPTIONS)
     assert (task.n_inputs, task.n_outputs, task.overrides) == (5, 1, (("impl", "jax"),))
     key = jax.random.key(5)
     genomes = (PUSH, NOTHING)
@@ -50,13 +54,17 @@ def test_returns_equal_a_plain_loop_over_playground_steps():
 
 @pytest.mark.slow
 def test_a_batch_of_networks_gets_one_cost_each():
-    task, nets, cost = batch_costs(
-        "playground:CartpoleBalance", {"max_steps": 20, "episodes": 2}, 5, 1
-    )
+    task, nets, cost = batch_costs("playground:CartpoleBalance", OPTIONS, 5, 1)
     flat = jax.tree.map(lambda a: a.reshape(6, *a.shape[2:]), nets)
-    r = returns(task, flat, key=jax.random.key(0), episodes=task.episodes)
+    # The returns of the same episodes (the cost's key), two networks at a time: the
+    # program of the test above (what `returns` computes, with lengths).
+    r = np.concatenate([
+        np.asarray(episode_batch(task, jax.tree.map(lambda a, i=i: a[i : i + 2], flat),
+                                 jax.random.key(0), task.episodes)[0])
+        for i in range(0, 6, 2)
+    ])  # fmt: skip
     np.testing.assert_allclose(cost.ravel(), -r.mean(axis=1), rtol=1e-6)
-    assert np.all((r >= 0) & (r <= 20))  # a reward in [0, 1] per step
+    assert np.all((r >= 0) & (r <= 40))  # a reward in [0, 1] per step
 
 
 @pytest.mark.parametrize(

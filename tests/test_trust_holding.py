@@ -144,7 +144,8 @@ def test_a_full_disk_mid_run_loses_nothing_and_resume_finishes(tmp_path, capsys,
 
 
 # ------------------------------------------------------------------------- full cache disk
-TINY = EANT2Config(population=3, exploit=ExploitConfig(max_iters=30, pruner="covariance"))
+# The sizes and settings of TINY_FLAGS: the programs of the command runs above.
+TINY = EANT2Config(population=3, exploit=ExploitConfig(max_iters=30, pruner="none"))
 
 
 def _run_records(**kwargs) -> tuple[str, list[str]]:

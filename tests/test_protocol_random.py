@@ -119,13 +119,14 @@ _task = attempt_task  # the pruning tests' problem for one attempt
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("pruner", ["random", "covariance"])
-def test_a_random_attempt_follows_the_default_rule(pruner):
+def test_a_random_attempt_follows_the_default_rule():
     """One attempt of every structure through the engine's iterations, under the default
     rule: the re-fitted cost is compared with the best cost before the attempt by
-    `kernels.pruning.accept`, for the random pruner as for the covariance one; a rejection
-    restores the state."""
-    config = ex.ExploitConfig(popsize=8, pruner=pruner, prune_refit=4)
+    `kernels.pruning.accept`, for the random pruner as for the covariance one (whose
+    attempt, through the same `exploitation.attempt`, test_pruning's
+    test_tentative_attempt_refits_and_restores_on_rejection checks against the same rule);
+    a rejection restores the state."""
+    config = ex.ExploitConfig(popsize=8, pruner="random", prune_refit=4)
     genomes = [GENOME, Genome.parse("N0/3*0.9 I0*1.5 I1*-0.8 B*0.3")]
     st, layout, tables = _state(genomes, jax.random.split(jax.random.key(5), 2), config)
     # The best cost before the attempt: the mean's own (a fresh state has none).

@@ -694,10 +694,12 @@ def test_cli_process_defaults_yield_to_the_environment():
 
 
 @pytest.mark.slow
-def test_cli_sets_process_defaults_before_mujoco_and_the_backend(tmp_path):
+def test_cli_sets_process_defaults_before_mujoco_and_the_backend(
+    cli_reference, cli_cache, tmp_path
+):
     """In a fresh `eant2 run` process, MuJoCo is imported with MUJOCO_GL=disable (no OpenGL
     library loaded) and JAX's backend starts without preallocating. (Any task starts the
-    backend: XOR's programs compile fastest.)"""
+    backend: the command-line reference's XOR run, whose programs the cache holds.)"""
     probe = (
         "import os, sys\n"
         "from eant2_jax.app import cli\n"
@@ -708,10 +710,10 @@ def test_cli_sets_process_defaults_before_mujoco_and_the_backend(tmp_path):
     )
     unset = ("MUJOCO_GL", "XLA_PYTHON_CLIENT_PREALLOCATE")
     env = {k: v for k, v in os.environ.items() if k not in unset}
-    env["EANT2_CACHE_DIR"] = ""
+    env["EANT2_CACHE_DIR"] = str(cli_cache)
     proc = subprocess.run(
-        [sys.executable, "-c", probe, "run", "xor", "--population", "2", "--generations", "0",
-         "--max-iters", "2", "--no-prune", "--out", str(tmp_path / "r")],
+        [sys.executable, "-c", probe, "run", "xor", *CLI_RUN, "--generations", "0",
+         "--out", str(tmp_path / "r")],
         capture_output=True, text=True, env=env, timeout=600,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
@@ -719,19 +721,22 @@ def test_cli_sets_process_defaults_before_mujoco_and_the_backend(tmp_path):
 
 
 @pytest.mark.slow
-def test_cli_x64_run_records_float64_and_resumes(cli_cache, tmp_path):
-    """``eant2 run --x64`` keeps the CMA-ES state in float64; resume turns x64 on again."""
+def test_cli_x64_run_records_float64_and_resumes(tmp_path, capsys, monkeypatch):
+    """``eant2 run --x64`` keeps the CMA-ES state in float64; resume turns x64 on again.
+    In this process: x64 is turned off between the two commands, as a new process has it."""
     out = tmp_path / "x64"
-    rc, _, err = _finish(
-        _eant2("run", "xor", "--generations", "1", "--population", "3", "--max-iters", "40",
-               "--x64", "--out", str(out), cache=cli_cache)
-    )  # fmt: skip
+    argv = ["run", "xor", "--generations", "0", "--population", "3", "--max-iters", "40",
+            "--x64", "--out", str(out)]  # fmt: skip
+    rc, err, _ = _run_main(argv, capsys, monkeypatch)
     assert rc == 0, err
+    assert jax.config.jax_enable_x64
     config = json.loads((out / "config.json").read_text())
     assert config["config"]["exploit"]["dtype"] == "float64"
-    rc, _, err = _finish(_eant2("resume", str(out), "--generations", "2", cache=cli_cache))
+    jax.config.update("jax_enable_x64", False)
+    rc, err, _ = _run_main(["resume", str(out), "--generations", "1"], capsys, monkeypatch)
     assert rc == 0, err
-    assert len(_jsonl(out, GENERATIONS)) == 3
+    assert jax.config.jax_enable_x64
+    assert len(_jsonl(out, GENERATIONS)) == 2
 
 
 def test_bucket_grows_with_headroom_and_is_kept_while_it_fits():
@@ -1007,11 +1012,14 @@ def test_first_program_compiled_ahead_from_shapes_is_used_and_changes_nothing(mo
     from eant2_jax import programs
     from eant2_jax.programs import guesses
 
-    exploit = ExploitConfig(max_iters=30 if task == "xor" else 4, pruner="covariance")
-    config = EANT2Config(population=4, stop_when_solved=False, exploit=exploit)
+    # XOR: the reference run's configuration (its programs are compiled already).
+    exploit = ExploitConfig(max_iters=4, pruner="covariance")
+    config = CONFIG if task == "xor" else EANT2Config(population=4, stop_when_solved=False,
+                                                      exploit=exploit)  # fmt: skip
+    options = {"n_starts": 16} if task == "servo" else {}
 
     def run():
-        return eant2_jax.run(tasks.make(task), key=jax.random.key(3), config=config,
+        return eant2_jax.run(tasks.make(task, **options), key=jax.random.key(3), config=config,
                              generations=0)  # fmt: skip
 
     plain = run()
@@ -1025,14 +1033,16 @@ def test_first_program_compiled_ahead_from_shapes_is_used_and_changes_nothing(mo
     # Where generation 0's structure depends on the run's draws, nothing is guessed.
     monkeypatch.setattr(programs.REGISTRY, "ahead", {})
     diverse = dataclasses.replace(config, init_mutations=2)
-    assert not guesses.compile_first_ahead(tasks.make(task), jax.random.key(3), diverse)
+    assert not guesses.compile_first_ahead(tasks.make(task, **options), jax.random.key(3), diverse)
     assert not programs.REGISTRY.ahead
 
 
 @pytest.mark.slow
-def test_cli_starts_the_first_program_before_the_key_exists(monkeypatch, tmp_path):
+def test_cli_starts_the_first_program_before_the_key_exists(xor_run, monkeypatch, tmp_path):
     """`eant2 run` starts generation 0's program from the seed's key shape before it makes
-    the key; the run then uses that program (strictly: no fallback to jit)."""
+    the key; the run then uses that program (strictly: no fallback to jit). The reference
+    run's settings (`CONFIG`, the command line's defaults otherwise): its programs are
+    compiled already."""
     from eant2_jax import loop, programs
     from eant2_jax.app import cli
     from eant2_jax.programs import guesses
@@ -1048,7 +1058,8 @@ def test_cli_starts_the_first_program_before_the_key_exists(monkeypatch, tmp_pat
     monkeypatch.setattr(loop, "compile_first_ahead", spy)  # the CLI's name of it
     monkeypatch.setattr(guesses, "compile_first_ahead", spy)  # the driver's
     monkeypatch.setenv("EANT2_CACHE_DIR", "")
-    argv = ["run", "xor", "--population", "3", "--generations", "0", "--max-iters", "20",
+    argv = ["run", "xor", "--population", str(CONFIG.population), "--generations", "0",
+            "--max-iters", str(CONFIG.exploit.max_iters),
             "--out", str(tmp_path / "run")]  # fmt: skip
     assert cli.main(argv) == 0
     assert calls == [True, False]  # the CLI's, from the key's shape; then run's own
@@ -1056,27 +1067,24 @@ def test_cli_starts_the_first_program_before_the_key_exists(monkeypatch, tmp_pat
 
 
 @pytest.mark.slow
-def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(monkeypatch):
+def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(xor_run, monkeypatch):
     """On an accelerator the loop guesses the next bucket and compiles its engine program in
     a background thread (`programs.guesses.compile_next_bucket`). Forced on here, with the threads
     joined at once (two programs at once on a CPU can deadlock XLA's thread pool): a run
     whose buckets were guessed uses the programs compiled ahead, and gives exactly the run
-    of the usual path. Four generations: this run's guesses are used in two of them (six
-    generations, as before, cost twice the time for two more)."""
+    of the usual path. The reference run's configuration and key, one generation further:
+    generation 2 runs in the bucket guessed during generation 1 (and the first two
+    generations' programs are the reference's, compiled already)."""
     from eant2_jax import programs
     from eant2_jax.programs import guesses
 
-    config = EANT2Config(
-        population=10,
-        stop_when_solved=False,
-        exploit=ExploitConfig(max_iters=50, pruner="covariance"),
-    )
-
     def run():
-        return eant2_jax.run(tasks.make("xor"), key=jax.random.key(1), config=config,
-                             generations=4)  # fmt: skip
+        return eant2_jax.run(tasks.make("xor"), key=jax.random.key(SEED), config=CONFIG,
+                             generations=GENERATIONS_API + 1)  # fmt: skip
 
     plain = run()
+    reference = _json(xor_run[0].generations)
+    assert _without_wall(_json(plain.generations)[: len(reference)]) == _without_wall(reference)
     guess = guesses.compile_next_bucket
     guessed = []  # the programs the next-bucket guesses compiled
 

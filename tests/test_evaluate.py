@@ -43,6 +43,9 @@ N_IN = 3
 # property tests below compile a handful of programs, not one per example.
 MAX_NEURONS, MAX_GENES, MAX_DEPTH = 6, 24, 6
 ROWS = 4  # genomes per compiled batch in the fixed-bucket tests (padded with copies)
+# Inputs of the fixed-bucket tests: one shape for all of them (T time steps, M streams), so
+# that they share their programs (one per number of outputs, sweeps and activation pair).
+T, M = 4, 2
 
 
 def _f32(a) -> np.ndarray:
@@ -122,7 +125,7 @@ def test_streams_are_independent():
 
 # ------------------------------------------------------------------------ property: compiled
 @pytest.mark.slow
-@given(batch=genome_batches(max_size=ROWS), x=inputs(5, 2))
+@given(batch=genome_batches(max_size=ROWS), x=inputs(T, M))
 def test_compiled_matches_reference(batch, x):
     """Batches of 1-4 genomes of different sizes, 1-3 outputs, exactly the sweeps their depth
     needs (the smallest the compiler would pick): at most 3 x 5 programs."""
@@ -132,7 +135,7 @@ def test_compiled_matches_reference(batch, x):
 @pytest.mark.slow
 @pytest.mark.parametrize(("hidden", "output"), list(itertools.product(ACTIVATIONS, repeat=2)))
 @fewer_examples(0.1)  # 16 pairs; one program each
-@given(batch=genome_batches(n_outputs=2, min_size=ROWS, max_size=ROWS), x=inputs(4, 3))
+@given(batch=genome_batches(n_outputs=2, min_size=ROWS, max_size=ROWS), x=inputs(T, M))
 def test_every_activation_pair(hidden, output, batch, x):
     got = run_fixed_bucket(batch, x, hidden=hidden, output=output, sweeps=MAX_DEPTH)
     assert_close(got, reference(batch, x, hidden, output))
@@ -255,7 +258,7 @@ LOOPED_SWEEPS = 96
 
 @pytest.mark.slow
 @fewer_examples(0.1)  # two programs in all (one number of outputs; the others: above)
-@given(batch=genome_batches(max_size=ROWS, n_outputs=2), x=inputs(4, 2))
+@given(batch=genome_batches(max_size=ROWS, n_outputs=2), x=inputs(T, M))
 def test_sweeps_as_a_loop_match_reference_and_the_written_out_program(batch, x):
     """Genomes run in a bucket of 96 sweeps, past `kn.SWEEPS_UNROLLED`, where the sweeps
     are one loop: the reference's values; and on a CPU the bits of the program that writes
@@ -349,8 +352,8 @@ def test_unread_nan_input_does_not_poison_outputs():
 @pytest.mark.slow
 @given(
     batch=genome_batches(max_size=ROWS, weight=weights(subnormal=False)),
-    x=inputs(3, 2),
-    where=hnp.arrays(np.int8, (3, 2, N_IN), elements=st.integers(0, 3)),
+    x=inputs(T, M),
+    where=hnp.arrays(np.int8, (T, M, N_IN), elements=st.integers(0, 3)),
 )
 def test_non_finite_inputs_match_reference(batch, x, where):
     """NaN and +-inf inputs: the same NaN / inf / finite pattern as the reference (a value

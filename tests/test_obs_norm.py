@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 
 import jax
@@ -34,10 +35,18 @@ from eant2_jax.tasks.episodic import EpisodicTask, returns
 
 CARTPOLE = {"max_steps": 60, "chunk": 16}  # one compiled random-episode program per shape
 PENDULUM = {"max_steps": 20, "chunk": 8}
+EPISODES = 7  # random episodes of the statistics, in every test: the same programs
 
 
 def _fresh_seed() -> int:
     return int(np.random.default_rng().integers(0, 2**31 - 1))
+
+
+@functools.cache
+def _jitted(env):
+    """gymnax's reset and step, jitted once per environment (a new bound method each time
+    would compile them again)."""
+    return jax.jit(env.reset), jax.jit(env.step)
 
 
 def _plain_random_episode(task, key) -> np.ndarray:
@@ -45,7 +54,7 @@ def _plain_random_episode(task, key) -> np.ndarray:
     Python: gymnax's reset and step (jitted alone), the documented keys, the actions mapped
     in NumPy (argmax, or linearly onto the bounds)."""
     env, params = task.env, task.env_params
-    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    reset, step = _jitted(env)
     env_key, act_key = jax.random.split(key)
     reset_key, step_key = jax.random.split(env_key)
     obs, state = reset(reset_key, params)
@@ -75,7 +84,7 @@ def _rows(seen: np.ndarray, lengths: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("name,options", [("CartPole-v1", CARTPOLE), ("Pendulum-v1", PENDULUM)])
 def test_statistics_equal_numpy_over_the_recorded_random_observations(name, options):
     seed = _fresh_seed()
-    key, episodes = jax.random.key(seed), 7
+    key, episodes = jax.random.key(seed), EPISODES
     plain = tasks.make(f"gymnax:{name}", **options)
     seen, lengths = obsnorm.random_observations(plain, jax.random.split(key, episodes))
     assert seen.shape == (episodes, options["max_steps"], plain.n_inputs)
@@ -106,7 +115,7 @@ def test_statistics_equal_numpy_over_the_recorded_random_observations(name, opti
 @pytest.mark.slow
 def test_the_same_seed_gives_the_same_bits_and_a_resume_rebuilds_them(tmp_path):
     seed = _fresh_seed()
-    options = {"normalize": "random", "norm_episodes": 5, "norm_seed": seed, **CARTPOLE}
+    options = {"normalize": "random", "norm_episodes": EPISODES, "norm_seed": seed, **CARTPOLE}
     task = tasks.make("gymnax:CartPole-v1", **options)
     again = tasks.make("gymnax:CartPole-v1", **options)
     other = tasks.make("gymnax:CartPole-v1", **{**options, "norm_seed": (seed + 1) % 2**31})
@@ -126,9 +135,9 @@ def test_the_same_seed_gives_the_same_bits_and_a_resume_rebuilds_them(tmp_path):
 @pytest.mark.slow
 def test_the_network_sees_obs_minus_mean_over_std():
     seed = _fresh_seed()
-    task = tasks.make("gymnax:Pendulum-v1", normalize="random", norm_episodes=6,
+    task = tasks.make("gymnax:Pendulum-v1", normalize="random", norm_episodes=EPISODES,
                       norm_seed=seed, **PENDULUM)  # fmt: skip
-    mean, std, _ = obsnorm.statistics(task, episodes=6, key=jax.random.key(seed))
+    mean, std, _ = obsnorm.statistics(task, episodes=EPISODES, key=jax.random.key(seed))
     key = jax.random.key(seed + 1)
     reset_key, _ = jax.random.split(key)  # as an episode splits its key
     obs, _ = task.env.reset(reset_key, task.env_params)
@@ -140,7 +149,7 @@ def test_the_network_sees_obs_minus_mean_over_std():
     genome = "N0/4*1 I0*0.8 I1*-0.6 I2*0.4 R0*0.3"
     g = eant2_jax.Genome.parse(genome)
     got = returns(task, networks([g], task.n_inputs), key=key, episodes=2)[0]
-    step = jax.jit(task.env.step)
+    _, step = _jitted(task.env)
     for i, k in enumerate(jax.random.split(key, 2)):
         reset_key, step_key = jax.random.split(k)
         obs, state = task.env.reset(reset_key, task.env_params)
@@ -301,7 +310,8 @@ def test_a_resumed_run_goes_on_as_an_uninterrupted_one(tmp_path, capsys, monkeyp
 
     monkeypatch.setenv("EANT2_CACHE_DIR", "")
     argv = ["run", "gymnax:Pendulum-v1", "--population", "2", "--max-iters", "4", "--no-prune"]
-    for option in ("normalize=random", "norm_episodes=3", "norm_seed=11", "max_steps=20"):
+    for option in ("normalize=random", f"norm_episodes={EPISODES}", "norm_seed=11",
+                   *(f"{k}={v}" for k, v in PENDULUM.items())):  # fmt: skip
         argv += ["--task-option", option]
     whole, parts = tmp_path / "whole", tmp_path / "parts"
     assert main([*argv, "--generations", "1", "--out", str(whole)]) == 0

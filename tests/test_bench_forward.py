@@ -43,7 +43,7 @@ ROW_FIELDS = {
 @pytest.mark.slow
 def test_quick_run_writes_json_and_markdown(tmp_path, capsys):
     out = tmp_path / "forward.json"
-    bench_forward.main(["--quick", "--out", str(out)])
+    bench_forward.main(["--quick", "--genes", "8", "16", "--out", str(out)])
     payload = json.loads(out.read_text())
     for key in ("device_kind", "platform", "jax_version", "config", "rows"):
         assert key in payload, key

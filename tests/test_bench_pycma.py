@@ -8,7 +8,7 @@ pytestmark = pytest.mark.slow
 def test_pycma_bench_quick_numpy_cost_matches(tmp_path):
     from bench import bench_pycma
 
-    payload = bench_pycma.main(["--quick", "--out", str(tmp_path / "p.json")])
+    payload = bench_pycma.main(["--quick", "--genes", "20", "--out", str(tmp_path / "p.json")])
     row = payload["rows"][0]
     # float64 NumPy vs float32 JAX on the same candidates: rounding only.
     assert row["max_rel_err"] < 1e-5

@@ -21,7 +21,7 @@ def test_quick_rows_split_the_engine_into_placement_and_loops(tmp_path):
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     proc = subprocess.run(
         [sys.executable, "-m", "bench", "scaling", "--quick", "--devices", "1", "2",
-         "--out", str(out)],
+         "--genes", "20", "--out", str(out)],
         cwd=ROOT, env=env, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -268,3 +268,27 @@ def test_an_existing_report_is_replaced_whole(tmp_path):
     assert rp.report(dirs, out).read_text() == first
     assert (out / "notes.txt").read_text() == "mine\n"  # nothing else is touched
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temp file left
+
+
+def _loaded(arm: str, seed: int, cost: float):
+    rec = GenerationRecord(0, cost, 5, 5.0, 2, 100, 1.0, 0, 0, 20, 4, 1.0, GENOME)
+    return rp.LoadedRun(f"{arm}-{seed}", arm, "xor", seed, [rec], [])
+
+
+@pytest.mark.parametrize("covariance", [(3.0, 3.0, 3.0000001), (2.0, 2.5, 2.9)])
+def test_p_value_of_a_constant_or_nearly_identical_arm_is_scipys_without_a_warning(covariance):
+    """The reference arm's runs all end at one cost (a constant sample): scipy warns of
+    "precision loss" for it although its variance is exactly 0. The report gives scipy's
+    p-value and no warning (which would end a run under warnings-as-errors)."""
+    import warnings
+
+    from scipy import stats
+
+    none = (3.0, 3.0, 3.0)
+    runs = [_loaded("none", s, c) for s, c in enumerate(none)]
+    runs += [_loaded("covariance", s, c) for s, c in enumerate(covariance)]
+    summary = rp.summarise(runs)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        expected = stats.ttest_ind(-np.array(covariance), -np.array(none), equal_var=False)
+    assert summary["covariance"]["p_fitness"] == float(expected.pvalue)

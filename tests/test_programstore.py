@@ -153,6 +153,26 @@ def test_what_shapes_the_program_keys_it(store, monkeypatch):
     _forget(monkeypatch)
     _store_chunk(CONFIG.exploit)  # the same program: read, not stored again
     assert len(_keys(store)) == 1
+    # Where JAX caches and logs compiled programs is not what a program is: a moved cache
+    # folder, another cache threshold or compile logging still read the same entry.
+    settings = {
+        "jax_compilation_cache_dir": str(store.parent / "moved"),
+        "jax_persistent_cache_min_compile_time_secs": 0.0,
+        "jax_log_compiles": True,
+    }
+    before = {name: getattr(jax.config, name) for name in settings}
+    trace = programstore.export.export
+    try:
+        for name, value in settings.items():
+            jax.config.update(name, value)
+        _forget(monkeypatch)
+        _no_tracing(monkeypatch)
+        _store_chunk(CONFIG.exploit)
+    finally:
+        for name, value in before.items():
+            jax.config.update(name, value)
+    monkeypatch.setattr(programstore.export, "export", trace)
+    assert len(_keys(store)) == 1
     # Another static setting of the engine: another program.
     _store_chunk(CONFIG.exploit.replace(pruner="none"))
     assert len(_keys(store)) == 2

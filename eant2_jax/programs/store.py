@@ -7,7 +7,8 @@ and lowers the engine program again before it can find the compiled one (docs/be
 
 * the source of every module of this package and the versions of JAX, jaxlib, NumPy, Python
   and of the task libraries the process has imported (gymnax, brax, MuJoCo, ...);
-* JAX's configuration (its plain values: x64, default matmul precision, PRNG, ...);
+* JAX's configuration (its plain values: x64, default matmul precision, PRNG, ...; not
+  those that only say where compiled programs are cached or logged);
 * the function, its static arguments, the arguments' pytree structure (static fields
   included) and each leaf's shape, dtype, weak type and placement.
 
@@ -102,9 +103,28 @@ def code_digest() -> bytes:
     return h.digest()
 
 
+# JAX settings that say where and whether compiled programs are kept or logged, not what a
+# program is: left out of the key, so that a moved cache folder, or another threshold of
+# JAX's cache, finds the store's entries again.
+_NOT_IN_KEY = (
+    "jax_compilation_cache_",
+    "jax_persistent_cache_",
+    "jax_enable_compilation_cache",
+    "jax_raise_persistent_cache_errors",
+    "jax_log_compiles",
+    "jax_explain_cache_misses",
+    "jax_logging_level",
+    "jax_debug_log_modules",
+)
+
+
 def _config_digest() -> bytes:
     plain = (bool, int, float, str, type(None))
-    values = sorted((k, v) for k, v in jax.config.values.items() if isinstance(v, plain))
+    values = sorted(
+        (k, v)
+        for k, v in jax.config.values.items()
+        if isinstance(v, plain) and not k.startswith(_NOT_IN_KEY)
+    )
     return repr(values).encode()
 
 

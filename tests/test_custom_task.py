@@ -295,7 +295,8 @@ def test_noisy_costs_are_reevaluated_on_fresh_episodes(noisy):
     """Legacy settings (``recommend="best"``, ``rescore=1``): one fresh draw, of the key
     ``split(key, 3)[2]``, one more evaluation."""
     key = jax.random.key(3)
-    config = ExploitConfig(max_iters=30, patience=1000, recommend="best", rescore=1)
+    # No pruner: Coin's cost ignores the network (and the program compiles faster).
+    config = ExploitConfig(max_iters=30, patience=1000, recommend="best", rescore=1, pruner="none")
     res = eant2_jax.tuning.tune(
         [eant2_jax.Genome.parse(XOR_GENOME)], Coin(noisy=noisy), key=key, config=config
     )
@@ -332,7 +333,7 @@ def test_default_rescoring_averages_fresh_draws_of_both_points(monkeypatch, ahea
     monkeypatch.setattr(eant2_jax.programs, "ahead_enabled", lambda: ahead)
     monkeypatch.setattr(eant2_jax.programs.REGISTRY, "ahead", {})
     key = jax.random.key(3)
-    config = ExploitConfig(max_iters=30, patience=1000)
+    config = ExploitConfig(max_iters=30, patience=1000, pruner="none")  # as above
     assert (config.recommend, config.rescore) == ("both", 4)
     res = eant2_jax.tuning.tune([eant2_jax.Genome.parse(XOR_GENOME)], Coin(), key=key,
                                 config=config)  # fmt: skip

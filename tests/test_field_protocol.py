@@ -269,15 +269,14 @@ def test_both_methods_start_from_the_same_states_and_a_mismatch_is_refused():
               test_keys={"tensorneat": jax.random.key(9001)})  # fmt: skip
 
 
-def workers_in_process(monkeypatch):
-    """The protocol's ``python -m bench.field_workers`` processes (training, judging) run in
-    this process, through the same argv and the workers' ``main``, sharing this process's
-    compiled programs; the stand-in's script stays a child process (launched by the
-    protocol's own code, in its child environment)."""
+def workers_in_process(monkeypatch, what=("train", "judge")):
+    """The protocol's ``python -m bench.field_workers`` processes of the kinds ``what`` run in
+    this process, through the same argv and the workers' ``main`` (sharing this process's
+    compiled programs); other children (the stand-in's script, the rest) stay processes."""
     child = field_protocol._call
 
     def call(argv, timeout):
-        if argv[1:3] == ["-m", "bench.field_workers"]:
+        if argv[1:3] == ["-m", "bench.field_workers"] and argv[3] in what:
             assert field_workers.main(argv[3:]) == 0
             return ""
         return child(argv, timeout)
@@ -301,13 +300,13 @@ def _fake_src(tmp_path):
 @pytest.mark.skipif(not HAS_GYMNAX, reason="gymnax not installed")
 def test_protocol_end_to_end_on_cartpole(tmp_path, monkeypatch, capsys):
     """eant2_jax's real run and the stand-in, judged on one task; files and labels. The
-    stand-in trains in its own process, through the protocol's child launch and environment;
-    eant2_jax's training and the judging run here, through the same argv (sharing compiled
-    programs with `test_eant2_training_goes_on_from_its_run_directory` and the resume test)."""
+    judging runs in its own process, as the protocol runs it (the stand-in too); eant2_jax's
+    training runs here, through the same argv (it shares its compiled programs with
+    `test_eant2_training_goes_on_from_its_run_directory`)."""
     argv, _ = fake_tensorneat(tmp_path)
     monkeypatch.setitem(field_protocol.METHODS, "tensorneat", argv)
     _fake_src(tmp_path)
-    workers_in_process(monkeypatch)
+    workers_in_process(monkeypatch, what=("train",))
     payload = _protocol(tmp_path, "--seeds", "1", "--population", "2", "--max-iters", "3")
     (rec,) = payload["seeds"]
     assert payload["trial"] and rec["env"] == "cartpole" and rec["seed"] == 0

@@ -232,42 +232,60 @@ def _sub(a: Vec, b: Vec) -> Vec:
     return tuple(x - y for x, y in zip(a, b, strict=True))
 
 
-def _walk(chain: Chain, q: jax.Array) -> tuple[list[Vec], list[Vec], Vec, tuple]:
-    """MJX's ``smooth.kinematics`` for each link in turn, then ``support.local_to_global``
-    for the site, on components: ``(anchors, axes, site_pos, site_mat rows)``."""
-    pos, quat = components(chain.base_pos), components(chain.base_quat)
-    anchors, axes = [], []
-    for i in range(chain.n_joints):
-        jnt_pos, axis = components(chain.jnt_pos[i]), components(chain.jnt_axis[i])
-        pos = _add(pos, _rotate(components(chain.body_pos[i]), quat))
-        quat = _quat_mul(quat, components(chain.body_quat[i]))
-        anchor = _add(_rotate(jnt_pos, quat), pos)
-        axes.append(_rotate(axis, quat))
-        anchors.append(anchor)
-        quat = _quat_mul(quat, _axis_angle_to_quat(axis, q[i] - chain.qpos0[i]))
-        pos = _sub(anchor, _rotate(jnt_pos, quat))  # off-centre rotation
+def _link(pos: Vec, quat: Quat, link: tuple, angle: jax.Array) -> tuple:
+    """MJX's ``smooth.kinematics`` for one link: ``(pos, quat, anchor, axis)``, the frame
+    after the link's joint and the joint's anchor and axis in the world. ``link`` is
+    ``(body_pos, body_quat, jnt_pos, jnt_axis, qpos0)`` of that link."""
+    body_pos, body_quat, jnt_pos, axis, qpos0 = link
+    jnt_pos, axis = components(jnt_pos), components(axis)
+    pos = _add(pos, _rotate(components(body_pos), quat))
+    quat = _quat_mul(quat, components(body_quat))
+    anchor = _add(_rotate(jnt_pos, quat), pos)
+    world_axis = _rotate(axis, quat)
+    quat = _quat_mul(quat, _axis_angle_to_quat(axis, angle - qpos0))
+    pos = _sub(anchor, _rotate(jnt_pos, quat))  # off-centre rotation
+    return pos, quat, anchor, world_axis
+
+
+def _links(chain: Chain) -> tuple:
+    return chain.body_pos, chain.body_quat, chain.jnt_pos, chain.jnt_axis, chain.qpos0
+
+
+def _site(chain: Chain, pos: Vec, quat: Quat) -> tuple[Vec, tuple]:
+    """``support.local_to_global`` for the site: its position and the rows of its matrix."""
     site_pos = _add(pos, _rotate(components(chain.site_pos), quat))
-    return anchors, axes, site_pos, _quat_to_mat(_quat_mul(quat, components(chain.site_quat)))
+    return site_pos, _quat_to_mat(_quat_mul(quat, components(chain.site_quat)))
 
 
 def forward(chain: Chain, q: jax.Array) -> ChainPose:
     """The chain's joint anchors and axes and its site's pose at joint angles ``q`` ``[L]``.
 
-    MJX's ``smooth.kinematics`` for each link in turn, then ``support.local_to_global`` for
-    the site. Every product is elementwise (no matrix unit, so no TF32 on GPUs).
+    MJX's ``smooth.kinematics`` for each link in turn (a ``lax.scan`` over the links: one
+    link's program whatever the chain's length; written out link by link and batched, XLA's
+    compile time grows steeply with the length when the chain is an argument), then
+    ``support.local_to_global`` for the site. Every product is elementwise (no matrix unit,
+    so no TF32 on GPUs).
     """
-    anchors, axes, pos, mat = _walk(chain, q)
-    return ChainPose(
-        jnp.stack([jnp.stack(a) for a in anchors]),
-        jnp.stack([jnp.stack(a) for a in axes]),
-        jnp.stack(pos),
-        jnp.stack([jnp.stack(row) for row in mat]),
-    )
+
+    def step(frame, x):
+        *link, angle = x
+        pos, quat, anchor, axis = _link(*frame, tuple(link), angle)
+        return (pos, quat), (jnp.stack(anchor), jnp.stack(axis))
+
+    frame = (components(chain.base_pos), components(chain.base_quat))
+    (pos, quat), (anchors, axes) = jax.lax.scan(step, frame, (*_links(chain), q))
+    site_pos, mat = _site(chain, pos, quat)
+    return ChainPose(anchors, axes, jnp.stack(site_pos), jnp.stack([jnp.stack(r) for r in mat]))
 
 
 def site_pose(chain: Chain, q: jax.Array) -> tuple[Vec, tuple[Vec, Vec, Vec]]:
     """`forward`'s site pose on components: ``(site_pos, rows of site_mat)``, tuples of
     scalars (arrays of one batch under ``jax.vmap``), for a caller that goes on computing on
-    components, so that XLA fuses the walk with what follows (the module docstring)."""
-    _, _, pos, mat = _walk(chain, q)
-    return pos, mat
+    components, so that XLA fuses the walk with what follows (the module docstring). The
+    links are written out one by one (no joint anchors or axes are kept, and XLA compiles
+    the site's walk alone quickly)."""
+    pos, quat = components(chain.base_pos), components(chain.base_quat)
+    links = _links(chain)
+    for i in range(chain.n_joints):
+        pos, quat, _, _ = _link(pos, quat, tuple(x[i] for x in links), q[i])
+    return _site(chain, pos, quat)

@@ -91,18 +91,10 @@ def shifted_ellipsoid(n: int, cond: float = 1e2) -> Quadratic:
 
 def padded(prob: Quadratic, P: int) -> Quadratic:
     """The same function of the first n of P coordinates (padded rows, scales, shift are 0)."""
-    rot, scale, shift = (np.asarray(a) for a in prob)  # in NumPy: no eager programs to compile
+    # In NumPy: no eager programs to compile.
     return Quadratic(
-        rot=jnp.asarray(_pad_np(rot, (P, P))),
-        scale=jnp.asarray(_pad_np(scale, (P,))),
-        shift=jnp.asarray(_pad_np(shift, (P,))),
+        *(jnp.asarray(np.pad(a, [(0, P - k) for k in a.shape])) for a in map(np.asarray, prob))
     )
-
-
-def _pad_np(a: np.ndarray, shape) -> np.ndarray:
-    out = np.zeros(shape, a.dtype)
-    out[tuple(slice(0, k) for k in a.shape)] = a
-    return out
 
 
 def rosenbrock(x):

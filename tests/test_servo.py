@@ -241,10 +241,14 @@ def test_image_jacobian_matches_finite_differences(task):
 
 # ------------------------------------------------------------------ physics modes
 @pytest.mark.slow
-def test_kinematic_and_dynamic_modes_agree_for_ibvs(task):
+def test_kinematic_and_dynamic_modes_agree_for_ibvs(task, sweep):
     gain = task.ibvs_gain()
     gains = jnp.asarray([0.0, gain], jnp.float32)
-    kin = np.asarray(sv.ibvs_start_costs(task, gains))
+    # The kinematic costs at gain 0 and the chosen gain, taken from the whole sweep's gains
+    # (the sweep fixture's compiled program; each gain's row is computed on its own).
+    swept = sweep[0]
+    kin = np.asarray(sv.ibvs_start_costs(task, jnp.asarray(swept, jnp.float32)))
+    kin = kin[[swept.index(0.0), swept.index(gain)]]
     dyn = np.asarray(sv.ibvs_start_costs(tasks.make("servo", mode="dynamic"), gains))
     # Gain 0: the servos hold the arm at rest exactly where it is.
     np.testing.assert_allclose(dyn[0], kin[0], rtol=1e-6)

@@ -251,11 +251,13 @@ def test_protocol_experiment_end_to_end_and_resumed():
     rng = np.random.default_rng(0)
     x = rng.normal(size=(64, 2))
     task = regression(x, np.tanh(1.5 * x[:, :1]) + 0.5 * x[:, 1:2])
-    # Both two deep (one hidden neuron each): the pruning rounds of the two share one
-    # compiled program (one bucket), which a depth-1 network would not.
+    # Both two deep: the pruning rounds of the two share one compiled program (one bucket),
+    # which a depth-1 network would not. The second reads its three connections through a
+    # hidden neuron that cannot go (the output's only input): the pruner can remove at most
+    # the two connections that the controls can remove.
     genomes = [
         Genome.parse("N0/3*1 N1/2*0.5 I0*0.7 I1*0.2 I0*0.8 I1*0.5"),
-        Genome.parse("N0/3*1 N1/1*0.9 I0*0.7 B*0.3 I1*0.5"),
+        Genome.parse("N0/1*1 N1/3*0.9 I0*0.7 B*0.3 I1*0.5"),
     ]
     points = []
     options = dict(

@@ -1,25 +1,30 @@
 """`eant2 reproduce` in a short setting on CPU: every figure and the table are produced."""
 
 import json
-import subprocess
-import sys
 
 import pytest
+
+# The command's short setting.
+SERVO_ARGV = [
+    "reproduce", "--runs", "2", "--generations", "2",
+    "--population", "3", "--max-iters", "30", "--condition-iters", "60",
+    "--condition-inits", "2", "--pruners", "covariance",
+    "--task-option", "n_starts=16",
+]  # fmt: skip
 
 
 @pytest.mark.slow
 def test_reproduce_short_servo(tmp_path, capsys, monkeypatch):
+    """The command, in this process (what a child process would add is its start: the
+    process behaviour of `eant2 reproduce`, Ctrl-C and exit 130, is
+    tests/test_reproduce_resume.py's)."""
     from eant2_jax.app.cli import main
 
+    monkeypatch.setenv("EANT2_CACHE_DIR", "")  # in-process: leave the JAX configuration alone
     out = tmp_path / "rep"
-    cmd = [
-        sys.executable, "-m", "eant2_jax.app.cli", "reproduce", "--runs", "2", "--generations", "2",
-        "--population", "3", "--max-iters", "30", "--condition-iters", "60",
-        "--condition-inits", "2", "--pruners", "covariance",
-        "--task-option", "n_starts=16", "--out", str(out),
-    ]  # fmt: skip
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    argv = [*SERVO_ARGV, "--out", str(out)]
+    assert main(argv) == 0, capsys.readouterr().err[-3000:]
+    assert f"report: {out / 'report' / 'report.md'}" in capsys.readouterr().out
     report = out / "report"
     for name in ("fitness_size.png", "condition.png", "best_network.png", "pruned_network.png"):
         assert (report / name).stat().st_size > 1000, name  # a real PNG, not an empty file
@@ -36,15 +41,12 @@ def test_reproduce_short_servo(tmp_path, capsys, monkeypatch):
         for seed in (0, 1):
             gens = (out / f"{arm}-s{seed}" / "generations.jsonl").read_text().splitlines()
             assert len(gens) == 3  # generations 0, 1, 2
-    # Both refusals come before anything runs: in this process (two fewer process starts).
-    monkeypatch.setenv("EANT2_CACHE_DIR", "")  # in-process: leave the JAX configuration alone
-    capsys.readouterr()
-    # An unknown arm is one line before anything runs.
-    argv = [*cmd[3:-1], str(tmp_path / "bad"), "--pruners", "covariance-exact"]
-    assert main(argv) == 2 and not (tmp_path / "bad").exists()
+    # Both refusals come before anything runs. An unknown arm is one line:
+    argv_bad = [*argv[:-1], str(tmp_path / "bad"), "--pruners", "covariance-exact"]
+    assert main(argv_bad) == 2 and not (tmp_path / "bad").exists()
     assert "unknown arm" in capsys.readouterr().err
     # The output directory is never overwritten.
-    assert main(cmd[3:]) == 2
+    assert main(argv) == 2
     assert "not overwriting" in capsys.readouterr().err
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import functools
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from compiles import count_compiles
 
@@ -38,9 +39,26 @@ def batch_costs(spec: str, options: dict, n_in: int, n_out: int):
     return task, nets, cost
 
 
+def _strong(state):
+    """``state`` with its weakly typed leaves made strongly typed (the same values and
+    dtype). brax's ``reset`` gives ``reward``, ``done`` and ``info["time_out"]`` as float32
+    arrays, its ``step`` as weakly typed ones (a Python number for ``reward``): the loop's
+    jitted step would compile once for each kind, one program where one suffices."""
+
+    def one(a):
+        a = jnp.asarray(a)
+        return jax.lax.convert_element_type(a, a.dtype) if jax.typeof(a).weak_type else a
+
+    return jax.tree.map(one, state)
+
+
 @functools.cache
 def _jitted(env):
-    return jax.jit(env.reset), jax.jit(env.step)
+    """The environment's reset and step, jitted alone (one pair per environment object)."""
+    return (
+        jax.jit(lambda key: _strong(env.reset(key))),
+        jax.jit(lambda state, action: _strong(env.step(state, action))),
+    )
 
 
 def plain_returns(task, genome: str, key, episodes: int) -> np.ndarray:

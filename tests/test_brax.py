@@ -19,10 +19,8 @@ seconds each on a 2-core CPU); the fast lane keeps the option checks.
 from __future__ import annotations
 
 import json
-import types
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from episodes import batch_costs, episode_batch, plain_returns
@@ -46,37 +44,6 @@ def _nets(task, *genomes):
     return networks([eant2_jax.Genome.parse(g) for g in genomes], task.n_inputs)
 
 
-class _Strong:
-    """An environment for the plain loop: brax's own ``reset``, and its ``step`` with the
-    state's weakly typed leaves made strongly typed. ``reset`` gives ``reward``, ``done``
-    and ``info["time_out"]`` as float32 arrays, ``step`` as weakly typed ones (a Python
-    number for ``reward``): the loop's jitted step would compile once for each kind (the
-    same values and dtype: one program, not two)."""
-
-    def __init__(self, env):
-        self.reset = env.reset
-        self._env = env
-
-    def step(self, state, action):
-        def strong(a):
-            dtype = jnp.asarray(a).dtype  # a Python number (brax's reward) as its array
-            return jax.lax.convert_element_type(a, dtype) if jax.typeof(a).weak_type else a
-
-        return jax.tree.map(strong, self._env.step(state, action))
-
-
-_STRONG = {}
-
-
-def _plain_returns(task, genome, key, episodes):
-    """`plain_returns` over brax's reset and step (`_Strong`: one per environment, so the
-    loop's jitted reset and step are compiled once for all genomes)."""
-    env = _STRONG.setdefault(task.env, _Strong(task.env))
-    return plain_returns(
-        types.SimpleNamespace(env=env, max_steps=task.max_steps), genome, key, episodes
-    )
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("backend", ["generalized", "mjx"])
 def test_returns_equal_a_plain_loop_over_brax_steps(backend):
@@ -87,7 +54,7 @@ def test_returns_equal_a_plain_loop_over_brax_steps(backend):
     nets = _nets(task, *genomes)
     got, steps = map(np.asarray, episode_batch(task, nets, key, task.episodes))
     for i, g in enumerate(genomes):
-        plain = _plain_returns(task, g, key, task.episodes)
+        plain = plain_returns(task, g, key, task.episodes)
         # float32 physics in both; the network's float32 vs float64 outputs differ by ~1e-7,
         # which cannot flip a termination this far from the 0.2 rad limit: lengths exact.
         np.testing.assert_array_equal(steps[i], plain[:, 1], err_msg=g)

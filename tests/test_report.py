@@ -8,6 +8,7 @@ them), so no test here runs EANT2.
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -280,8 +281,6 @@ def test_p_value_of_a_constant_or_nearly_identical_arm_is_scipys_without_a_warni
     """The reference arm's runs all end at one cost (a constant sample): scipy warns of
     "precision loss" for it although its variance is exactly 0. The report gives scipy's
     p-value and no warning (which would end a run under warnings-as-errors)."""
-    import warnings
-
     from scipy import stats
 
     none = (3.0, 3.0, 3.0)

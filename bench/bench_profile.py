@@ -122,7 +122,10 @@ def analyse_trace(path: str | Path, ours: Sequence[str], top: int = 12) -> dict[
     Returns:
       ``windows`` (one per interval between ``_MARK`` instants: wall, device busy, copies),
       ``device_ops`` (name, count, seconds; over the whole trace), ``python`` (our functions'
-      inclusive host seconds; nested calls of one function counted once), ``devices``.
+      inclusive host seconds; nested calls of one function counted once), ``devices`` and
+      ``per_device`` (each device's busy seconds, op count and the span from its first op's
+      start to its last op's end, over the whole trace: devices that wait on each other
+      show spans much longer than their busy time).
     """
     with gzip.open(path, "rt") as f:
         data = json.load(f)
@@ -176,11 +179,19 @@ def analyse_trace(path: str | Path, ours: Sequence[str], top: int = 12) -> dict[
         secs = sum(_union_seconds(v) for v in by_thread.values())
         python.append({"function": func, "calls": len(iv), "seconds": secs})
     python.sort(key=lambda r: -r["seconds"])
+    per_device = []
+    for pid in sorted(device_pids, key=lambda p: names[p]):
+        iv = [(e["ts"], e["ts"] + e["dur"]) for e in device if e["pid"] == pid]
+        span = (max(b for _, b in iv) - min(a for a, _ in iv)) * 1e-6 if iv else 0.0
+        per_device.append(
+            {"device": names[pid], "busy_s": _union_seconds(iv), "ops": len(iv), "span_s": span}
+        )
     return {
         "windows": windows,
         "device_ops": device_ops,
         "python": python[:top],
         "devices": sorted(names[p] for p in device_pids),
+        "per_device": per_device,
     }
 
 

@@ -21,19 +21,28 @@ a drift of the machine reaches every device count alike. A row gives each timing
 round, the median round's speed-up and the range of the R rounds' speed-ups: with 5 rounds
 the chance that the range misses the median speed-up is 2 x 0.5^5, about 6%.
 
-Run: ``python -m bench scaling [--devices 1 2 4] [--quick]``.
+``--trace-dir DIR`` also runs each case's loops once more, in the first round, under
+``jax.profiler.trace`` (a Perfetto trace per case under DIR) and gives each device's busy
+time and the span from its first kernel's start to its last kernel's end
+(`bench.bench_profile.analyse_trace`): devices whose spans exceed their busy time by more
+than one device's do wait on each other or on the host.
+
+Run: ``python -m bench scaling [--devices 1 2 4] [--quick] [--trace-dir DIR]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import glob
 import statistics
 import time
+from pathlib import Path
 from typing import Any
 
 import jax
 
 from bench import harness
+from bench.bench_profile import analyse_trace
 from bench.common import (
     BenchInputError,
     Column,
@@ -46,14 +55,17 @@ from eant2_jax import distributed, tasks, tuning
 from eant2_jax import exploitation as ex
 
 
-def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float, ...]:
+def time_case(
+    task, genomes, config, devices: int, repeats: int, trace_dir: Path | None = None
+) -> tuple:
     """``(first call s, median s per tune, median s of the engine alone, median s of the
     loops alone, median s of the start)``: the engine alone is `exploitation.run` on a batch
     `tuning.prepare` made on the devices (the devices' loops, the host's one read per chunk
     and whatever `run` still places), the loops alone the same call on arguments placed
     beforehand; the rest of a tune is the host's handover, which the devices do not split:
     the start (`tuning.prepare`: compile the genomes, build the tables, start the engine on
-    the devices) and the hand-back (gather the results, turn them back into genomes)."""
+    the devices) and the hand-back (gather the results, turn them back into genomes).
+    With ``trace_dir``, a last item: the loops traced once more (`_traced`), else None."""
     mesh = distributed.make_mesh(devices) if devices > 1 else None
     key = jax.random.key(0)
     t0 = time.perf_counter()
@@ -83,8 +95,33 @@ def time_case(task, genomes, config, devices: int, repeats: int) -> tuple[float,
     ).median_s
     engine = engine_s(prep.state, prep.batch.layout, prep.tables, task)
     # Placed as `run` places them: `run` then finds every array where it belongs already.
-    loops = engine_s(*ex.placed(prep.state, prep.batch.layout, prep.tables, task, mesh))
-    return first, statistics.median(times), engine, loops, start
+    placed = ex.placed(prep.state, prep.batch.layout, prep.tables, task, mesh)
+    loops = engine_s(*placed)
+    trace = None
+    if trace_dir is not None:
+        st_, layout, tables, on = placed
+        trace = _traced(
+            lambda: ex.run(st_, layout, on, key=run_key, config=config, tables=tables, mesh=mesh),
+            trace_dir,
+        )
+    return first, statistics.median(times), engine, loops, start, trace
+
+
+def _traced(call, trace_dir: Path) -> dict[str, Any]:
+    """One ``call()`` (compiled already) under ``jax.profiler.trace`` into ``trace_dir``:
+    its wall time and each device's busy time and span (`bench.bench_profile.analyse_trace`)."""
+    trace_dir.mkdir(parents=True, exist_ok=True)
+    pattern = str(trace_dir / "**" / "perfetto_trace.json.gz")
+    before = set(glob.glob(pattern, recursive=True))
+    with jax.profiler.trace(str(trace_dir), create_perfetto_trace=True):
+        t0 = time.perf_counter()
+        jax.block_until_ready(call())
+        wall = time.perf_counter() - t0
+    new = sorted(set(glob.glob(pattern, recursive=True)) - before)
+    if not new:
+        raise RuntimeError(f"jax.profiler wrote no perfetto trace under {trace_dir}")
+    summary = analyse_trace(new[-1], ())
+    return {"trace_file": new[-1], "trace_wall_s": wall, "per_device": summary["per_device"]}
 
 
 def _options(p: argparse.ArgumentParser) -> None:
@@ -94,6 +131,9 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--genes", type=int, default=50)
     p.add_argument("--iters", type=int, default=200)
     p.add_argument("--moves", type=int, default=1023)
+    p.add_argument("--trace-dir", default=None,
+                   help="also trace each case's loops once (first round) into this folder "
+                        "and give each device's busy time and span")  # fmt: skip
     p.add_argument("--rounds", type=int, default=3,
                    help="times every case this often, interleaved; the rows give the "
                         "median round and the range of the speed-ups")  # fmt: skip
@@ -120,9 +160,14 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     # Every round times every case once, so that a drift of the machine's speed reaches
     # each device count alike; a round's speed-ups are against its own one-device case.
     rounds = []
-    for _ in range(args.rounds):
-        timed = {c: _timed(c, time_case(task, populations[c[2]], config, c[1], args.repeats))
-                 for c in cases}  # fmt: skip
+    for r in range(args.rounds):
+        timed = {}
+        for c in cases:
+            trace = None
+            if args.trace_dir is not None and r == 0:
+                trace = Path(args.trace_dir) / f"{c[0]}-{c[1]}dev-{c[2]}"
+            times = time_case(task, populations[c[2]], config, c[1], args.repeats, trace)
+            timed[c] = _timed(c, times)
         for c in cases:
             base = next(timed[b] for b in cases if b[0] == c[0])  # the scaling's first case
             for k, t in (("speedup", "seconds"), ("loops_speedup", "loops_s")):
@@ -147,11 +192,17 @@ _MEDIANS = ("seconds", "engine_s", "loops_s", "placement_s", "host_s", "start_s"
 def _timed(case: tuple, timed: tuple) -> dict[str, Any]:
     """One case of one round (`time_case`'s timings), before its speed-ups."""
     kind, d, s = case
-    first, t, engine, loops, start = timed
-    return {"scaling": kind, "devices": d, "structures": s, "first_s": first, "seconds": t,
-            "engine_s": engine, "loops_s": loops, "placement_s": engine - loops,
-            "host_s": t - engine, "start_s": start, "back_s": t - engine - start,
-            "structures_per_s": s / t}  # fmt: skip
+    first, t, engine, loops, start, trace = timed
+    row = {"scaling": kind, "devices": d, "structures": s, "first_s": first, "seconds": t,
+           "engine_s": engine, "loops_s": loops, "placement_s": engine - loops,
+           "host_s": t - engine, "start_s": start, "back_s": t - engine - start,
+           "structures_per_s": s / t}  # fmt: skip
+    if trace is not None:
+        row.update(trace)
+        per = trace["per_device"]
+        row["busy_text"] = ", ".join(f"{x['busy_s']:.3f}" for x in per) or "-"
+        row["span_text"] = ", ".join(f"{x['span_s']:.3f}" for x in per) or "-"
+    return row
 
 
 COLUMNS = [
@@ -173,13 +224,25 @@ COLUMNS = [
     Column("loops_speedup_range", "range"),
 ]
 
+TRACE_COLUMNS = [
+    Column("trace_wall_s", "traced loops s", "{:.3f}"),
+    Column("busy_text", "busy s per device"),
+    Column("span_text", "span s per device"),
+]
+
+
+def _columns(rows: list[dict[str, Any]]) -> list[Column]:
+    """The table's columns: the trace's only where the rows were traced (``--trace-dir``)."""
+    return COLUMNS + (TRACE_COLUMNS if any("per_device" in r for r in rows) else [])
+
+
 SUITE = harness.Suite(
     name="scaling",
     title="Multi-device scaling",
     description=__doc__,
     options=_options,
     run=run,
-    render=lambda payload: markdown_table(payload["rows"], COLUMNS),
+    render=lambda payload: markdown_table(payload["rows"], _columns(payload["rows"])),
     prepare=_prepare,
     repeats=3,
 )

@@ -57,6 +57,28 @@ def test_analyse_trace_on_a_hand_made_trace(tmp_path):
         "exploitation.py:run": (1, pytest.approx(150e-6)),
     }
     assert out["devices"] == ["/device:GPU:0"]
+    (dev,) = out["per_device"]
+    assert dev["device"] == "/device:GPU:0" and dev["ops"] == 5
+    assert dev["busy_s"] == pytest.approx(85e-6) and dev["span_s"] == pytest.approx(205e-6)
+
+
+def test_each_device_of_a_trace_gets_its_own_busy_time_and_span(tmp_path):
+    meta = [
+        {"ph": "M", "pid": p, "name": "process_name", "args": {"name": f"/device:GPU:{p}"}}
+        for p in (0, 1)
+    ]
+    events = meta + [
+        {"ph": "X", "pid": 0, "tid": 0, "name": "k", "ts": 0, "dur": 10},
+        {"ph": "X", "pid": 0, "tid": 0, "name": "k", "ts": 5, "dur": 10},  # overlaps: once
+        {"ph": "X", "pid": 1, "tid": 0, "name": "k", "ts": 40, "dur": 10},
+        {"ph": "X", "pid": 1, "tid": 0, "name": "k", "ts": 90, "dur": 10},
+    ]
+    out = bench_profile.analyse_trace(_trace(tmp_path, events), [])
+    d0, d1 = out["per_device"]
+    assert (d0["device"], d0["ops"]) == ("/device:GPU:0", 2)
+    assert (d1["device"], d1["ops"]) == ("/device:GPU:1", 2)
+    assert d0["busy_s"] == pytest.approx(15e-6) and d0["span_s"] == pytest.approx(15e-6)
+    assert d1["busy_s"] == pytest.approx(20e-6) and d1["span_s"] == pytest.approx(60e-6)
 
 
 @pytest.mark.slow

@@ -1,6 +1,6 @@
 """`python -m bench scaling`: weak and strong rows on two (virtual CPU) devices, with the
 engine split into the placement of the batch and the devices' loops, over interleaved
-rounds."""
+rounds, each case's loops traced once."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ def test_quick_rows_split_the_engine_into_placement_and_loops(tmp_path):
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     proc = subprocess.run(
         [sys.executable, "-m", "bench", "scaling", "--quick", "--devices", "1", "2",
-         "--genes", "20", "--out", str(out)],
+         "--genes", "20", "--out", str(out), "--trace-dir", str(tmp_path / "traces")],
         cwd=ROOT, env=env, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -44,6 +44,13 @@ def test_quick_rows_split_the_engine_into_placement_and_loops(tmp_path):
             assert r[k] == pytest.approx(sum(r[f"{k}_rounds"]) / 2)
             lo, hi = min(r[f"{k}_rounds"]), max(r[f"{k}_rounds"])
             assert r[f"{k}_range"] == f"{lo:.2f}-{hi:.2f}x"
+    for r in rows:  # --trace-dir: each case's loops traced once (the per-device analysis of
+        # a trace is tests/test_bench_profile.py's; a CPU trace has no device tracks)
+        assert r["trace_wall_s"] > 0 and isinstance(r["per_device"], list)
+        assert Path(r["trace_file"]).is_file()
+        assert Path(r["trace_file"]).is_relative_to(tmp_path / "traces")
+    assert len({r["trace_file"] for r in rows}) == len(rows)
     md = out.with_suffix(".md").read_text()
+    assert "| traced loops s | busy s per device | span s per device |" in md
     assert "| loops s | placement s |" in md and "| loops speed-up | range |" in md
     assert "| handover s | start s | hand-back s |" in md

@@ -32,7 +32,7 @@ import re
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -52,7 +52,7 @@ from eant2_jax import exploitation as ex
 from eant2_jax import loop, tasks
 from eant2_jax.genome import Genome
 
-__all__ = ["analyse_trace", "main"]
+__all__ = ["analyse_trace", "main", "traced"]
 
 _MARK = "eant2-bench-generation-end"
 
@@ -201,27 +201,32 @@ _OURS = (
 )  # fmt: skip
 
 
-def bench_trace(args) -> dict[str, Any]:
-    trace_dir = Path(args.trace_dir)
+def traced(call: Callable[[], Any], trace_dir: str | Path) -> tuple[Any, str]:
+    """``call()`` under ``jax.profiler.trace`` into ``trace_dir``: its result and the
+    Perfetto trace file it wrote."""
+    trace_dir = Path(trace_dir)
     trace_dir.mkdir(parents=True, exist_ok=True)
-    before = set(glob.glob(str(trace_dir / "**" / "perfetto_trace.json.gz"), recursive=True))
+    pattern = str(trace_dir / "**" / "perfetto_trace.json.gz")
+    before = set(glob.glob(pattern, recursive=True))
+    with jax.profiler.trace(str(trace_dir), create_perfetto_trace=True):
+        out = call()
+    new = sorted(set(glob.glob(pattern, recursive=True)) - before)
+    if not new:
+        raise RuntimeError(f"jax.profiler wrote no perfetto trace under {trace_dir}")
+    return out, new[-1]
 
+
+def bench_trace(args) -> dict[str, Any]:
     def on_generation(event):
         with jax.profiler.TraceAnnotation(_MARK):
             pass
 
-    with jax.profiler.trace(str(trace_dir), create_perfetto_trace=True):
-        _servo_run(args, on_generation)
-    new = sorted(
-        set(glob.glob(str(trace_dir / "**" / "perfetto_trace.json.gz"), recursive=True)) - before
-    )
-    if not new:
-        raise RuntimeError(f"jax.profiler wrote no perfetto trace under {trace_dir}")
-    summary = analyse_trace(new[-1], _OURS)
+    _, path = traced(lambda: _servo_run(args, on_generation), args.trace_dir)
+    summary = analyse_trace(path, _OURS)
     for g, w in enumerate(summary["windows"]):
         w["generation"] = g
         w["device_busy_fraction"] = w["device_busy_s"] / w["wall_s"] if w["wall_s"] else None
-    summary["trace_file"] = new[-1]
+    summary["trace_file"] = path
     return summary
 
 

@@ -33,7 +33,6 @@ Run: ``python -m bench scaling [--devices 1 2 4] [--quick] [--trace-dir DIR]``.
 from __future__ import annotations
 
 import argparse
-import glob
 import statistics
 import time
 from pathlib import Path
@@ -42,7 +41,7 @@ from typing import Any
 import jax
 
 from bench import harness
-from bench.bench_profile import analyse_trace
+from bench.bench_profile import analyse_trace, traced
 from bench.common import (
     BenchInputError,
     Column,
@@ -110,18 +109,15 @@ def time_case(
 def _traced(call, trace_dir: Path) -> dict[str, Any]:
     """One ``call()`` (compiled already) under ``jax.profiler.trace`` into ``trace_dir``:
     its wall time and each device's busy time and span (`bench.bench_profile.analyse_trace`)."""
-    trace_dir.mkdir(parents=True, exist_ok=True)
-    pattern = str(trace_dir / "**" / "perfetto_trace.json.gz")
-    before = set(glob.glob(pattern, recursive=True))
-    with jax.profiler.trace(str(trace_dir), create_perfetto_trace=True):
+
+    def timed():
         t0 = time.perf_counter()
         jax.block_until_ready(call())
-        wall = time.perf_counter() - t0
-    new = sorted(set(glob.glob(pattern, recursive=True)) - before)
-    if not new:
-        raise RuntimeError(f"jax.profiler wrote no perfetto trace under {trace_dir}")
-    summary = analyse_trace(new[-1], ())
-    return {"trace_file": new[-1], "trace_wall_s": wall, "per_device": summary["per_device"]}
+        return time.perf_counter() - t0
+
+    wall, path = traced(timed, trace_dir)
+    summary = analyse_trace(path, ())
+    return {"trace_file": path, "trace_wall_s": wall, "per_device": summary["per_device"]}
 
 
 def _options(p: argparse.ArgumentParser) -> None:

@@ -81,11 +81,14 @@ def time_case(
     # Made on the devices as `tune` makes it (`tuning.prepare`'s mesh).
     prep = tuning.prepare(genomes, task, key=init_key, config=config, mesh=mesh)
 
-    def engine_s(st, layout, tables, on) -> float:
+    def engine_call(st, layout, tables, on):
         def call():
             return ex.run(st, layout, on, key=run_key, config=config, tables=tables, mesh=mesh)[0]
 
-        return time_call(call, warmup=0, repeats=repeats).median_s
+        return call
+
+    def engine_s(st, layout, tables, on) -> float:
+        return time_call(engine_call(st, layout, tables, on), warmup=0, repeats=repeats).median_s
 
     start = time_call(
         lambda: tuning.prepare(genomes, task, key=init_key, config=config, mesh=mesh).state,
@@ -96,13 +99,7 @@ def time_case(
     # Placed as `run` places them: `run` then finds every array where it belongs already.
     placed = ex.placed(prep.state, prep.batch.layout, prep.tables, task, mesh)
     loops = engine_s(*placed)
-    trace = None
-    if trace_dir is not None:
-        st_, layout, tables, on = placed
-        trace = _traced(
-            lambda: ex.run(st_, layout, on, key=run_key, config=config, tables=tables, mesh=mesh),
-            trace_dir,
-        )
+    trace = None if trace_dir is None else _traced(engine_call(*placed), trace_dir)
     return first, statistics.median(times), engine, loops, start, trace
 
 
@@ -196,8 +193,9 @@ def _timed(case: tuple, timed: tuple) -> dict[str, Any]:
     if trace is not None:
         row.update(trace)
         per = trace["per_device"]
-        row["busy_text"] = ", ".join(f"{x['busy_s']:.3f}" for x in per) or "-"
-        row["span_text"] = ", ".join(f"{x['span_s']:.3f}" for x in per) or "-"
+        # No device tracks (a CPU trace): None, which the table prints as a dash.
+        row["busy_text"] = ", ".join(f"{x['busy_s']:.3f}" for x in per) or None
+        row["span_text"] = ", ".join(f"{x['span_s']:.3f}" for x in per) or None
     return row
 
 

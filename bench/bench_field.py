@@ -289,8 +289,9 @@ def _spawn(method: str, env: str, seed: int, args: argparse.Namespace, budget: i
 
 
 def _options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--envs", nargs="+", choices=sorted(ENVS), default=None,
-                   help="default: all (with --quick: cartpole)")  # fmt: skip
+    # --protocol's environments (bench/field_settings.py) include some this suite lacks.
+    p.add_argument("--envs", nargs="+", choices=sorted({*ENVS, *field_protocol.ENVS}),
+                   default=None, help="default: all (with --quick: cartpole)")  # fmt: skip
     p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
     # Defaults filled in by _prepare (3 seeds from 0; --protocol: the protocol's seeds).
     harness.run_options(p, seeds=None, first_seed=None, population=None,
@@ -336,6 +337,9 @@ def _prepare(args: argparse.Namespace) -> None:
             setattr(args, k, v)
     if args.envs is None:
         args.envs = ["cartpole"] if args.quick else list(ENVS)
+    bad = [e for e in args.envs if e not in ENVS]
+    if bad:
+        raise BenchInputError(f"{', '.join(bad)}: only with --protocol (bench/field_settings.py)")
     if not args.render:  # --render measures nothing
         _check_tensorneat(args)
     for name in ("seeds", "test_episodes", "tensorneat_pop"):

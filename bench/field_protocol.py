@@ -38,7 +38,7 @@ from typing import Any
 
 from bench import field_peers, harness
 from bench.common import BenchInputError, default_out, environment
-from bench.field_settings import ENVS, SEEDS, budgets, table
+from bench.field_settings import ENVS, budgets, env_seeds, table
 
 __all__ = [
     "METHODS",
@@ -134,9 +134,9 @@ def prepare(args: argparse.Namespace) -> None:
 
 def _seeds(args: argparse.Namespace, env: str) -> list[int]:
     if args.seeds is None and args.first_seed is None:
-        return list(SEEDS[ENVS[env]["family"]])
+        return env_seeds(env)
     first = 0 if args.first_seed is None else args.first_seed
-    return list(range(first, first + (args.seeds or len(SEEDS[ENVS[env]["family"]]))))
+    return list(range(first, first + (args.seeds or len(env_seeds(env)))))
 
 
 def _budgets(args: argparse.Namespace) -> dict[str, list[int]]:

@@ -35,6 +35,7 @@ __all__ = [
     "VALIDATION_EPISODES",
     "VALIDATION_KEY",
     "budgets",
+    "env_seeds",
     "table",
 ]
 
@@ -50,9 +51,16 @@ SEEDS = {"gymnax": tuple(range(4000, 4010)), "brax": tuple(range(4000, 4005))}
 _TN = {"pop_size": 1000, "species_size": 20, "survival_threshold": 0.1,
        "compatibility_threshold": 1.0, "generations": 100, "activation": "tanh",
        "max_nodes": 50, "max_conns": 100, "obs_norm_episodes": 0}  # fmt: skip
-_EANT2 = {"population": 10, "rescore": 16, "popsize": None, "reexploit": False,
+_EANT2 = {"population": 10, "rescore": 16, "popsize": None, "width": None, "reexploit": False,
           "min_bucket": [12, 64, 4], "pruner": "covariance"}  # fmt: skip
-_BRAX_EANT2 = {**_EANT2, "min_bucket": [16, 96, 4], "reexploit": True}
+# brax: the batch width chosen by docs/protocol.md section 6 (`python -m bench width` on
+# bench/results/field-width/, choice seeds 100-102: summed ranks frozen 8, 1,024 3, 4,096 5,
+# 10,000 4), each environment's CMA-ES iterations per generation scaled by that section's
+# rule so that a structure's evaluations per generation stay the frozen ones (hopper 24 x 10,
+# halfcheetah 48 x 100). The frozen popsizes these replace are in the result files of the
+# section 3 runs (`bench/results/field-protocol-gpu-h100.json`).
+WIDTH = 1024
+_BRAX_EANT2 = {**_EANT2, "min_bucket": [16, 96, 4], "reexploit": True, "width": WIDTH}
 
 ENVS: dict[str, dict[str, Any]] = {
     "cartpole": {
@@ -76,17 +84,34 @@ ENVS: dict[str, dict[str, Any]] = {
     "hopper": {
         "family": "brax", "name": "hopper", "episodes": 1, "max_steps": 1000,
         "discrete": False, "example": "examples/brax/hopper.py", "backend": "spring",
-        "eant2": {**_BRAX_EANT2, "max_iters": 10, "popsize": 24},
+        "eant2": {**_BRAX_EANT2, "max_iters": 3},
         "tensorneat": {**_TN, "output": "tanh"},
     },
     "halfcheetah": {
         "family": "brax", "name": "halfcheetah", "episodes": 1, "max_steps": 1000,
         "discrete": False, "example": "examples/brax/halfcheetah.py", "backend": "spring",
-        "eant2": {**_BRAX_EANT2, "max_iters": 100, "popsize": 48, "min_bucket": [16, 192, 4]},
+        "eant2": {**_BRAX_EANT2, "max_iters": 57, "min_bucket": [16, 192, 4]},
         "tensorneat": {**_TN, "output": "tanh", "max_conns": 200,
                        "activation": "scaled_tanh", "obs_norm_episodes": 1000},
     },
+    # Never run by the project before section 6's check that the width rule carries over:
+    # eant2_jax takes halfcheetah's settings (its networks' sizes, 17 inputs and 6 outputs,
+    # are halfcheetah's 18 and 6; hopper's are 11 and 3), TensorNEAT its own example.
+    "walker2d": {
+        "family": "brax", "name": "walker2d", "episodes": 1, "max_steps": 1000,
+        "discrete": False, "example": "examples/brax/walker2d.py", "backend": "spring",
+        "seeds": [4000, 4001, 4002],
+        "eant2": {**_BRAX_EANT2, "max_iters": 57, "min_bucket": [16, 192, 4]},
+        "tensorneat": {**_TN, "output": "tanh", "max_conns": 200, "obs_norm_episodes": 1000},
+    },
 }  # fmt: skip
+
+
+def env_seeds(name: str) -> list[int]:
+    """The protocol's seeds of one environment: its own ``seeds`` where it names them (an
+    environment added to check a rule, fewer seeds), else its family's (`SEEDS`)."""
+    env = ENVS[name]
+    return list(env.get("seeds") or SEEDS[env["family"]])
 
 
 def budgets(env: dict[str, Any]) -> list[int]:

@@ -77,13 +77,14 @@ def eant2_config(env: dict[str, Any], *, budget: int, population: int | None = N
                  max_iters: int | None = None, width: int | None = None):  # fmt: skip
     """The protocol's `eant2_jax.EANT2Config` for ``env`` (its frozen settings), a trial's
     ``population``, ``max_iters`` or ``width`` in their place where given (``width`` sets
-    ``ExploitConfig.width`` and leaves the popsize to its rule)."""
+    ``ExploitConfig.width`` and leaves the popsize to its rule; so does the settings'
+    ``width``, where they have one)."""
     import eant2_jax
 
     s = env["eant2"]
     exploit = eant2_jax.ExploitConfig(
         pruner=s["pruner"], max_iters=max_iters or s["max_iters"], rescore=s["rescore"],
-        popsize=None if width else s["popsize"], width=width,
+        popsize=None if width else s["popsize"], width=width or s.get("width"),
     )  # fmt: skip
     return eant2_jax.EANT2Config(
         population=population or s["population"], max_evaluations=budget,

@@ -33,6 +33,7 @@ import numpy as np
 from . import distributed, programs, rescoring
 from . import exploitation as ex
 from .compiler import Bucket, CompiledBatch, batch_rows, compile_genomes
+from .config import DEFAULT_WIDTH
 from .evaluate import as_genomes
 from .genome import Genome
 from .pruning import PruneAttempt, attempt_records, prune_genome, tables_for
@@ -56,9 +57,10 @@ __all__ = [
 
 def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch, rows: int | None = None) -> int:
     """The population size of a batch, the one rule (docs/algorithm.md, "Batch width"):
-    ``config.popsize`` if set; else, with ``config.width``, ``max(default, width // rows)``;
-    else the default. ``default`` is the CMA-ES default
-    (`eant2_jax.exploitation.default_popsize`) of the batch's padded gene count.
+    ``config.popsize`` if set; else ``max(default, width // rows)`` with ``config.width`` or
+    its device class's (`eant2_jax.config.DEFAULT_WIDTH`; none on a CPU: the default alone),
+    ``default`` the CMA-ES default (`eant2_jax.exploitation.default_popsize`) of the batch's
+    padded gene count.
 
     ``rows``: the batch's rows, padding rows included, as one device would hold them
     (default: the batch's own rows). `prepare` passes the rows before they are rounded up
@@ -68,17 +70,15 @@ def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch, rows: int | None
     The default follows the gene bucket rather than each structure's own size so that every
     batch of one bucket shares one compiled program; within a bucket the padded count
     exceeds a structure's own by at most a half, which changes ``4 + floor(3 ln n)`` by at
-    most one candidate. Every batch of one bucket and row count gets one popsize, so a
-    program compiled ahead for a guessed bucket (`eant2_jax.programs.guesses`) is the one
-    the generation runs, ``width`` or not.
+    most one candidate. Every batch of one bucket and row count gets one popsize, so a program
+    compiled ahead for a guessed bucket (`eant2_jax.programs.guesses`) is the one it runs.
     """
     if config.popsize is not None:
         return config.popsize
     default = ex.default_popsize(batch.bucket.genes)
-    if config.width is None:
-        return default
+    width = config.width or DEFAULT_WIDTH.get(jax.default_backend())
     rows = batch.layout.slot.shape[0] if rows is None else rows
-    return max(default, config.width // rows)
+    return default if width is None else max(default, width // rows)
 
 
 class Prepared(NamedTuple):

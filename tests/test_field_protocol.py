@@ -483,6 +483,25 @@ def test_frozen_settings_are_the_protocols():
     assert json.loads(json.dumps(fs.table()))["budgets"]["hopper"] == [25_000, 50_000, 100_000]
 
 
+def test_brax_settings_take_the_chosen_width_by_section_6s_rule(tmp_path):
+    """docs/protocol.md section 6: the chosen width replaces brax's frozen popsize, and each
+    environment's iterations keep its frozen evaluations per structure and generation,
+    ``max(2, ceil(popsize x max_iters / (width // 12)))`` (hopper 24 x 10, halfcheetah
+    48 x 100); walker2d takes halfcheetah's settings on its own three seeds."""
+    from bench import field_settings as fs
+
+    frozen = {"hopper": (24, 10), "halfcheetah": (48, 100), "walker2d": (48, 100)}
+    for name, (popsize, iters) in frozen.items():
+        s = fs.ENVS[name]["eant2"]
+        assert (s["width"], s["popsize"]) == (fs.WIDTH, None)
+        assert s["max_iters"] == max(2, math.ceil(popsize * iters / (fs.WIDTH // 12)))
+    assert fs.ENVS["walker2d"]["eant2"] == fs.ENVS["halfcheetah"]["eant2"]
+    assert fs.env_seeds("walker2d") == [4000, 4001, 4002]
+    assert fs.env_seeds("hopper") == list(range(4000, 4005))
+    with pytest.raises(BenchInputError, match="walker2d: only with --protocol"):
+        bench_field.main(["--envs", "walker2d", "--out", str(tmp_path / "f.json")])
+
+
 def test_a_width_trial_reaches_eant2_alone_and_older_checkpoints_still_match(tmp_path):
     """``--width W`` (issue 41): a --protocol trial whose eant2_jax run takes
     ``ExploitConfig.width = W`` in place of its frozen popsize; TensorNEAT's argv is
@@ -490,9 +509,11 @@ def test_a_width_trial_reaches_eant2_alone_and_older_checkpoints_still_match(tmp
     option existed holds."""
     from bench.field_settings import ENVS
 
-    env = ENVS["hopper"]
+    env = ENVS["cartpole"]
     frozen = field_workers.eant2_config(env, budget=1000)
-    assert (frozen.exploit.popsize, frozen.exploit.width) == (env["eant2"]["popsize"], None)
+    assert (frozen.exploit.popsize, frozen.exploit.width) == (None, None)
+    chosen = field_workers.eant2_config(ENVS["hopper"], budget=1000)
+    assert (chosen.exploit.popsize, chosen.exploit.width) == (None, 1024)
     wide = field_workers.eant2_config(env, budget=1000, width=4096)
     assert (wide.exploit.popsize, wide.exploit.width) == (None, 4096)
     assert dataclasses.replace(wide, exploit=frozen.exploit) == frozen  # nothing else moves

@@ -53,6 +53,27 @@ def test_popsize_for_follows_the_width_rule():
     assert seen == {"width", "floor"}  # both sides of the max were taken
 
 
+def test_an_unset_width_takes_its_device_class_default(monkeypatch):
+    """``width=None`` is the device class's width (`eant2_jax.config.DEFAULT_WIDTH`): on a
+    GPU the width docs/protocol.md section 6 chose, on a CPU none (the default popsize);
+    ``width=1`` is the default popsize on every device, and ``popsize`` still wins."""
+    from eant2_jax import config as cfg
+    from eant2_jax import tuning
+
+    assert cfg.DEFAULT_WIDTH == {"gpu": 1024}
+    batch = compile_genomes([START] * 3, 2, min_rows=12, pad_count=True)
+    rows, genes = batch.layout.slot.shape[0], batch.bucket.genes
+    got = {}
+    for backend, want in [("cpu", None), ("gpu", 1024), ("tpu", None)]:
+        monkeypatch.setattr(tuning.jax, "default_backend", lambda b=backend: b)
+        got[backend] = popsize_for(ExploitConfig(), batch)
+        assert got[backend] == plain_popsize(genes, rows, None, want), backend
+        assert popsize_for(ExploitConfig(width=1), batch) == plain_popsize(genes, rows, None, None)
+        assert popsize_for(ExploitConfig(width=96), batch) == plain_popsize(genes, rows, None, 96)
+        assert popsize_for(ExploitConfig(popsize=5), batch) == 5
+    assert got["gpu"] == 1024 // rows > got["cpu"] == got["tpu"]  # the width side was taken
+
+
 def test_popsize_and_width_together_are_one_error():
     want = r"^ExploitConfig\.popsize = 8 and ExploitConfig\.width = 64 are both set: set one"
     with pytest.raises(ValueError, match=want):

@@ -41,11 +41,7 @@ from .jaxsetup import enable_compilation_cache as enable_compilation_cache
 from .jaxsetup import enable_x64 as enable_x64
 from .kernels.pruning import PRUNERS
 
-__all__ = ["DEFAULT_WIDTH", "EANT2Config", "ExploitConfig", "enable_x64"]
-
-# ``ExploitConfig.width`` where it is None, per `jax.default_backend()`: a GPU's chosen by
-# docs/protocol.md section 6 (docs/algorithm.md, Batch width); a CPU has none.
-DEFAULT_WIDTH: dict[str, int] = {"gpu": 1024}
+__all__ = ["EANT2Config", "ExploitConfig", "enable_x64"]
 
 
 def _plain_numbers(config) -> bool:
@@ -89,9 +85,9 @@ class ExploitConfig(Configured):
         None,
         "Networks per engine batch (all rows, padding included, on every device): with no "
         "``popsize``, each row gets ``max(default_popsize, width // rows)`` candidates "
-        "(`eant2_jax.tuning.popsize_for`; docs/algorithm.md, Batch width). None: the "
-        "device class's (`DEFAULT_WIDTH`: 1,024 on a GPU; none on a CPU, the default "
-        "popsize alone, as ``width=1`` everywhere).",
+        "(`eant2_jax.tuning.popsize_for`; docs/algorithm.md, Batch width). None: the task's "
+        "``default_width`` for the device class (episodic tasks: 1,024 on a GPU), else the "
+        "default popsize alone (as ``width=1``).",
         check=at_least(1),
         static=True,
         added="0.1.0 (issue 41)",

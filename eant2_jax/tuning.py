@@ -33,7 +33,6 @@ import numpy as np
 from . import distributed, programs, rescoring
 from . import exploitation as ex
 from .compiler import Bucket, CompiledBatch, batch_rows, compile_genomes
-from .config import DEFAULT_WIDTH
 from .evaluate import as_genomes
 from .genome import Genome
 from .pruning import PruneAttempt, attempt_records, prune_genome, tables_for
@@ -55,17 +54,18 @@ __all__ = [
 ]
 
 
-def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch, rows: int | None = None) -> int:
+def popsize_for(
+    config: ex.ExploitConfig, batch: CompiledBatch, rows: int | None = None, task: Any = None
+) -> int:
     """The population size of a batch, the one rule (docs/algorithm.md, "Batch width"):
     ``config.popsize`` if set; else ``max(default, width // rows)`` with ``config.width`` or
-    its device class's (`eant2_jax.config.DEFAULT_WIDTH`; none on a CPU: the default alone),
+    the ``task``'s ``default_width`` for `jax.default_backend()` (none: the default alone),
     ``default`` the CMA-ES default (`eant2_jax.exploitation.default_popsize`) of the batch's
     padded gene count.
 
-    ``rows``: the batch's rows, padding rows included, as one device would hold them
-    (default: the batch's own rows). `prepare` passes the rows before they are rounded up
-    to a multiple of a device mesh's size: ``width`` counts the networks of the whole batch,
-    on every device together, and a mesh changes placement only, never the popsize.
+    ``rows``: the batch's rows, padding included, as one device would hold them (default: the
+    batch's own). `prepare` passes the rows before they are rounded up to a multiple of a
+    mesh's size: ``width`` counts the whole batch's networks, on every device together.
 
     The default follows the gene bucket rather than each structure's own size so that every
     batch of one bucket shares one compiled program; within a bucket the padded count
@@ -76,7 +76,7 @@ def popsize_for(config: ex.ExploitConfig, batch: CompiledBatch, rows: int | None
     if config.popsize is not None:
         return config.popsize
     default = ex.default_popsize(batch.bucket.genes)
-    width = config.width or DEFAULT_WIDTH.get(jax.default_backend())
+    width = config.width or getattr(task, "default_width", {}).get(jax.default_backend())
     rows = batch.layout.slot.shape[0] if rows is None else rows
     return default if width is None else max(default, width // rows)
 
@@ -140,7 +140,7 @@ def prepare(
     rows = batch.layout.slot.shape[0]
     # The rows one device would hold: a mesh does not change the popsize (`popsize_for`).
     popsize = popsize_for(
-        config, batch, batch_rows(len(genomes), min_rows=min_rows, pad_count=pad_count)
+        config, batch, batch_rows(len(genomes), min_rows=min_rows, pad_count=pad_count), task
     )
     if keys is None:
         keys = jax.eval_shape(start_keys, key, rows) if abstract else start_keys(key, rows)

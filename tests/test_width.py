@@ -4,6 +4,7 @@ networks per engine batch, sets the CMA-ES population of a batch's rows through 
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -53,25 +54,41 @@ def test_popsize_for_follows_the_width_rule():
     assert seen == {"width", "floor"}  # both sides of the max were taken
 
 
-def test_an_unset_width_takes_its_device_class_default(monkeypatch):
-    """``width=None`` is the device class's width (`eant2_jax.config.DEFAULT_WIDTH`): on a
-    GPU the width docs/protocol.md section 6 chose, on a CPU none (the default popsize);
-    ``width=1`` is the default popsize on every device, and ``popsize`` still wins."""
-    from eant2_jax import config as cfg
+def test_an_unset_width_takes_the_task_s_default_for_its_device_class(monkeypatch):
+    """``width=None`` is the task's ``default_width`` for `jax.default_backend()`: an
+    episodic task's is 1,024 on a GPU (docs/protocol.md section 6), none elsewhere (the
+    default popsize); a task without one (XOR, the servo task) takes the default on every
+    device; ``width=1`` is the default everywhere, and ``popsize`` still wins."""
     from eant2_jax import tuning
+    from eant2_jax.tasks.episodic import EpisodicTask
 
-    assert cfg.DEFAULT_WIDTH == {"gpu": 1024}
+    assert EpisodicTask.default_width == {"gpu": 1024}
+    episodic = type("Wide", (), {"default_width": EpisodicTask.default_width})()
     batch = compile_genomes([START] * 3, 2, min_rows=12, pad_count=True)
     rows, genes = batch.layout.slot.shape[0], batch.bucket.genes
     got = {}
     for backend, want in [("cpu", None), ("gpu", 1024), ("tpu", None)]:
         monkeypatch.setattr(tuning.jax, "default_backend", lambda b=backend: b)
-        got[backend] = popsize_for(ExploitConfig(), batch)
+        got[backend] = popsize_for(ExploitConfig(), batch, task=episodic)
         assert got[backend] == plain_popsize(genes, rows, None, want), backend
-        assert popsize_for(ExploitConfig(width=1), batch) == plain_popsize(genes, rows, None, None)
-        assert popsize_for(ExploitConfig(width=96), batch) == plain_popsize(genes, rows, None, 96)
-        assert popsize_for(ExploitConfig(popsize=5), batch) == 5
+        plain = plain_popsize(genes, rows, None, None)
+        assert popsize_for(ExploitConfig(), batch, task=xor()) == plain
+        assert popsize_for(ExploitConfig(width=1), batch, task=episodic) == plain
+        wide = ExploitConfig(width=96)
+        assert popsize_for(wide, batch, task=episodic) == plain_popsize(genes, rows, None, 96)
+        assert popsize_for(ExploitConfig(popsize=5), batch, task=episodic) == 5
     assert got["gpu"] == 1024 // rows > got["cpu"] == got["tpu"]  # the width side was taken
+
+
+def test_a_task_s_default_width_is_checked():
+    from eant2_jax.tasks.base import TaskError, check_task
+
+    check_task(xor())  # no default_width: the default popsize everywhere
+    for bad in ({"gpu": 0}, {"gpu": True}, {"gpu": 1.5}, [1024], {1: 8}):
+        task = copy.copy(xor())
+        object.__setattr__(task, "__class__", type("Bad", (type(task),), {"default_width": bad}))
+        with pytest.raises(TaskError, match="default_width must map backend names"):
+            check_task(task)
 
 
 def test_popsize_and_width_together_are_one_error():

@@ -67,6 +67,9 @@ class Task(Protocol):
 #   noisy: bool — True when costs depend on the key (random starts, noise). Then
 #   eant2_jax.tuning.tune re-evaluates each tuned network on fresh episodes (a key no
 #   CMA-ES iteration used) and reports THAT cost, not the best draw seen during the search.
+#   default_width: dict[str, int] — networks per engine batch where ExploitConfig sets
+#   neither width nor popsize, by jax.default_backend() (episodic tasks: {"gpu": 1024});
+#   a backend it does not name takes the default popsize (`eant2_jax.tuning.popsize_for`).
 #   solved_cost: float | None — the cost at or below which the task counts as solved
 #   (XOR, dpv, environments whose return defines it; `solved_cost`). A run with no
 #   target_cost of its own stops there (EANT2Config.stop_when_solved). None: unknown.
@@ -160,6 +163,13 @@ def check_task(task: Any, genomes: Sequence[Any] = (), *, what: str | None = Non
     noisy = getattr(task, "noisy", False)
     if not isinstance(noisy, bool | np.bool_):
         raise TaskError(f"{what}: noisy must be True or False, got {noisy!r}")
+    width = getattr(task, "default_width", {})
+    if not isinstance(width, dict) or not all(
+        isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool) and v >= 1
+        for k, v in width.items()
+    ):
+        raise TaskError(f"{what}: default_width must map backend names to widths of at least 1, "
+                        f"got {width!r:.60}")  # fmt: skip
     solved = getattr(task, "solved_cost", None)
     if solved is not None and (
         isinstance(solved, bool)

@@ -26,7 +26,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -242,6 +242,9 @@ class EpisodicTask:
     chunk: int = pytree.field(pytree_node=False, default=50)
     hidden: str = pytree.field(pytree_node=False, default="tanh")
     noisy: bool = pytree.field(pytree_node=False, default=True)
+    # The batch width where the config sets none, by `jax.default_backend()`
+    # (`eant2_jax.tuning.popsize_for`): a GPU's as docs/protocol.md section 6 chose it on brax.
+    default_width: ClassVar[dict[str, int]] = {"gpu": 1024}
 
     def environment(self) -> tuple[Reset, Step]:
         """``(reset, step)`` of the environment, as `rollout` takes them."""

@@ -51,7 +51,9 @@ SEEDS = {"gymnax": tuple(range(4000, 4010)), "brax": tuple(range(4000, 4005))}
 _TN = {"pop_size": 1000, "species_size": 20, "survival_threshold": 0.1,
        "compatibility_threshold": 1.0, "generations": 100, "activation": "tanh",
        "max_nodes": 50, "max_conns": 100, "obs_norm_episodes": 0}  # fmt: skip
-_EANT2 = {"population": 10, "rescore": 16, "popsize": None, "width": None, "reexploit": False,
+# width 1: the default popsize on every device, section 3's setting (episodic tasks have a
+# GPU default width since section 6's choice; `eant2_jax.tuning.popsize_for`).
+_EANT2 = {"population": 10, "rescore": 16, "popsize": None, "width": 1, "reexploit": False,
           "min_bucket": [12, 64, 4], "pruner": "covariance"}  # fmt: skip
 # brax: the batch width chosen by docs/protocol.md section 6 (`python -m bench width` on
 # bench/results/field-width/, choice seeds 100-102: summed ranks frozen 8, 1,024 3, 4,096 5,

@@ -511,7 +511,7 @@ def test_a_width_trial_reaches_eant2_alone_and_older_checkpoints_still_match(tmp
 
     env = ENVS["cartpole"]
     frozen = field_workers.eant2_config(env, budget=1000)
-    assert (frozen.exploit.popsize, frozen.exploit.width) == (None, None)
+    assert (frozen.exploit.popsize, frozen.exploit.width) == (None, 1)  # the default popsize
     chosen = field_workers.eant2_config(ENVS["hopper"], budget=1000)
     assert (chosen.exploit.popsize, chosen.exploit.width) == (None, 1024)
     wide = field_workers.eant2_config(env, budget=1000, width=4096)

@@ -84,7 +84,7 @@ def eant2_config(env: dict[str, Any], *, budget: int, population: int | None = N
     s = env["eant2"]
     exploit = eant2_jax.ExploitConfig(
         pruner=s["pruner"], max_iters=max_iters or s["max_iters"], rescore=s["rescore"],
-        popsize=None if width else s["popsize"], width=width or s.get("width"),
+        popsize=None if width else s["popsize"], width=width or s["width"],
     )  # fmt: skip
     return eant2_jax.EANT2Config(
         population=population or s["population"], max_evaluations=budget,

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import inspect
 import numbers
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol, runtime_checkable
 
 import jax
@@ -67,7 +67,7 @@ class Task(Protocol):
 #   noisy: bool — True when costs depend on the key (random starts, noise). Then
 #   eant2_jax.tuning.tune re-evaluates each tuned network on fresh episodes (a key no
 #   CMA-ES iteration used) and reports THAT cost, not the best draw seen during the search.
-#   default_width: dict[str, int] — networks per engine batch where ExploitConfig sets
+#   default_width: Mapping[str, int] — networks per engine batch where ExploitConfig sets
 #   neither width nor popsize, by jax.default_backend() (episodic tasks: {"gpu": 1024});
 #   a backend it does not name takes the default popsize (`eant2_jax.tuning.popsize_for`).
 #   solved_cost: float | None — the cost at or below which the task counts as solved
@@ -164,7 +164,7 @@ def check_task(task: Any, genomes: Sequence[Any] = (), *, what: str | None = Non
     if not isinstance(noisy, bool | np.bool_):
         raise TaskError(f"{what}: noisy must be True or False, got {noisy!r}")
     width = getattr(task, "default_width", {})
-    if not isinstance(width, dict) or not all(
+    if not isinstance(width, Mapping) or not all(
         isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool) and v >= 1
         for k, v in width.items()
     ):

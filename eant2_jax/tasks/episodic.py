@@ -25,7 +25,8 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable
+import types
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar
 
 import jax
@@ -244,7 +245,7 @@ class EpisodicTask:
     noisy: bool = pytree.field(pytree_node=False, default=True)
     # The batch width where the config sets none, by `jax.default_backend()`
     # (`eant2_jax.tuning.popsize_for`): a GPU's as docs/protocol.md section 6 chose it on brax.
-    default_width: ClassVar[dict[str, int]] = {"gpu": 1024}
+    default_width: ClassVar[Mapping[str, int]] = types.MappingProxyType({"gpu": 1024})
 
     def environment(self) -> tuple[Reset, Step]:
         """``(reset, step)`` of the environment, as `rollout` takes them."""

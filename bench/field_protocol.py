@@ -308,7 +308,7 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
 
 
 def render(payload: dict[str, Any]) -> str:
-    from bench.field_stats import render_summary, summarise
+    from bench.field_stats import render_summary, seed_counts, summarise
 
     budgets_ = payload.get("frozen", {}).get("budgets", {})
     if payload.get("args", {}).get("budget"):
@@ -327,7 +327,10 @@ def render(payload: dict[str, Any]) -> str:
             "validation episodes (key 8000) of each method's 5 best by training fitness. "
             "Medians with percentile bootstrap 95% intervals (10,000 resamples, key 0); "
             "difference: eant2_jax minus TensorNEAT, same seed; a win or loss needs its "
-            "interval to exclude 0, else a tie.\n")  # fmt: skip
+            "interval to exclude 0, else a tie. Seeds with eant2_jax >= TensorNEAT (issue "
+            "41's 'on most seeds': more than half): at TensorNEAT's evaluation count, the "
+            "last budget's champions; at TensorNEAT's wall time, eant2_jax's last judged "
+            "champion at or before TensorNEAT's last judged champion, against it.\n")  # fmt: skip
     stopped = [f"{r['env']} seed {r['seed']} {m}: {run.get('error') or run.get('deadline')}"
                for r in payload.get("seeds", []) for m, run in r["runs"].items()
                if run.get("error") or run.get("deadline")]  # fmt: skip
@@ -342,4 +345,5 @@ def render(payload: dict[str, Any]) -> str:
         )
         note += "".join(f"* {r['env']} seed {r['seed']} {r['method']}: {r['file']}\n"
                         for r in reused)  # fmt: skip
-    return head + render_summary(rows) + "\n" + note + "\nFrozen settings:\n\n" + frozen
+    counts = seed_counts(payload.get("seeds", []))
+    return head + render_summary(rows, counts) + "\n" + note + "\nFrozen settings:\n\n" + frozen

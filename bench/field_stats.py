@@ -1,7 +1,10 @@
 """The field protocol's summary (docs/protocol.md section 3): per environment and reporting
 budget, each method's median test return with its bootstrap 95% interval, the median paired
 difference (eant2_jax minus TensorNEAT, same seed) with its interval and the verdict, and
-the wall time each method's champion took to reach TensorNEAT's median final return.
+the wall time each method's champion took to reach TensorNEAT's median final return; and
+per environment the seeds on which eant2_jax's test return is at least TensorNEAT's, at
+TensorNEAT's evaluation count and at TensorNEAT's wall time (`seed_counts`: issue 41's "on
+most seeds", docs/protocol.md section 3).
 
 Intervals: percentile bootstrap, 10,000 resamples from ``jax.random.key(0)``
 (`eant2_jax.app.report_stats.bootstrap_interval`, the protocol's "Verdicts"). A **win**
@@ -18,7 +21,15 @@ import numpy as np
 
 from bench.common import Column, markdown_table
 
-__all__ = ["median_interval", "summarise", "verdict", "render_summary", "wall_to_target"]
+__all__ = [
+    "median_interval",
+    "render_summary",
+    "return_at",
+    "seed_counts",
+    "summarise",
+    "verdict",
+    "wall_to_target",
+]
 
 A, B = "eant2", "tensorneat"
 
@@ -46,6 +57,36 @@ def wall_to_target(curve: list[dict], target: float) -> float:
     return reaches ``target``; inf if none does."""
     hit = next((p for p in curve if p["test_return"] >= target), None)
     return math.inf if hit is None else float(hit["wall_s"])
+
+
+def return_at(curve: list[dict], wall_s: float) -> float:
+    """The test return of the last judged champion at or before ``wall_s``; -inf if none."""
+    done = [p for p in curve if p["wall_s"] <= wall_s]
+    return float(max(done, key=lambda p: p["wall_s"])["test_return"]) if done else -math.inf
+
+
+def seed_counts(seeds: list[dict[str, Any]]) -> list[dict]:
+    """Per environment, over the seeds where both methods were judged: ``evals``, how many
+    seeds have eant2_jax's test return at the last reporting budget (TensorNEAT's evaluation
+    count) at least TensorNEAT's there; ``wall``, how many have eant2_jax's last judged
+    champion at or before the wall time of TensorNEAT's last judged champion (`return_at`)
+    at least that champion's test return; ``most``: each count above half the seeds."""
+    out = []
+    for env in dict.fromkeys(s["env"] for s in seeds):
+        pairs = [s["judged"] for s in seeds
+                 if s["env"] == env and A in s["judged"] and B in s["judged"]]  # fmt: skip
+        if not pairs:
+            continue
+        evals = sum(j[A]["budgets"][-1]["test_return"] >= j[B]["budgets"][-1]["test_return"]
+                    for j in pairs)  # fmt: skip
+        wall = 0
+        for j in pairs:
+            last = max(j[B]["curve"], key=lambda p: p["wall_s"])
+            wall += return_at(j[A]["curve"], last["wall_s"]) >= last["test_return"]
+        n = len(pairs)
+        out.append({"env": env, "seeds": n, "evals": int(evals), "wall": int(wall),
+                    "most": {"evals": 2 * evals > n, "wall": 2 * wall > n}})  # fmt: skip
+    return out
 
 
 def summarise(seeds: list[dict[str, Any]], budgets: dict[str, list[int]]) -> list[dict]:
@@ -94,7 +135,7 @@ def _ci(v, digits: int = 4) -> str:
     return f"{f(est)} [{f(low)}, {f(high)}]"
 
 
-def render_summary(rows: list[dict]) -> str:
+def render_summary(rows: list[dict], counts: list[dict] | None = None) -> str:
     cols = [
         Column("env", "env"),
         Column("budget", "budget (evaluations)"),
@@ -116,4 +157,15 @@ def render_summary(rows: list[dict]) -> str:
                    "TensorNEAT wall s to it [95%] (seeds reaching)"),
         ]  # fmt: skip
         md += "\n" + markdown_table(walls, wcols)
+    if counts:
+
+        def k_of_n(what):
+            return lambda r: f"{r[what]} of {r['seeds']}" + (" (most)" if r["most"][what] else "")
+
+        ccols = [
+            Column("env", "env"),
+            Column(k_of_n("evals"), "seeds with eant2_jax >= TensorNEAT at TN's evaluations"),
+            Column(k_of_n("wall"), "seeds with eant2_jax >= TensorNEAT at TN's wall time"),
+        ]
+        md += "\n" + markdown_table(counts, ccols)
     return md

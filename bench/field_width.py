@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bench.common import BenchInputError, Column, markdown_table
+from bench.field_stats import return_at
 
 __all__ = ["CANDIDATES", "ENVS", "SEEDS", "return_at", "choose", "render"]
 
@@ -41,12 +41,6 @@ CANDIDATES: dict[str, tuple[int | None, dict[str, int | None]]] = {
     "w4096": (4096, {"hopper": 2, "halfcheetah": 15}),
     "w10000": (10000, {"hopper": 2, "halfcheetah": 6}),
 }
-
-
-def return_at(curve: list[dict], wall_s: float) -> float:
-    """The test return of the last judged champion at or before ``wall_s``; -inf if none."""
-    done = [p for p in curve if p["wall_s"] <= wall_s]
-    return float(max(done, key=lambda p: p["wall_s"])["test_return"]) if done else -math.inf
 
 
 def _checked(path: Path, env: str, name: str) -> dict[str, Any]:

@@ -204,6 +204,64 @@ def test_verdicts_need_the_interval_to_exclude_zero():
     assert field_stats.wall_to_target(curve, 10.0) == math.inf
 
 
+def _judged(rng, n_points):
+    """A method's judged run: budgets and a curve of champions at rising wall times."""
+    walls = np.sort(rng.uniform(1, 100, n_points))
+    curve = [{"wall_s": float(w), "test_return": float(rng.integers(0, 5))} for w in walls]
+    return {"budgets": [{"test_return": float(rng.integers(0, 5))} for _ in range(3)],
+            "curve": list(rng.permutation(curve))}  # fmt: skip
+
+
+def test_seed_counts_match_a_plain_count_on_fresh_records():
+    rng = np.random.default_rng()
+    seeds = []
+    for env in ("a", "b"):
+        for seed in range(int(rng.integers(1, 8))):
+            judged = {m: _judged(rng, int(rng.integers(1, 6))) for m in ("eant2", "tensorneat")}
+            if rng.random() < 0.2:
+                del judged["eant2"]  # a seed judged for one method only does not count
+            seeds.append({"env": env, "seed": seed, "judged": judged})
+    got = {r["env"]: r for r in field_stats.seed_counts(seeds)}
+    for env in ("a", "b"):
+        pairs = [s["judged"] for s in seeds if s["env"] == env and len(s["judged"]) == 2]
+        if not pairs:
+            assert env not in got
+            continue
+        evals = wall = 0
+        for j in pairs:
+            evals += (
+                j["eant2"]["budgets"][2]["test_return"]
+                >= j["tensorneat"]["budgets"][2]["test_return"]
+            )
+            tn = sorted(j["tensorneat"]["curve"], key=lambda p: p["wall_s"])[-1]
+            mine = sorted((p for p in j["eant2"]["curve"] if p["wall_s"] <= tn["wall_s"]),
+                          key=lambda p: p["wall_s"])  # fmt: skip
+            wall += bool(mine) and mine[-1]["test_return"] >= tn["test_return"]
+        n = len(pairs)
+        want = {"env": env, "seeds": n, "evals": evals, "wall": wall,
+                "most": {"evals": evals > n / 2, "wall": wall > n / 2}}  # fmt: skip
+        assert got[env] == want
+
+
+def test_seed_counts_by_hand():
+    def run(budget, curve):
+        return {"budgets": [{"test_return": budget}],
+                "curve": [{"wall_s": w, "test_return": r} for w, r in curve]}  # fmt: skip
+
+    seeds = [  # a tie counts; eant2_jax's later, better champion does not
+        {"env": "e", "seed": 0, "judged": {"eant2": run(5.0, [(1.0, 1.0), (20.0, 9.0)]),
+                                           "tensorneat": run(5.0, [(10.0, 4.0)])}},
+        # no eant2_jax champion by TensorNEAT's wall time: -inf
+        {"env": "e", "seed": 1, "judged": {"eant2": run(1.0, [(30.0, 9.0)]),
+                                           "tensorneat": run(2.0, [(10.0, 4.0)])}},
+    ]  # fmt: skip
+    (row,) = field_stats.seed_counts(seeds)
+    assert (row["evals"], row["wall"], row["seeds"]) == (1, 0, 2)
+    assert row["most"] == {"evals": False, "wall": False}  # one of two is not most
+    md = field_stats.render_summary([], [row])
+    assert "| e | 1 of 2 | 0 of 2 |" in md
+
+
 # ------------------------------------------------------- the same test episodes, checked
 FAKE_TN = """
 import argparse, json, sys

@@ -65,24 +65,32 @@ def return_at(curve: list[dict], wall_s: float) -> float:
     return float(max(done, key=lambda p: p["wall_s"])["test_return"]) if done else -math.inf
 
 
+def _at_last_budget(judged: dict) -> float:
+    """The test return of a method's champion at its last reporting budget (-inf if none)."""
+    last = (judged.get("budgets") or [{}])[-1].get("test_return")
+    return -math.inf if last is None else float(last)
+
+
 def seed_counts(seeds: list[dict[str, Any]]) -> list[dict]:
     """Per environment, over the seeds where both methods were judged: ``evals``, how many
     seeds have eant2_jax's test return at the last reporting budget (TensorNEAT's evaluation
     count) at least TensorNEAT's there; ``wall``, how many have eant2_jax's last judged
     champion at or before the wall time of TensorNEAT's last judged champion (`return_at`)
-    at least that champion's test return; ``most``: each count above half the seeds."""
+    at least that champion's test return; ``most``: each count above half the seeds. A
+    method without a champion there counts as -inf."""
     out = []
     for env in dict.fromkeys(s["env"] for s in seeds):
         pairs = [s["judged"] for s in seeds
                  if s["env"] == env and A in s["judged"] and B in s["judged"]]  # fmt: skip
         if not pairs:
             continue
-        evals = sum(j[A]["budgets"][-1]["test_return"] >= j[B]["budgets"][-1]["test_return"]
-                    for j in pairs)  # fmt: skip
+        evals = sum(_at_last_budget(j[A]) >= _at_last_budget(j[B]) for j in pairs)
         wall = 0
         for j in pairs:
-            last = max(j[B]["curve"], key=lambda p: p["wall_s"])
-            wall += return_at(j[A]["curve"], last["wall_s"]) >= last["test_return"]
+            # TensorNEAT without a judged champion: -inf at any time.
+            last = max(j[B]["curve"], key=lambda p: p["wall_s"], default=None)
+            at = math.inf if last is None else last["wall_s"]
+            wall += return_at(j[A]["curve"], at) >= return_at(j[B]["curve"], at)
         n = len(pairs)
         out.append({"env": env, "seeds": n, "evals": int(evals), "wall": int(wall),
                     "most": {"evals": 2 * evals > n, "wall": 2 * wall > n}})  # fmt: skip

@@ -258,8 +258,14 @@ def test_seed_counts_by_hand():
     (row,) = field_stats.seed_counts(seeds)
     assert (row["evals"], row["wall"], row["seeds"]) == (1, 0, 2)
     assert row["most"] == {"evals": False, "wall": False}  # one of two is not most
+    # TensorNEAT without a champion (no budget's return, no curve): eant2_jax's counts
+    seeds.append({"env": "e", "seed": 2, "judged": {"eant2": run(1.0, [(30.0, 9.0)]),
+                  "tensorneat": {"budgets": [{"test_return": None}], "curve": []}}})  # fmt: skip
+    (row,) = field_stats.seed_counts(seeds)
+    assert (row["evals"], row["wall"], row["seeds"]) == (2, 1, 3)
+    assert row["most"] == {"evals": True, "wall": False}
     md = field_stats.render_summary([], [row])
-    assert "| e | 1 of 2 | 0 of 2 |" in md
+    assert "| e | 2 of 3 (most) | 1 of 3 |" in md
 
 
 # ------------------------------------------------------- the same test episodes, checked

@@ -248,6 +248,7 @@ def test_large_population_params_are_the_tutorial_s_and_pycma_s(n, popsize):
 
 
 @pytest.mark.parametrize(("n", "popsize"), LARGE[:2])
+@pytest.mark.slow
 def test_large_population_separable_params_are_ros_and_hansen_s(n, popsize):
     """The separable variant (`kernels.sepcmaes`, the same `default_params`) at large
     lambda: the tutorial's weights with Ros & Hansen's rates; c_mu then sits at its cap

@@ -278,6 +278,7 @@ def test_resume_records_its_new_generations_and_reports_agree(
     assert rc == 0, err
 
 
+@pytest.mark.slow
 def test_resume_changes_budgets_and_stopping_options_recorded(
     xor_runs, tmp_path, capsys, monkeypatch
 ):
@@ -331,6 +332,7 @@ def test_resume_changes_budgets_and_stopping_options_recorded(
         (["--generations", "0"], "generations 0: the run has already completed generation 1"),
     ],
 )
+@pytest.mark.slow
 def test_resume_refuses_every_other_change_in_one_line(
     argv, phrase, xor_runs, tmp_path, capsys, monkeypatch
 ):
@@ -342,6 +344,7 @@ def test_resume_refuses_every_other_change_in_one_line(
     assert _files(d) == before
 
 
+@pytest.mark.slow
 def test_resume_in_python_refuses_other_fields_by_name(xor_runs, tmp_path):
     d = _copy(xor_runs / "one", tmp_path / "r")
     before = _files(d)
@@ -357,6 +360,7 @@ def test_resume_in_python_refuses_other_fields_by_name(xor_runs, tmp_path):
 
 
 @pytest.mark.parametrize("killed_after", [1, 2])
+@pytest.mark.slow
 def test_a_kill_inside_the_config_update_leaves_a_run_that_resumes(
     killed_after, xor_runs, tmp_path, monkeypatch
 ):
@@ -386,6 +390,7 @@ def test_a_kill_inside_the_config_update_leaves_a_run_that_resumes(
     assert validate(str(d)).generations == 2
 
 
+@pytest.mark.slow
 def test_resume_warns_when_the_task_file_changed(xor_runs, tmp_path, capsys, monkeypatch):
     """config.json records the SHA-256 of a user's task file; a resume naming the task
     again warns in one line when the file's content changed, and only then."""

@@ -222,6 +222,7 @@ def test_paired_interval_against_scipy():
         paired_t_interval([1.0])
 
 
+@pytest.mark.slow
 def test_paired_claim_verdicts_and_bootstrap():
     rng = np.random.default_rng(3)
     b = rng.normal(10, 2, 25)

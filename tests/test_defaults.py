@@ -203,6 +203,7 @@ def _rates(text: str) -> list[float]:
     return [float(x.split(" evals, ")[1].split("/s")[0].replace(",", "")) for x in lines]
 
 
+@pytest.mark.slow
 def test_the_progress_rate_after_a_resume_is_this_process_s(tmp_path):
     """Uninterrupted and resumed, the rate is the evaluations of the process over its time:
     both show the simulated clock's rate (the whole run's count over a resumed process's

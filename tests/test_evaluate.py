@@ -104,6 +104,7 @@ ANCHORS = [
 
 
 @pytest.mark.parametrize(("text", "hidden", "output", "x", "y"), ANCHORS)
+@pytest.mark.slow
 def test_hand_computed_values(text, hidden, output, x, y):
     g = Genome.parse(text)
     x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
@@ -112,6 +113,7 @@ def test_hand_computed_values(text, hidden, output, x, y):
     np.testing.assert_allclose(np.asarray(got)[0], y, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_streams_are_independent():
     # Each of the M streams carries its own recurrent state: permuting the streams permutes
     # the outputs (the same program runs both calls).

@@ -86,6 +86,7 @@ def tmp(tmp_path_factory):
 
 @settings(suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(text=genome_file_texts(), edit=_EDITS)
+@pytest.mark.slow
 def test_genome_file_texts(tmp, text, edit):
     check_file(text, _damaged(text.encode(), edit), tmp)
 

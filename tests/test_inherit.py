@@ -86,6 +86,7 @@ def test_a_child_inherits_the_scaled_parent_block_and_identity_for_new_genes():
     start.check(child.n_params, "start")  # symmetric, finite
 
 
+@pytest.mark.slow
 def test_the_engine_starts_from_the_given_search():
     genomes = [_parent(1), _parent(2)]
     genomes = [eant2_jax.Genome.parse(str(g)) for g in genomes]

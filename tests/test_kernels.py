@@ -241,6 +241,7 @@ def _sigmoid_step(layout, params, x, h_prev):
     return kn.step(kn.network(layout, params), x, h_prev, hidden="sigmoid", output="sigmoid")
 
 
+@pytest.mark.slow
 def test_empty_padding_rows_output_zero():
     from eant2_jax.evaluate import rollout_batch
 
@@ -316,6 +317,7 @@ def test_sweeps_as_a_loop_equal_the_sweeps_written_out_with_dots(seed):
     _assert_loop_equals_written_out(layout, params, x.at[2, 1].set(np.nan), h)
 
 
+@pytest.mark.slow
 def test_deep_step_is_one_loop_whose_program_does_not_grow():
     """Up to `kn.SWEEPS_UNROLLED` sweeps a step writes each sweep out (the programs every
     run so far compiled); past it the sweeps are one loop, so a step of 3,072 sweeps lowers

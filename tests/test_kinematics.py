@@ -97,6 +97,7 @@ def test_forward_equals_mjx_kinematics_and_mujoco_c(seed):
                 )
 
 
+@pytest.mark.slow
 def test_a_long_chain_passed_as_an_argument_matches_mujoco_c():
     """A chain of 8 links as an argument of the compiled, batched `forward` (a task's chain
     is data, not a constant): the scan over links keeps its program one link's (written out
@@ -147,6 +148,7 @@ def test_from_model_names_what_is_not_a_chain():
         kin.Chain.from_model(model(cases[0][0]), 3)
 
 
+@pytest.mark.slow
 def test_a_fixed_base_is_composed_on_the_host():
     """Fixed bodies before the first hinge become the chain's base pose (float64 on the
     host, so float32 MJX may differ in the last bits: compared with MuJoCo C)."""

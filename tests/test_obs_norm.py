@@ -190,6 +190,7 @@ class Flat(EpisodicTask):
         return y
 
 
+@pytest.mark.slow
 def test_a_constant_dimension_is_centred_only():
     task = Flat(max_steps=12, output="tanh", chunk=5)
     offset, scale = obsnorm.frozen(task, episodes=4, seed=_fresh_seed(), where="flat")

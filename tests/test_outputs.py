@@ -103,6 +103,7 @@ def test_make_folder_refuses_links(tmp_path):
         outputs.make_folder(made, exist_ok=False)
 
 
+@pytest.mark.slow
 def test_a_kill_mid_write_leaves_the_old_file_whole(tmp_path):
     """SIGKILL while the new contents are half written: the old file is still there, whole."""
     p = tmp_path / "report.md"

@@ -119,6 +119,7 @@ def test_derivatives_match_lagrangian(s, u):
 
 @fewer_examples(0.3)
 @given(states, st.lists(outputs, min_size=5, max_size=5))
+@pytest.mark.slow
 def test_actions_match_independent_integration(s, us):
     got = jnp.asarray(s, jnp.float32)
     rk, exact = s.copy(), s.copy()
@@ -245,6 +246,7 @@ def test_dpnv_network_sees_scaled_x_th1_th2(j):
 
 
 # ----------------------------------------------------------------------------- the fitness
+@pytest.mark.slow
 def test_damping_fitness_by_hand():
     # Fewer than 100 balanced steps: only the balancing term.
     np.testing.assert_allclose(pole.damping_fitness(50, 123.0), 0.1 * 50 / 1000)

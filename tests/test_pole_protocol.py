@@ -124,6 +124,7 @@ def test_wilson_interval_known_values_and_bad_counts():
         bench_pole.wilson_interval(3, 2)
 
 
+@pytest.mark.slow
 def test_protocol_row_counts_unsolved_runs_as_never():
     runs = [
         {"seed": 0, "solved": True, "evaluations": 400, "generations": 0, "tests": 1},

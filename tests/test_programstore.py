@@ -367,6 +367,7 @@ def test_a_folder_others_can_write_is_refused_with_one_warning(store, monkeypatc
         jax.config.update("jax_compilation_cache_dir", old)
 
 
+@pytest.mark.slow
 def test_a_file_not_owned_alone_is_not_read(store):
     """An entry another user could have written (group- or world-writable) is not read."""
     _store_chunk(CONFIG.exploit)

@@ -555,6 +555,7 @@ def test_prune_genome_keeping_every_gene_is_the_genome_with_those_weights(genome
         ),
     ],
 )
+@pytest.mark.slow
 def test_prune_genome_evaluates_as_zeroed_weights(text, remove, expected):
     genome = Genome.parse(text)
     keep = np.ones(len(genome), bool)
@@ -660,6 +661,7 @@ def _score_case(seed: int, n: int, pruner: str):
 
 
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, P))
+@pytest.mark.slow
 def test_covariance_scores_brute_force(seed, n):
     mask, candidates, C, B, D, valid, mean, sigma, score, shifted, axis, factor = _score_case(
         seed, n, "covariance"
@@ -697,6 +699,7 @@ def test_obs_scores(seed, n):
 
 
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, P))
+@pytest.mark.slow
 def test_obd_and_magnitude_scores(seed, n):
     mask, candidates, C, _, _, _, mean, sigma, score, shifted, _, _ = _score_case(seed, n, "obd")
     k = np.flatnonzero(mask)

@@ -91,6 +91,7 @@ def _node_data(tree):
     st.integers(-3, 100),
     st.sampled_from(["tanh", "relu", "x"]),
 )
+@pytest.mark.slow
 def test_flatten_unflatten_as_flax(size, seed, n, name):
     w = jnp.asarray(np.random.default_rng(seed).normal(size=size), jnp.float32)
     ours, ref = _instances(OURS, w, n, name), _instances(FLAX, w, n, name)

@@ -98,6 +98,7 @@ def test_different_configs_are_refused(tmp_path, change, field):
     assert not (tmp_path / "rep").exists()
 
 
+@pytest.mark.slow
 def test_arms_differing_in_pruning_and_seed_only_are_compared(tmp_path):
     dirs = [make_run(tmp_path / f"{p}-{s}", pruner=p, seed=s)
             for p in ("covariance", "none") for s in (0, 1)]  # fmt: skip
@@ -107,6 +108,7 @@ def test_arms_differing_in_pruning_and_seed_only_are_compared(tmp_path):
     assert summary["covariance"]["p_fitness"] is not None
 
 
+@pytest.mark.slow
 def test_reference_arm_is_named_or_absent(tmp_path):
     dirs = [make_run(tmp_path / f"{p}-{s}", pruner=p, seed=s)
             for p in ("covariance", "obs") for s in (0, 1)]  # fmt: skip
@@ -181,6 +183,7 @@ def test_evaluations_to_the_reference_fitness_match_a_plain_count(tmp_path):
     assert f"({summary['covariance']['reached_reference']}/3)" in text
 
 
+@pytest.mark.slow
 def test_upto_reads_every_run_to_one_generation(tmp_path, capsys, monkeypatch):
     """``eant2 report --upto G``: each run's records and pruning up to generation G, as if
     it had stopped there; a run that stopped before G is one clear error."""
@@ -209,6 +212,7 @@ def test_upto_reads_every_run_to_one_generation(tmp_path, capsys, monkeypatch):
     assert len(err.strip().splitlines()) == 1 and not (tmp_path / "r5").exists()
 
 
+@pytest.mark.slow
 def test_strings_from_run_files_are_escaped_on_one_line(tmp_path):
     """A task (or arm) string read from config.json cannot add lines or Markdown of its own
     to the report."""
@@ -226,6 +230,7 @@ def test_strings_from_run_files_are_escaped_on_one_line(tmp_path):
 
 
 @pytest.mark.parametrize("dangling", [False, True])
+@pytest.mark.slow
 def test_a_link_planted_in_the_report_folder_is_refused(tmp_path, dangling):
     dirs = [make_run(tmp_path / f"{p}-0", pruner=p) for p in ("covariance", "none")]
     target = tmp_path / "bashrc"
@@ -261,6 +266,7 @@ def test_a_report_is_never_written_inside_a_run_it_reads(tmp_path, capsys, monke
     assert rc == 2 and len(err.strip().splitlines()) == 1 and "inside the run directory" in err
 
 
+@pytest.mark.slow
 def test_an_existing_report_is_replaced_whole(tmp_path):
     dirs = [make_run(tmp_path / f"{p}-0", pruner=p) for p in ("covariance", "none")]
     out = tmp_path / "rep"

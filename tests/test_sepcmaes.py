@@ -204,6 +204,7 @@ def test_one_tell_matches_numpy(seed, nan):
     assert int(new.num_nonfinite) == int(nan)
 
 
+@pytest.mark.slow
 def test_ask_is_mean_plus_sigma_d_times_the_fold_in_normals():
     """x = m + sigma D z with z the full kernel's per-coordinate draws (B = I)."""
     rng = np.random.default_rng(7)
@@ -223,6 +224,7 @@ def test_ask_is_mean_plus_sigma_d_times_the_fold_in_normals():
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow
 def test_lazy_tell_then_decompose_equals_tell():
     """The kernel's decompose=False contract holds for a diagonal Params too."""
     rng = np.random.default_rng(3)
@@ -441,6 +443,7 @@ def test_covariance_pruner_on_a_diagonal_run_moves_only_coordinate_i():
         np.testing.assert_array_equal(moved[best], shifted[best])
 
 
+@pytest.mark.slow
 def test_reduce_keeps_a_diagonal_state_diagonal():
     """Removing coordinates of a diagonal state (the Schur complement of a diagonal C is its
     kept block) leaves C = diag(C_KK), B = I, D = sqrt(diag C) and diagonal rates."""

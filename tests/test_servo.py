@@ -222,6 +222,7 @@ def test_ibvs_reduces_the_error(task, sweep):
     assert costs[1] > base["ibvs"] and costs[-1] > base["ibvs"]
 
 
+@pytest.mark.slow
 def test_image_jacobian_matches_finite_differences(task):
     arm = sv.arm_scene()
     d = mujoco.MjData(arm.mj)
@@ -391,6 +392,7 @@ def test_network_costs_under_jit_and_vmap_match_numpy():
     assert c.count == 0
 
 
+@pytest.mark.slow
 def test_kinematics_is_scatter_free_and_mjx_is_left_as_it_was():
     """The kinematic cost has no float scatter that a GPU adds in any order (XLA's
     deterministic mode made one servo iteration 3.6x slower by sorting MJX's quaternion

@@ -67,6 +67,7 @@ def test_resume_imports_no_task_file_shipped_in_the_directory(tmp_path, monkeypa
     assert not marker.exists()
 
 
+@pytest.mark.slow
 def test_a_user_task_named_again_resumes_and_must_be_the_recorded_one(tmp_path):
     """The user's file task, passed again: resume goes on; another task is refused in one
     line before anything changes."""
@@ -91,6 +92,7 @@ def test_a_user_task_named_again_resumes_and_must_be_the_recorded_one(tmp_path):
     assert [r.generation for r in res.generations] == [0, 1]
 
 
+@pytest.mark.slow
 def test_a_registered_task_is_rebuilt_by_itself(tmp_path):
     out = tmp_path / "run"
     eant2_jax.run(

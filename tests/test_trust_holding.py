@@ -185,6 +185,7 @@ def test_a_full_cache_disk_costs_the_saving_only(tmp_path, monkeypatch):
     assert list(folder.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_an_unwritable_cache_folder_costs_the_cache_only(tmp_path, capsys, monkeypatch):
     """``EANT2_CACHE_DIR`` under a regular file (nothing can be made or written there, as on
     a read-only disk): ``eant2 run`` exits 0 with the records of a run without the cache,

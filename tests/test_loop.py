@@ -1073,10 +1073,11 @@ def test_next_bucket_compiled_ahead_is_used_and_changes_nothing(xor_run, monkeyp
     joined at once (two programs at once on a CPU can deadlock XLA's thread pool): a run
     whose buckets were guessed uses the programs compiled ahead, and gives exactly the run
     of the usual path. Whether and when a run grows into a new bucket depends on its float
-    results, which differ between CPU instruction sets (one build of XLA gives AVX-512 and
-    AVX2 machines different bits): the reference run's configuration and key one generation
-    further first, then other keys, until a run has used a guessed bucket's program; every
-    run tried must equal its usual path."""
+    results, which can differ between CPU models (XLA compiles for the host's instruction
+    set; on a 2-core Intel Xeon, key 0 stays in one bucket for three generations): the
+    reference run's configuration and key one generation further first, then other keys,
+    until a run has used a guessed bucket's program; every run tried must equal its usual
+    path."""
     from eant2_jax import programs
     from eant2_jax.programs import guesses
 

@@ -83,6 +83,7 @@ def test_a_batch_of_networks_gets_one_cost_each(name, options, n_in, n_out):
             np.testing.assert_allclose(cost[row], -np.asarray(r).mean(axis=1), rtol=1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "spec,options,phrase",
     [

@@ -107,6 +107,7 @@ BAD_TASKS = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task,phrase", BAD_TASKS, ids=[type(t).__name__ for t, _ in BAD_TASKS])
 def test_protocol_mistakes_are_one_line_and_run_agrees_with_optimize(task, phrase, tmp_path):
     with pytest.raises(TaskError) as opt:
@@ -389,6 +390,7 @@ def test_rescoring_keeps_the_point_of_lower_fresh_cost():
     assert calls == [6, 4]
 
 
+@pytest.mark.slow
 def test_progress_reporter_announces_compilation(monkeypatch):
     from eant2_jax import programs
 

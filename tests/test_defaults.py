@@ -224,6 +224,7 @@ def test_the_progress_rate_after_a_resume_is_this_process_s(tmp_path):
     assert after == pytest.approx(RATE, rel=0.01)
 
 
+@pytest.mark.slow
 def test_each_generation_carries_the_populations_cost_mean_and_spread():
     import io
 

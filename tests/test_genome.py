@@ -360,6 +360,7 @@ _ANY_FIELD = (
 )
 
 
+@pytest.mark.slow
 @given(genomes(), st.data())
 def test_genes_of_any_field_values(g, data):
     """One field of one gene of a valid genome set to any value: a GenomeError naming a

@@ -60,6 +60,7 @@ def test_a_batch_of_networks_gets_one_cost_each(name, options, n_in, n_out):
         np.testing.assert_allclose([task.act_low[0], task.act_high[0]], [-2.0, 2.0])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "spec,options,phrase",
     [

@@ -195,6 +195,7 @@ def _mutants(rng: np.random.Generator, n: int):
         yield text
 
 
+@pytest.mark.slow
 def test_fuzzed_manifests_end_in_one_line_each(tmp_path):
     """A seeded loop of 400 mutated manifests: each is read back as valid settings with a
     registered task, or refused with one `ManifestError` line; never a traceback."""

@@ -199,6 +199,7 @@ def test_a_constant_dimension_is_centred_only():
     assert 0 < float(scale[0]) < 10  # the random walk's spread is of order 1
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "spec,options,phrase",
     [

@@ -67,6 +67,7 @@ def test_a_batch_of_networks_gets_one_cost_each():
     assert np.all((r >= 0) & (r <= 40))  # a reward in [0, 1] per step
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "options,phrase",
     [
@@ -100,6 +101,7 @@ def test_bad_playground_options_are_one_line(options, phrase):
     assert phrase in str(e.value) and "\n" not in str(e.value)
 
 
+@pytest.mark.slow
 def test_an_unknown_environment_lists_the_known_ones():
     with pytest.raises(ValueError, match="unknown playground environment 'Nope'; known: "):
         tasks.make("playground:Nope")

@@ -141,6 +141,7 @@ def test_upright_is_unstable_and_force_tilts_poles_back():
     assert d[1] > 0 and d[3] < 0 and d[5] < 0
 
 
+@pytest.mark.slow
 def test_output_is_clipped_to_the_force_range():
     s = jnp.zeros(6, jnp.float32)
     np.testing.assert_array_equal(act(PHYSICS, s, jnp.float32(7)), act(PHYSICS, s, 1.0))

@@ -336,6 +336,7 @@ def test_a_foreign_entry_is_not_used(store, monkeypatch, stored_run):
     assert mine.read_bytes() != other.read_bytes() and _whole(mine)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how", ["world-writable", "group-writable", "another user's"])
 def test_a_folder_others_can_write_is_refused_with_one_warning(store, monkeypatch, how):
     """A store folder another user owns or may write is refused (as ssh refuses such an

@@ -41,6 +41,7 @@ def _random_choices(key, candidates, n):
     return jax.vmap(one)(jax.random.split(key, n))
 
 
+@pytest.mark.slow
 def test_random_scores_choose_uniformly_among_the_candidates():
     rng = np.random.default_rng(0)
     candidates = rng.random(P) < 0.6

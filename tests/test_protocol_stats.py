@@ -115,6 +115,7 @@ def test_bootstrap_agrees_with_scipy_on_a_large_sample():
     assert abs(low - ci.low) < 0.1 * width and abs(high - ci.high) < 0.1 * width
 
 
+@pytest.mark.slow
 def test_bootstrap_keeps_runs_that_never_reached():
     """Evaluations to a target: a run that never reached it is infinite; a median that
     may be infinite gives an infinite upper end, never NaN."""

@@ -616,6 +616,7 @@ def _random_problem(seed: int, n: int):
 _condition_jit = jax.jit(kp.condition)
 
 
+@pytest.mark.slow
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(2, P), removed=st.integers(1, 2))
 def test_condition_is_the_schur_complement(seed, n, removed):
     removed = min(removed, n - 1)
@@ -683,6 +684,7 @@ def test_covariance_scores_brute_force(seed, n):
         assert abs(want[i]) <= RTOL * scale
 
 
+@pytest.mark.slow
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, P))
 def test_obs_scores(seed, n):
     mask, candidates, C, _, _, _, mean, sigma, score, shifted, axis, factor = _score_case(

@@ -157,6 +157,7 @@ def test_static_fields_key_the_jit_cache(classes):
     assert traces == [2, 5]
 
 
+@pytest.mark.slow
 def test_vmap_and_tree_map():
     ours, ref = (
         _instances(OURS, jnp.arange(3.0), 2, "tanh"),

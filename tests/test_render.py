@@ -210,6 +210,7 @@ def test_format_errors_are_one_line(tmp_path):
 
 
 # ------------------------------------------------------------------------ network drawing
+@pytest.mark.slow
 def test_network_drawing_shows_weights_and_a_colour_bar(tmp_path):
     genome = eant2_jax.Genome.parse("N0/3*1.5 N1/2*0.5 I0*1.25 R1*-0.75 I1*-2 B*0.3")
     fig = netdraw.network_figure(genome, title="t")

@@ -66,6 +66,7 @@ def _cli(argv, capsys, monkeypatch, tmp_path):
     return rc, *capsys.readouterr()
 
 
+@pytest.mark.slow
 def test_report_of_two_tasks_exits_2_with_one_line(tmp_path, capsys, monkeypatch):
     a = make_run(tmp_path / "a", task="xor")
     b = make_run(tmp_path / "b", task="dpv", pruner="none")

@@ -177,6 +177,7 @@ def test_a_locked_directory_refuses_a_second_writer(tmp_path):
         again.read()
 
 
+@pytest.mark.slow
 def test_resume_of_a_live_run_is_refused(tmp_path, capsys, monkeypatch):
     """A real process holds the run (as a live `eant2 run` does); resume and a second
     creation are refused with one line and nothing changes; once it dies, resume works."""
@@ -577,6 +578,7 @@ def test_genome_numbers_are_ascii_and_bounded():
     assert Genome.parse("N2147483647/1*1 I0*1").neuron_ids == (2147483647,)
 
 
+@pytest.mark.slow
 def test_compiling_beyond_the_int32_slot_table_is_a_clear_error():
     from eant2_jax.compiler import compile_genomes
 

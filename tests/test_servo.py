@@ -178,6 +178,7 @@ def test_training_and_held_out_sets_are_disjoint(task):
 
 
 # ------------------------------------------------------------------------- move costs
+@pytest.mark.slow
 def test_move_cost_penalties(task):
     goal = np.asarray(task.goal)
     inside = goal + 0.1

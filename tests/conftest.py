@@ -33,9 +33,9 @@ _MADE_CACHE = "EANT2_CACHE_DIR" not in os.environ
 if _MADE_CACHE:
     os.environ["EANT2_CACHE_DIR"] = tempfile.mkdtemp(prefix="eant2-test-cache-")
 
-# XLA:CPU's fusion emitters compile the engine's programs about 2-3x slower than its
-# older LLVM emitters, and in this suite compiling is most of the time. The
-# suite compiles with the older emitters, in-process and in the commands it starts (children
+# Compiling is most of this suite's time, and XLA:CPU's older LLVM emitters compile the
+# engine's programs faster than its fusion emitters (README: the test suite). The suite
+# compiles with the older emitters, in-process and in the commands it starts (children
 # inherit the environment); a caller's own choice of the flag in XLA_FLAGS is kept.
 _EMITTERS = "--xla_cpu_use_fusion_emitters"
 if _EMITTERS not in os.environ.get("XLA_FLAGS", ""):

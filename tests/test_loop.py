@@ -364,9 +364,18 @@ def test_cli_kill_and_resume_is_exact(cli_reference, cli_cache, tmp_path, capsys
 @pytest.mark.slow
 def test_cli_ctrl_c_exits_130_and_resumes(cli_reference, cli_cache, tmp_path):
     out = tmp_path / "interrupted"
-    # Many generations, so that the run is still going when the signal arrives.
+    # Many generations and no stop at the solved level, so that the run is still going when
+    # the signal arrives (a run that solved XOR ended just as the signal came, exit 0).
     proc = _eant2(
-        "run", "xor", "--generations", "200", *CLI_RUN, "--out", str(out), cache=cli_cache
+        "run",
+        "xor",
+        "--generations",
+        "200",
+        "--no-solved-stop",
+        *CLI_RUN,
+        "--out",
+        str(out),
+        cache=cli_cache,
     )
     _wait_for_lines(out / GENERATIONS, 1, proc)
     proc.send_signal(signal.SIGINT)
@@ -385,7 +394,7 @@ def test_cli_ctrl_c_exits_130_and_resumes(cli_reference, cli_cache, tmp_path):
     assert _without_wall(gens[:n]) == _without_wall(_jsonl(cli_reference, GENERATIONS)[:n])
     assert not list(out.glob(".*.tmp"))
     # Ctrl-C in `eant2 resume DIR` gives the same hint (it has DIR, not --out).
-    proc = _eant2("resume", str(out), "--generations", "200", cache=cli_cache)
+    proc = _eant2("resume", str(out), "--generations", "200", "--no-solved-stop", cache=cli_cache)
     _wait_for_lines(out / GENERATIONS, len(gens) + 1, proc)
     proc.send_signal(signal.SIGINT)
     rc, _, err = _finish(proc, timeout=120)

@@ -298,7 +298,7 @@ def _run(state, scale, shift, key, gens, params):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("P", [16, 64])
+@pytest.mark.parametrize("P", [64])  # 16 was a case too: the same program at another P
 def test_padded_equals_unpadded(P):
     """A structure of n = 7 padded to P follows its unpadded trajectory (same key) on a
     fresh separable ellipsoid, to float32 rounding of the sums over P."""
@@ -379,8 +379,9 @@ def _pycma_generations(n, scale, shift, target, max_gens, seed) -> int:
 # at n = 10 ours needs a little fewer evaluations. Measured with these cases on the 2-core
 # CPU (2026-11-26), median evaluations ours / pycma: n = 10: 1,925 / 2,095 (40 seeds:
 # 1,935 / 2,120, -9%), n = 20: 3,402 / 3,390, n = 40: 7,065 / 7,095. Hence 15%, not the 10%
-# of the full kernel against evosax (the same rates there).
-STAT_CASES = [(10, 1e6, 4000), (20, 1e4, 4000), (40, 1e4, 6000)]
+# of the full kernel against evosax (the same rates there). The two ends of that range run
+# here (each n compiles a program of its own); n = 20 was a case too.
+STAT_CASES = [(10, 1e6, 4000), (40, 1e4, 6000)]
 
 
 @pytest.mark.slow

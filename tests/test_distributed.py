@@ -1,9 +1,11 @@
-"""Scale-out: 8 virtual CPU devices and 2 local processes (gloo), each in a subprocess.
+"""Scale-out: 2 virtual CPU devices and 2 local processes (gloo), each in a subprocess.
 
-XLA fixes the number of CPU devices when the backend starts, so the scenarios run in fresh
-interpreters with ``--xla_force_host_platform_device_count``: one interpreter for the
-scenarios of 8 devices and one for those of 2 (module fixtures; each scenario's error is
-its own test's failure), and the two processes of the gloo test.
+XLA fixes the number of CPU devices when the backend starts, so the scenarios run in a fresh
+interpreter with ``--xla_force_host_platform_device_count=2``: one interpreter for every
+scenario (a module fixture; each scenario's error is its own test's failure; scenarios of
+the same rows, bucket, chunk and pruner share their compiled programs), and the two
+processes of the gloo test, which split the same batch as the two devices do. Eight devices,
+each one's rows bit for bit as one device computes them: tests/test_multidevice.py.
 """
 
 from __future__ import annotations
@@ -38,9 +40,16 @@ cfg = E.ExploitConfig(max_iters=200, pruner="covariance", prune_window=40)
 """
 
 
+def xla_flags(devices: int) -> str:
+    """The suite's XLA_FLAGS (tests/conftest.py: the faster-compiling CPU emitters, which the
+    children keep, as every command the suite starts does) with ``devices`` CPU devices."""
+    kept = [f for f in os.environ.get("XLA_FLAGS", "").split() if "device_count" not in f]
+    return " ".join([*kept, f"--xla_force_host_platform_device_count={devices}"])
+
+
 def _python(code: str, *, devices: int = 1, env: dict | None = None, timeout: float = 240):
     full = dict(os.environ)
-    full["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
+    full["XLA_FLAGS"] = xla_flags(devices)
     full.update(env or {})
     proc = subprocess.run(
         [sys.executable, "-W", "error", "-c", PRELUDE + textwrap.dedent(code)],
@@ -81,33 +90,6 @@ def _out(results: dict, name: str):
     return out
 
 
-DEVICES_8 = {
-    "sharded_tune": """
-        assert len(jax.devices()) == 8
-        one = tuning.tune(genomes, task, key=jax.random.key(3), config=cfg)
-        mesh = distributed.make_mesh("all")
-        eight = tuning.tune(genomes, task, key=jax.random.key(3), config=cfg, mesh=mesh)
-        out = {"one": one.costs, "eight": eight.costs,
-               "evals": [sum(one.evaluations), sum(eight.evaluations)],
-               "attempts": [len(one.pruning), len(eight.pruning)],
-               "sizes": [[g.n_params for g in r.genomes] for r in (one, eight)]}
-        """,
-    "one_iteration": """
-        from eant2_jax import exploitation as ex
-        c1 = ex.ExploitConfig(max_iters=5, chunk=5, pruner="none")
-        prep = tuning.prepare(genomes, task, key=jax.random.key(0), config=c1, min_rows=8)
-        assert prep.popsize == 10 and prep.batch.layout.slot.shape[0] == 8
-        def go(mesh):
-            st, h = ex.run(prep.state, prep.batch.layout, task, key=jax.random.key(1), config=c1,
-                           mesh=mesh)
-            return distributed.gather((st.cma.mean, st.cma.C, st.cma.sigma, st.evals))
-        a, s = go(None), go(distributed.make_mesh(8))
-        err = [float(np.linalg.norm(np.asarray(u, float) - np.asarray(v, float))
-                     / max(np.linalg.norm(np.asarray(u, float)), 1e-30)) for u, v in zip(a, s)]
-        out = {"err": err, "evals": np.asarray(s[3]).tolist()}
-        """,
-}
-
 DEVICES_2 = {
     "no_hang": """
         from eant2_jax.kernels import eigen
@@ -124,17 +106,15 @@ DEVICES_2 = {
         one, ref = (np.asarray(jax.jit(f)(m, b[0])) for f in shared)  # b shared by the batch
         assert np.array_equal(one, ref)
         assert "scan" in str(jax.make_jaxpr(jax.vmap(linalg.solve))(m, b))
-        from bench.common import random_population
+        # Four structures, two per device, of the bucket, rows, chunk and pruner of the
+        # scenarios below (so the engine's two programs, one device and two, compile once).
         from eant2_jax import exploitation as ex
-        r = np.random.default_rng(0)
-        x10 = r.normal(size=(32, 10))
-        task10 = E.tasks.regression(x10, np.tanh(x10[:, :1]), hidden="tanh", output="tanh")
+        four = [*genomes, E.Genome.parse("N0/3*1 I0*0.2 I1*-0.3 B*0.1")]
         c1 = ex.ExploitConfig(max_iters=4, chunk=4, pruner="none")
-        prep = tuning.prepare(random_population(1, 4, 12), task10, key=jax.random.key(0),
-                              config=c1, min_rows=2)
+        prep = tuning.prepare(four, task, key=jax.random.key(0), config=c1, min_rows=2)
         assert prep.batch.layout.slot.shape[0] == 4  # two real structures per device
         def go(mesh):
-            st, h = ex.run(prep.state, prep.batch.layout, task10, key=jax.random.key(1),
+            st, h = ex.run(prep.state, prep.batch.layout, task, key=jax.random.key(1),
                            config=c1, tables=prep.tables, mesh=mesh)
             return distributed.gather((st.cma.mean, st.cma.C, st.evals))
         a, s = go(None), go(distributed.make_mesh(2))
@@ -142,6 +122,33 @@ DEVICES_2 = {
                for u, v in zip(a, s)]
         evals = [np.asarray(a[2]).tolist(), np.asarray(s[2]).tolist()]
         out = {"err": err, "evals": evals}
+        """,
+    "one_iteration": """
+        # The structures of the tune below padded to 4 rows, 2 per device, in no_hang's
+        # programs (its rows, bucket, chunk and pruner; max_iters is traced, not compiled in):
+        # one chunk of 4 iterations on one device and split over two.
+        from eant2_jax import exploitation as ex
+        c1 = ex.ExploitConfig(max_iters=4, chunk=4, pruner="none")
+        prep = tuning.prepare(genomes, task, key=jax.random.key(0), config=c1, min_rows=4)
+        assert prep.popsize == 10 and prep.batch.layout.slot.shape[0] == 4
+        def go(mesh):
+            st, h = ex.run(prep.state, prep.batch.layout, task, key=jax.random.key(1), config=c1,
+                           tables=prep.tables, mesh=mesh)
+            return distributed.gather((st.cma.mean, st.cma.C, st.cma.sigma, st.evals))
+        a, s = go(None), go(distributed.make_mesh(2))
+        err = [float(np.linalg.norm(np.asarray(u, float) - np.asarray(v, float))
+                     / max(np.linalg.norm(np.asarray(u, float)), 1e-30)) for u, v in zip(a, s)]
+        out = {"err": err, "evals": np.asarray(s[3]).tolist()}
+        """,
+    "sharded_tune": """
+        assert len(jax.devices()) == 2
+        one = tuning.tune(genomes, task, key=jax.random.key(3), config=cfg)
+        mesh = distributed.make_mesh("all")
+        two = tuning.tune(genomes, task, key=jax.random.key(3), config=cfg, mesh=mesh)
+        out = {"one": one.costs, "two": two.costs,
+               "evals": [sum(one.evaluations), sum(two.evaluations)],
+               "attempts": [len(one.pruning), len(two.pruning)],
+               "sizes": [[g.n_params for g in r.genomes] for r in (one, two)]}
         """,
     "run_many": """
         cfg2 = E.EANT2Config(population=2, offspring=2,
@@ -171,14 +178,16 @@ DEVICES_2 = {
         """,
     "own_loop": """
         from eant2_jax import exploitation as ex
-        c = ex.ExploitConfig(max_iters=80, chunk=32, pruner="none", patience=10)
-        # rows 0-1 (device 0) tune two structures; rows 2-3 (device 1) are padding, which
-        # never runs: device 1's loop ends at once while device 0's runs on
+        # The chunk of the scenarios above (max_iters and patience are traced, not compiled
+        # in): rows 0-1 (device 0) tune two structures for many chunks; rows 2-3 (device 1)
+        # are padding, which never runs: device 1's loop ends at once in every chunk while
+        # device 0's runs on
+        c = ex.ExploitConfig(max_iters=30, chunk=4, pruner="none", patience=10)
         two = [genomes[2], genomes[1]]
         prep = tuning.prepare(two, task, key=jax.random.key(0), config=c, min_rows=4)
         def go(mesh):
             st, h = ex.run(prep.state, prep.batch.layout, task, key=jax.random.key(1),
-                           config=c, mesh=mesh)
+                           config=c, tables=prep.tables, mesh=mesh)
             st = distributed.gather(st)
             return st, h
         (a, ha), (b, hb) = go(None), go(distributed.make_mesh(2))
@@ -187,16 +196,11 @@ DEVICES_2 = {
             "running": [ha.running.tolist(), hb.running.tolist()],
             "evals": [ha.evaluations.tolist(), hb.evaluations.tolist()],
             "sigma": [ha.sigma.tolist(), hb.sigma.tolist()],
-            "tick": [int(a.tick), int(b.tick)], "stop_at": stop_at,
+            "tick": [int(a.tick), int(b.tick)], "stop_at": stop_at, "chunk": c.chunk,
             "cost": [np.asarray(a.cma.best_cost).tolist(), np.asarray(b.cma.best_cost).tolist()],
         }
         """,
 }
-
-
-@pytest.fixture(scope="module")
-def devices_8() -> dict:
-    return _scenarios(DEVICES_8, devices=8, timeout=480)
 
 
 @pytest.fixture(scope="module")
@@ -205,21 +209,22 @@ def devices_2() -> dict:
     return _scenarios(DEVICES_2, devices=2, timeout=600)
 
 
-def test_sharded_exploitation_matches_single_device(devices_8):
-    out = _out(devices_8, "sharded_tune")
+def test_sharded_exploitation_matches_single_device(devices_2):
+    out = _out(devices_2, "sharded_tune")
     # Same structures, budgets and stop decisions; the costs agree up to float reduction
-    # order (batched products of 1 vs 8 structures per device may sum in another order),
+    # order (batched products of 4 vs 2 structures per device may sum in another order),
     # which CMA-ES amplifies only within the same optimum on this well-posed regression.
     assert out["evals"][0] == out["evals"][1]
-    for a, b in zip(out["one"], out["eight"], strict=True):
-        assert abs(a - b) <= 1e-3 * abs(a), (out["one"], out["eight"])
+    for a, b in zip(out["one"], out["two"], strict=True):
+        assert abs(a - b) <= 1e-3 * abs(a), (out["one"], out["two"])
 
 
-def test_one_sharded_iteration_equals_unsharded(devices_8):
-    out = _out(devices_8, "one_iteration")
+def test_one_sharded_iteration_equals_unsharded(devices_2):
+    out = _out(devices_2, "one_iteration")
     # ||a - b|| / ||a||: float32 reduction-order differences only (~1e-7 per operation).
     assert max(out["err"]) < 1e-5, out
-    assert out["evals"][:3] == [50, 50, 50] and out["evals"][3:] == [0] * 5
+    # 4 iterations of popsize 10 for the three structures; the padding row never runs.
+    assert out["evals"][:3] == [40, 40, 40] and out["evals"][3:] == [0], out
 
 
 def test_two_cpu_devices_with_several_structures_each_do_not_hang(devices_2):
@@ -246,7 +251,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_two_processes_agree(devices_8):
+def test_two_processes_agree(devices_2):
     # jax.distributed must start before anything touches the backend (the prelude does).
     code = "from eant2_jax import distributed\ndistributed.initialize()\n" + PRELUDE
     code += textwrap.dedent(
@@ -263,7 +268,7 @@ def test_two_processes_agree(devices_8):
     for pid in range(2):
         env = dict(os.environ)
         env.update(
-            XLA_FLAGS="--xla_force_host_platform_device_count=1",
+            XLA_FLAGS=xla_flags(1),
             EANT2_COORDINATOR=f"127.0.0.1:{port}",
             EANT2_NUM_PROCESSES="2",
             EANT2_PROCESS_ID=str(pid),
@@ -290,9 +295,9 @@ def test_two_processes_agree(devices_8):
             p.communicate()
     # Both processes run the same host-side loop and see the same gathered results.
     assert outs[0] == outs[1]
-    # One process's run of the same tune on one device (the 8-device process's run
+    # One process's run of the same tune on one device (the 2-device process's run
     # without a mesh: the one program of one device).
-    single = _out(devices_8, "sharded_tune")
+    single = _out(devices_2, "sharded_tune")
     assert single["evals"][0] == outs[0]["evals"]
     for a, b in zip(single["one"], outs[0]["costs"], strict=True):
         assert abs(a - b) <= 1e-3 * abs(a)
@@ -329,8 +334,10 @@ def test_each_device_runs_its_own_loop_and_records_what_one_device_does(devices_
     assert out["running"][0] == out["running"][1]
     assert out["evals"][0] == out["evals"][1]
     assert out["tick"][0] == out["tick"][1]
-    # the scenario the test is for: device 1 had nothing to run, device 0 ran past a chunk
-    assert out["stop_at"][2:] == [0, 0] and min(out["stop_at"][:2]) > 32, out["stop_at"]
+    # the scenario the test is for: device 1 had nothing to run, device 0 ran on for
+    # several chunks
+    assert out["stop_at"][2:] == [0, 0], out["stop_at"]
+    assert min(out["stop_at"][:2]) > 4 * out["chunk"], out["stop_at"]
     # Device 1's records after its loop ended are the frozen rows one device records. (The
     # tuned rows agree only up to rounding: the per-device program batches 2 rows, not 4;
     # on a GPU CMA-ES amplified that to 18% in sigma late in the run, with the same stops.)

@@ -130,8 +130,11 @@ def test_plain_case_is_pruned_with_defaults(name, output):
         if gone and kept:
             held.append(seed)
     assert not lost, lost  # nothing needed is ever removed
-    need = HELD if recording_machine() else FLOOR
-    assert len(held) >= need, (name, output, sorted(set(SEEDS) - set(held)))
+    # HELD on the recording machine, FLOOR elsewhere. Which machine this is (`eant2 demo` in
+    # a fresh process) matters only for a count between the two: asked only then.
+    missed = (name, output, sorted(set(SEEDS) - set(held)))
+    if len(held) < HELD:
+        assert not recording_machine() and len(held) >= FLOOR, missed
 
 
 # ------------------------------------------------------------------------------- add_bias

@@ -836,7 +836,7 @@ def _known_redundancy(output: str):
     x = rng.normal(size=(16384, 3))
     noise = 0.05 * rng.normal(size=(16384, 1))
     f = np.tanh if output == "tanh" else (lambda v: v)
-    return {
+    problems = {
         # name: (targets, genome, genes that may go, inputs that must stay)
         "parallel": (f(1.5 * x[:, :1]) + noise, "N0/3*1 I0*0.7 I0*0.8 I1*0.5", {1, 2, 3}, {0}),
         "no_effect": (f(x[:, :1] - x[:, 1:2]) + noise, "N0/3*1 I0*0.5 I1*-0.5 I2*0.3", {3}, {0, 1}),
@@ -846,21 +846,27 @@ def _known_redundancy(output: str):
             {1, 4},
             {0, 1},
         ),
-    }, x
+    }
+    # The generating function's cost (mean squared error): the noise's mean square.
+    return problems, x, float(np.mean(noise**2))
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("output", ["identity", "tanh"])
 def test_default_optimize_prunes_known_redundancy(output):
-    problems, x = _known_redundancy(output)
+    """Default optimize() removes only redundant genes, keeps the needed inputs, and loses no
+    fit: its cost is within 1% of the generating function's own (the noise's mean square:
+    the cost is the mean squared error). That is the best fit there is up to the noise the
+    redundant capacity fits, about p / n; plain CMA-ES on the unpruned network (the earlier
+    reference, a second compiled program) came to 0.9996-0.9999 of it on seed 0."""
+    problems, x, floor = _known_redundancy(output)
     for name, (y, text, may_go, must_stay) in problems.items():
         task = regression(x, y, hidden="tanh", output=output)
         for seed in (0,):  # 10 seeds per case: python -m bench redundancy
             key = jax.random.key(seed)
-            base = optimize(text, task, key=key, pruner="none")  # plain CMA-ES
             res = optimize(text, task, key=key)  # covariance pruning is optimize's default
             removed = {r.gene for r in res.pruning if r.accepted}
             reads = {g.ref for g in res.genome.genes if g.kind == GeneKind.INPUT}
             assert removed and removed <= may_go, (name, seed, removed)
             assert must_stay <= reads, (name, seed, str(res.genome))
-            assert res.cost <= 1.01 * base.cost, (name, seed, res.cost, base.cost)
+            assert res.cost <= 1.01 * floor, (name, seed, res.cost, floor)

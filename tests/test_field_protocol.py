@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import inspect
 import json
 import math
 import os
@@ -61,6 +62,14 @@ def random_tn_genome(rng, n_in, n_out, n_hidden, *, p=0.5, dead_output=False):
                 conns.append([s, o, rng.normal()])
     pad = np.full((3, 4), np.nan), np.full((4, 3), np.nan)
     return np.vstack([np.asarray(nodes, float), pad[0]]), np.vstack([np.asarray(conns), pad[1]])
+
+
+def deepest_tn_genome():
+    """The widest and deepest genome `random_tn_genome` makes with 4 inputs, 2 outputs and at
+    most 3 hidden nodes (5 neurons, 4 sweeps). Among a run's candidates it sets the shapes of
+    the judging programs (the batch is padded to its largest network), so that the runs of
+    other seeds and tests are judged by the programs compiled once."""
+    return random_tn_genome(np.random.default_rng(0), 4, 2, 3, p=1.0)
 
 
 def tn_reference(nodes, conns, x, n_in, n_out, activations):
@@ -269,27 +278,33 @@ def test_seed_counts_by_hand():
 
 
 # ------------------------------------------------------- the same test episodes, checked
+# The stand-in imports numpy alone (this file, bench and JAX would cost each of its processes
+# a second or more): the genome makers' source is put in, and its archive is the plain
+# reference of `test_archive_and_choice_match_a_plain_reference` (the k best distinct
+# networks, best first; ties to the one offered first).
 FAKE_TN = """
-import argparse, json, sys
+import argparse, json
 import numpy as np
-sys.path.insert(0, {tests!r})
-from test_field_protocol import random_tn_genome
-from bench.field_champions import Archive
+{genome_source}
 p = argparse.ArgumentParser()
 for f in ("--out", "--seed", "--generations", "--pop", "--t0"):
     p.add_argument(f)
 a = p.parse_args()
 rng = np.random.default_rng(int(a.seed))
-archive, cands, curve = Archive(5), {{}}, []
+offered, cands, curve = [], {{}}, []
 for g in range(int(a.generations)):
     for j in range(3):
         nodes, conns = random_tn_genome(rng, 4, 2, int(rng.integers(0, 4)))
+        if g == j == 0:  # a candidate from the start: the judging programs' shapes fixed
+            nodes, conns = deepest_tn_genome()
         d = f"g{{g}}-{{j}}"
-        if archive.offer(d, float(rng.normal())):
+        offered.append((d, float(rng.normal())))
+        top = sorted(offered, key=lambda e: -e[1])[:5]  # stable: ties to the first offered
+        if d in [i for i, _ in top]:
             cands[d] = {{"nodes": nodes[~np.isnan(nodes[:, 0])].tolist(),
                         "conns": conns[~np.isnan(conns[:, 0])].tolist()}}
     curve.append({{"evaluations": (g + 1) * int(a.pop), "wall_s": g + 1.0,
-                  "train_return": archive.best(), "archive": archive.entries()}})
+                  "train_return": top[0][1], "archive": [list(e) for e in top]}})
 json.dump({{"method": "tensorneat", "kind": "tensorneat", "activations": ["tanh"],
            "curve": curve, "candidates": cands, "done": True}}, open(a.out, "w"))
 """
@@ -298,7 +313,8 @@ json.dump({{"method": "tensorneat", "kind": "tensorneat", "activations": ["tanh"
 def fake_tensorneat(tmp_path: Path):
     """A stand-in for TensorNEAT's training process: random genomes in its format."""
     script = tmp_path / "fake_tn.py"
-    script.write_text(FAKE_TN.format(tests=str(Path(__file__).resolve().parent)))
+    source = inspect.getsource(random_tn_genome) + inspect.getsource(deepest_tn_genome)
+    script.write_text(FAKE_TN.format(genome_source=source))
     calls = []
 
     def argv(method, args, env, seed, out):
@@ -316,8 +332,9 @@ def test_both_methods_start_from_the_same_states_and_a_mismatch_is_refused():
 
     rng = np.random.default_rng()
     cands = {}
-    for j in range(2):
-        nodes, conns = random_tn_genome(rng, 4, 2, 2)
+    # t2 (in no archive: never judged) is the stand-in's deepest network, as in its runs.
+    for j in range(3):
+        nodes, conns = random_tn_genome(rng, 4, 2, 2) if j < 2 else deepest_tn_genome()
         cands[f"t{j}"] = {"nodes": nodes[~np.isnan(nodes[:, 0])].tolist(),
                           "conns": conns[~np.isnan(conns[:, 0])].tolist()}  # fmt: skip
     curve = [{"evaluations": 100, "wall_s": 1.0, "archive": [["t0", 1.0], ["t1", 0.5]]}]
@@ -611,7 +628,8 @@ def test_eant2_training_goes_on_from_its_run_directory(tmp_path):
     from bench.field_settings import ENVS
     from bench.field_workers import Log, resume_log, train_eant2
 
-    sizes = {"seed": 3, "budget": 500, "population": 2, "max_iters": 3}
+    # Three generations (98, 294 and 490 evaluations): cut after the second, one to go on.
+    sizes = {"seed": 3, "budget": 300, "population": 2, "max_iters": 3}
     whole = Log(tmp_path / "whole.json", 0.0, {})
     train_eant2(ENVS["cartpole"], log=whole, rundir=tmp_path / "whole.rundir", **sizes)
 

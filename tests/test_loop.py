@@ -59,8 +59,10 @@ CONFIG = EANT2Config(
     population=6, stop_when_solved=False, exploit=ExploitConfig(max_iters=300, pruner="covariance")
 )
 
-# The command-line runs: small and short (their cost is compilation and process start-up).
-CLI_RUN = ["--population", "4", "--seed", "1", "--max-iters", "200"]
+# The command-line runs: small and short (their cost is compilation and process start-up),
+# without a pruner (a smaller engine program to compile; kill, Ctrl-C and resume do not
+# depend on it: resume's exact pruning records, test_resume_after_crash_inside_a_commit).
+CLI_RUN = ["--population", "4", "--seed", "1", "--max-iters", "200", "--pruner", "none"]
 CLI_GENERATIONS = 2
 
 
@@ -732,10 +734,12 @@ def test_cli_sets_process_defaults_before_mujoco_and_the_backend(
 @pytest.mark.slow
 def test_cli_x64_run_records_float64_and_resumes(tmp_path, capsys, monkeypatch):
     """``eant2 run --x64`` keeps the CMA-ES state in float64; resume turns x64 on again.
-    In this process: x64 is turned off between the two commands, as a new process has it."""
+    In this process: x64 is turned off between the two commands, as a new process has it.
+    (No pruner: a smaller float64 program to compile; the state's dtype does not depend on
+    it.)"""
     out = tmp_path / "x64"
     argv = ["run", "xor", "--generations", "0", "--population", "3", "--max-iters", "40",
-            "--x64", "--out", str(out)]  # fmt: skip
+            "--pruner", "none", "--x64", "--out", str(out)]  # fmt: skip
     rc, err, _ = _run_main(argv, capsys, monkeypatch)
     assert rc == 0, err
     assert jax.config.jax_enable_x64

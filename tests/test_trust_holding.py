@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -18,7 +19,6 @@ from pathlib import Path
 import jax
 import pytest
 from rundirs import run_main
-from test_reproduce_resume import SETTINGS  # the reproduction those tests resume
 
 import eant2_jax
 from eant2_jax import EANT2Config, ExploitConfig, rundir, tasks
@@ -233,15 +233,16 @@ def _namespaces() -> bool:
 
 @pytest.mark.slow
 @pytest.mark.skipif(not _namespaces(), reason="needs mounts in a mount namespace (root)")
-def test_a_full_or_read_only_cache_disk_leaves_the_run_as_it_was(tmp_path):
+def test_a_full_or_read_only_cache_disk_leaves_the_run_as_it_was(tmp_path, three_runs):
     """Real disks, mounted in a namespace of the test's own: a 96 KiB tmpfs that the
     cache fills, an empty folder mounted read-only, and a warm cache mounted read-only.
-    ``eant2 run`` exits 0 on each with the records of the run that warmed the cache."""
+    ``eant2 run`` exits 0 on each with the records of the runs that warmed the cache (the
+    same command: `three_runs`, its cache copied here, and its run that ran alone)."""
     argv = ["run", "xor", "--generations", "1", *TINY_FLAGS]
-    warm = tmp_path / "warm"
-    env = {**os.environ, "EANT2_CACHE_DIR": str(warm)}
-    ((rc, _, err),) = _finish([_eant2([*argv, "--out", tmp_path / "first"], env)])
-    assert rc == 0, err[-3000:]
+    runs, results = three_runs
+    assert results[1][0] == 0, results[1][2][-3000:]
+    first, warm = runs / "alone", tmp_path / "warm"
+    shutil.copytree(runs / "cache", warm)
     held = sum(p.stat().st_size for p in warm.rglob("*") if p.is_file())
     assert held > 2 * 96 * 1024, f"the cache holds {held} bytes: a 96 KiB disk would not fill"
     dirs = {"FULL": tmp_path / "full", "RO_COLD": tmp_path / "ro_cold", "RO_WARM": warm}
@@ -258,7 +259,7 @@ def test_a_full_or_read_only_cache_disk_leaves_the_run_as_it_was(tmp_path):
         log = (out / f"{name}.log").read_text()
         assert (out / f"{name}.rc").read_text().strip() == "0", (name, log[-3000:])
         assert "Traceback" not in log, (name, log[-3000:])
-        assert _records(out / name) == _records(tmp_path / "first"), name
+        assert _records(out / name) == _records(first), name
 
 
 # -------------------------------------------------------- concurrent processes, real commands
@@ -283,18 +284,29 @@ def _finish(procs) -> list[tuple[int, str, str]]:
                 p.wait()
 
 
+@pytest.fixture(scope="module")
+def three_runs(tmp_path_factory):
+    """Three ``eant2 run`` processes at once on one empty cache folder (``cache``), two of
+    them with one ``--out`` (``shared``), the third alone (``alone``): the folder and the
+    processes' ``(exit code, stdout, stderr)``. Once for the module: the runs leave a warm
+    cache, which `test_a_full_or_read_only_cache_disk_leaves_the_run_as_it_was` mounts."""
+    tmp_path = tmp_path_factory.mktemp("three")
+    env = {**os.environ, "EANT2_CACHE_DIR": str(tmp_path / "cache")}
+    argv = ["run", "xor", "--generations", "1", *TINY_FLAGS]
+    shared, alone = tmp_path / "shared", tmp_path / "alone"
+    procs = [_eant2([*argv, "--out", out], env) for out in (shared, alone, shared)]
+    return tmp_path, _finish(procs)
+
+
 @pytest.mark.slow
-def test_two_runs_on_one_cold_cache_and_two_runs_with_one_out(tmp_path):
+def test_two_runs_on_one_cold_cache_and_two_runs_with_one_out(three_runs):
     """Three ``eant2 run`` processes at once on one empty cache folder, two of them with one
     ``--out``: one of those two is refused in one line and the directory is the other's,
     whole; the runs that ran have the same records (same seed), and the cache holds
     entries both of XLA and of the program store."""
-    cache = tmp_path / "cache"
-    env = {**os.environ, "EANT2_CACHE_DIR": str(cache)}
-    argv = ["run", "xor", "--generations", "1", *TINY_FLAGS]
-    shared, alone = tmp_path / "shared", tmp_path / "alone"
-    procs = [_eant2([*argv, "--out", out], env) for out in (shared, alone, shared)]
-    (rc_a, _, err_a), (rc_b, _, err_b), (rc_c, _, err_c) = _finish(procs)
+    tmp_path, results = three_runs
+    cache, shared, alone = tmp_path / "cache", tmp_path / "shared", tmp_path / "alone"
+    (rc_a, _, err_a), (rc_b, _, err_b), (rc_c, _, err_c) = results
     assert rc_b == 0, err_b[-3000:]
     assert sorted([rc_a, rc_c]) == [0, 2], (err_a[-3000:], err_c[-3000:])
     loser = (err_a if rc_a == 2 else err_c).strip().splitlines()
@@ -304,6 +316,23 @@ def test_two_runs_on_one_cold_cache_and_two_runs_with_one_out(tmp_path):
     assert _records(shared) == _records(alone)
     assert any(p.parent == cache for p in cache.iterdir() if p.is_file())
     assert list((cache / programstore.DIRNAME).glob("*.program"))
+
+
+# A small reproduction with every part of one (two arms of two runs in lock-step, the
+# condition experiment, the report): what the two resumes race for is its run directories
+# and files, whatever sizes its programs have (smaller: fewer seconds compiling them).
+REPRODUCTION = dict(
+    task_meta={"task": "xor", "task_options": {}},
+    runs=2,
+    generations=2,
+    pruners=("covariance",),
+    config=EANT2Config(population=3, exploit=ExploitConfig(max_iters=30)),
+    devices=1,
+    condition=True,
+    condition_iters=20,
+    condition_inits=1,
+    condition_dtype="float64",
+)
 
 
 @pytest.mark.slow
@@ -323,7 +352,7 @@ def test_two_resumes_of_one_reproduction(tmp_path, monkeypatch):
 
     cut = tmp_path / "cut"
     with pytest.raises(KeyboardInterrupt):
-        reproduce(tasks.make("xor"), cut, callback=cut_short, **SETTINGS)
+        reproduce(tasks.make("xor"), cut, callback=cut_short, **REPRODUCTION)
     env = {**os.environ, "EANT2_CACHE_DIR": ""}
     procs = [_eant2(["resume", cut], env) for _ in range(2)]
     results = _finish(procs)

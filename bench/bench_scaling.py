@@ -136,7 +136,10 @@ def _prepare(args: argparse.Namespace) -> None:
     if args.rounds < 1:
         raise BenchInputError(f"--rounds must be at least 1, got {args.rounds}")
     if args.quick:
-        args.per_device, args.strong, args.iters, args.moves, args.repeats = 2, 4, 4, 8, 1
+        # One structure per device and a strong batch of one: the one-device cases are one
+        # program, and so are the two-device ones (one structure padded to two rows), so
+        # that the smoke test compiles two engine programs, not three.
+        args.per_device, args.strong, args.iters, args.moves, args.repeats = 1, 1, 4, 8, 1
         args.rounds = 2
 
 

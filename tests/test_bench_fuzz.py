@@ -28,36 +28,39 @@ def test_a_payload_that_runs_is_classed_executed(tmp_path):
     assert classify(lambda: tasks.make("xor", bogus=1), marker)[0] == "error"
 
 
-def _quick(tmp_path, *argv: str) -> dict:
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory) -> dict:
+    """One ``--quick`` run of every target (the program store included), read by the tests
+    below: its JSON file holds the rows it returned."""
     from bench import bench_fuzz_rundir
 
-    out = tmp_path / "fuzz.json"
-    payload = bench_fuzz_rundir.main(["--quick", "--out", str(out), *argv])
+    out = tmp_path_factory.mktemp("fuzz") / "fuzz.json"
+    payload = bench_fuzz_rundir.main(["--quick", "--out", str(out)])
     assert json.loads(out.read_text())["rows"] == payload["rows"]
     return payload
 
 
 @pytest.mark.slow
-def test_quick_fuzz_finds_no_bug(tmp_path, capsys):
-    payload = _quick(tmp_path, "--store", "0")
-    rows = {r["what"]: r for r in payload["rows"]}
+def test_quick_fuzz_finds_no_bug(quick):
+    """Every target read some cases, each hostile task was refused, and no case of any
+    target (the program store's too) is a bug."""
+    rows = {r["what"]: r for r in quick["rows"]}
     for target in ("run directories", "reproduce.json", "genome headers", "task options"):
         assert rows[f"{target} (all)"]["error"] + rows[f"{target} (all)"]["accepted"] > 0
     assert rows["run directories (hostile)"]["error"] >= 9  # each hostile task refused
     assert rows["genome texts"]["error"] > 0
+    for family in ("gymnax", "brax", "playground"):  # each family's options drawn
+        row = rows[f"task options ({family})"]
+        assert row["error"] + row["accepted"] > 0, family
     found = {c: rows["all targets"][c] for c in BUGS}
-    assert found == dict.fromkeys(BUGS, 0), payload["bugs"][:5]
+    assert found == dict.fromkeys(BUGS, 0), quick["bugs"][:5]
     assert sum(rows["all targets"][c] for c in ("error", "accepted")) >= 500
-    capsys.readouterr()
 
 
 @pytest.mark.slow
-def test_quick_store_fuzz_finds_no_bug(tmp_path, capsys):
+def test_quick_store_fuzz_finds_no_bug(quick):
     """Program-store entries, each read by a fresh process (a crash or hang is a bug)."""
-    payload = _quick(tmp_path, *"--cases 0 --genomes 0 --manifests 0 --headers 0".split(),
-                     "--options", "0", "--store", "32")  # fmt: skip
-    rows = {r["what"]: r for r in payload["rows"]}
+    rows = {r["what"]: r for r in quick["rows"]}
     assert rows["program store (all)"]["accepted"] > 0
     found = {c: rows["program store (all)"][c] for c in BUGS}
-    assert found == dict.fromkeys(BUGS, 0), payload["bugs"][:5]
-    capsys.readouterr()
+    assert found == dict.fromkeys(BUGS, 0), quick["bugs"][:5]

@@ -70,6 +70,11 @@ def _mjx_kinematics(model, site: int, q):
     return d.xanchor, d.xaxis, d.site_xpos[site], d.site_xmat[site]
 
 
+# Our forward pass, compiled and batched over joint angles, the chain an argument (as a
+# task holds it: data, not a constant): one program per chain shape, shared by both seeds.
+_forward = jax.jit(jax.vmap(kin.forward, in_axes=(None, 0)))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_forward_equals_mjx_kinematics_and_mujoco_c(seed):
@@ -81,7 +86,7 @@ def test_forward_equals_mjx_kinematics_and_mujoco_c(seed):
         model = mjx.put_model(mj)
         qs = rng.uniform(-7.0, 7.0, size=(64, mj.nq)).astype(np.float32)
 
-        ours = jax.jit(jax.vmap(lambda q, chain=chain: tuple(kin.forward(chain, q))))(qs)
+        ours = tuple(_forward(chain, qs))
         ref = _mjx_kinematics(model, site, qs)
         for field, a, b in zip(kin.ChainPose._fields, ours, ref, strict=True):
             a, b = np.asarray(a), np.asarray(b)
@@ -108,7 +113,7 @@ def test_a_long_chain_passed_as_an_argument_matches_mujoco_c():
     site = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SITE, "tip")
     chain = kin.Chain.from_model(mj, site)
     qs = rng.uniform(-7.0, 7.0, size=(16, mj.nq)).astype(np.float32)
-    ours = jax.jit(jax.vmap(kin.forward, in_axes=(None, 0)))(chain, qs)
+    ours = _forward(chain, qs)
     d = mujoco.MjData(mj)
     for i, q in enumerate(qs):
         d.qpos[:] = q

@@ -190,8 +190,8 @@ def _prepare_protocol(args: argparse.Namespace) -> None:
     if args.out is None:  # the protocol's results beside, not over, the V.A experiment's
         args.out = str(default_out("condition-protocol"))
     if args.quick:
-        args.iters, args.inits, args.prune_iters, args.n_starts = 40, 2, 50, 16
-        args.networks, args.chunk = 1, 20
+        args.iters, args.inits, args.prune_iters, args.n_starts = 20, 2, 20, 4
+        args.networks, args.chunk = 1, 10
     args.chunk = min(args.chunk, args.iters)
     if args.resume and not (args.checkpoint and Path(args.checkpoint).is_file()):
         raise BenchInputError("--resume needs the --checkpoint file of the run it goes on")

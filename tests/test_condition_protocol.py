@@ -305,7 +305,7 @@ def test_bench_protocol_quick_writes_and_resumes(tmp_path):
     )
     md = out.with_suffix(".md").read_text()
     assert "### Network 3000" in md and "Positive control" in md and "1.8e17" in md
-    assert json.loads(out.read_text())["done"] == first["iters"] == 40
+    assert json.loads(out.read_text())["done"] == first["iters"] == 20  # --quick's
     again = bench_condition.main(
         [
             "--protocol",
@@ -318,7 +318,7 @@ def test_bench_protocol_quick_writes_and_resumes(tmp_path):
             "--resume",
         ]
     )
-    assert again["resumed_at"] == 40
+    assert again["resumed_at"] == 20
     assert [r["trace"] for r in again["rows"]] == [r["trace"] for r in first["rows"]]
     with pytest.raises(bench_condition.BenchInputError, match="other settings"):
         bench_condition.main(

@@ -6,10 +6,10 @@ import pytest
 
 # The command's short setting.
 SERVO_ARGV = [
-    "reproduce", "--runs", "2", "--generations", "2",
-    "--population", "3", "--max-iters", "30", "--condition-iters", "60",
+    "reproduce", "--runs", "2", "--generations", "1",
+    "--population", "3", "--max-iters", "20", "--condition-iters", "20",
     "--condition-inits", "2", "--pruners", "covariance",
-    "--task-option", "n_starts=16",
+    "--task-option", "n_starts=4",
 ]  # fmt: skip
 
 
@@ -36,11 +36,11 @@ def test_reproduce_short_servo(tmp_path, capsys, monkeypatch):
     assert set(summary) == {"covariance", "none"}
     cond = json.loads((out / "condition.json").read_text())
     assert cond["dtype"] == "float64" and len(cond["peak_before"]) == 2
-    assert all(len(c) == 60 for c in cond["before"] + cond["after"])
+    assert all(len(c) == 20 for c in cond["before"] + cond["after"])
     for arm in ("covariance", "none"):
         for seed in (0, 1):
             gens = (out / f"{arm}-s{seed}" / "generations.jsonl").read_text().splitlines()
-            assert len(gens) == 3  # generations 0, 1, 2
+            assert len(gens) == 2  # generations 0, 1
     # Both refusals come before anything runs. An unknown arm is one line:
     argv_bad = [*argv[:-1], str(tmp_path / "bad"), "--pruners", "covariance-exact"]
     assert main(argv_bad) == 2 and not (tmp_path / "bad").exists()
@@ -67,8 +67,48 @@ def test_arms_name_a_pruner_and_its_rule():
             arm_config(base, bad)
 
 
+def _xor_settings():
+    """A tiny reproduction on XOR: one run of the covariance arm and of the unpruned one,
+    and the condition experiment."""
+    from eant2_jax.config import EANT2Config, ExploitConfig
+
+    return dict(
+        task_meta={"task": "xor", "task_options": {}}, runs=1, generations=1,
+        pruners=("covariance",), devices=1, condition_iters=20, condition_inits=2,
+        config=EANT2Config(population=3, exploit=ExploitConfig(max_iters=30)),
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def plain_xor(tmp_path_factory):
+    """That reproduction by the plain path (the condition experiment inline, nothing
+    compiled ahead), shared by the tests that compare another path's result with it; and
+    its progress events."""
+    import jax
+
+    from eant2_jax import tasks
+    from eant2_jax.app.experiments import reproduce
+
+    out, events = tmp_path_factory.mktemp("plain") / "rep", []
+    settings = _xor_settings()
+    reproduce(tasks.make("xor"), out, overlap_condition=False, callback=events.append, **settings)
+    assert not jax.config.jax_enable_x64  # float64 stayed inside the experiment
+    return out, events
+
+
+def _records(out, run):
+    """A run directory's generation records, without what describes the process (what it
+    compiled, and every "..._s" timing)."""
+    drop = ("compiles", "cache_hits", "cache_misses")
+    lines = (out / run / "generations.jsonl").read_text().splitlines()
+    return [
+        {k: v for k, v in json.loads(line).items() if not k.endswith("_s") and k not in drop}
+        for line in lines
+    ]
+
+
 @pytest.mark.slow
-def test_the_condition_experiment_in_a_background_thread_gives_the_same_result(tmp_path):
+def test_the_condition_experiment_in_a_background_thread_gives_the_same_result(tmp_path, plain_xor):
     """``overlap_condition`` runs the experiment in a thread (float64 there alone) while the
     main thread goes on; its result equals the inline one's. (The pruning arms themselves
     are not overlapped here: on a CPU two programs at once can deadlock XLA's thread pool,
@@ -77,22 +117,20 @@ def test_the_condition_experiment_in_a_background_thread_gives_the_same_result(t
 
     from eant2_jax import tasks
     from eant2_jax.app.experiments import reproduce
-    from eant2_jax.loop import EANT2Config
 
+    plain, plain_events = plain_xor
     events = []
-    settings = dict(
-        task_meta={"task": "xor", "task_options": {}}, runs=1, generations=1, pruners=("none",),
-        config=EANT2Config(population=3), devices=1, condition_iters=40, condition_inits=2,
-        callback=events.append,
-    )  # fmt: skip
-    task = tasks.make("xor")
-    for overlap in (False, True):
-        reproduce(task, tmp_path / str(overlap), overlap_condition=overlap, **settings)
-        assert not jax.config.jax_enable_x64  # float64 stayed inside the experiment
-    cond = [json.loads((tmp_path / str(o) / "condition.json").read_text()) for o in (False, True)]
+    out = tmp_path / "overlap"
+    reproduce(
+        tasks.make("xor"), out, overlap_condition=True, callback=events.append, **_xor_settings()
+    )
+    assert not jax.config.jax_enable_x64  # float64 stayed inside the experiment
+    cond = [json.loads((d / "condition.json").read_text()) for d in (plain, out)]
     assert cond[0] == cond[1] and cond[0]["dtype"] == "float64"
-    phases = [e["phase"] for e in events if e["event"] == "condition"]
-    assert phases == ["start", "done", "start", "done"]
+    for evs in (plain_events, events):
+        assert [e["phase"] for e in evs if e["event"] == "condition"] == ["start", "done"]
+    for run in ("covariance-s0", "none-s0"):  # the runs are the same too
+        assert _records(plain, run) == _records(out, run), run
 
 
 def test_a_background_error_reaches_the_caller():
@@ -108,7 +146,7 @@ def test_a_background_error_reaches_the_caller():
 
 @pytest.mark.slow
 def test_later_arms_first_programs_compiled_ahead_are_used_and_change_nothing(
-    tmp_path, monkeypatch
+    tmp_path, monkeypatch, plain_xor
 ):
     """On an accelerator `reproduce` starts compiling each later arm's generation-0
     program (one lock-step group per arm) before the first arm runs. Forced on here, each
@@ -120,30 +158,16 @@ def test_later_arms_first_programs_compiled_ahead_are_used_and_change_nothing(
 
     from eant2_jax import tasks
     from eant2_jax.app import experiments
-    from eant2_jax.loop import EANT2Config, compile_first_ahead
+    from eant2_jax.loop import compile_first_ahead
 
-    settings = dict(
-        task_meta={"task": "xor", "task_options": {}}, runs=1, generations=1,
-        pruners=("covariance",), config=EANT2Config(population=3), devices=1,
-        condition=False,
-    )  # fmt: skip
-    task = tasks.make("xor")
-    experiments.reproduce(task, tmp_path / "plain", **settings)
-
+    plain, _ = plain_xor
     calls = []
     used = force_compile_ahead(monkeypatch)  # strictly: no fallback to jit
     monkeypatch.setattr(experiments, "compile_first_ahead", joined(compile_first_ahead, calls))
-    experiments.reproduce(task, tmp_path / "ahead", **settings)
+    # Without the condition experiment, which reads the runs' result and changes none.
+    settings = {**_xor_settings(), "condition": False}
+    experiments.reproduce(tasks.make("xor"), tmp_path / "ahead", **settings)
     assert calls == [True]  # the covariance arm's, before the unpruned arm ran
     assert used  # the arms ran programs compiled ahead, strictly
-
-    def records(out, run):
-        drop = ("compiles", "cache_hits", "cache_misses")  # and every "..._s" timing
-        lines = (tmp_path / out / run / "generations.jsonl").read_text().splitlines()
-        return [
-            {k: v for k, v in json.loads(line).items() if not k.endswith("_s") and k not in drop}
-            for line in lines
-        ]
-
     for run in ("covariance-s0", "none-s0"):
-        assert records("plain", run) == records("ahead", run), run
+        assert _records(plain, run) == _records(tmp_path / "ahead", run), run

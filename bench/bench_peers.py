@@ -434,8 +434,8 @@ def _options(p: argparse.ArgumentParser) -> None:
 
 def _prepare(args: argparse.Namespace) -> None:
     if args.quick:
-        args.budget, args.n_starts, args.hidden = 300, 31, [2]
-        args.neat_pop, args.eant2_population, args.eant2_max_iters = 30, 3, 5
+        args.budget, args.n_starts, args.hidden = 100, 8, [2]
+        args.neat_pop, args.eant2_population, args.eant2_max_iters = 30, 2, 3
         args.eant2_patience, args.eant2_prune_window = 5, 3
 
 

@@ -15,6 +15,7 @@ import inspect
 import json
 import math
 import os
+import subprocess
 import sys
 import types
 from pathlib import Path
@@ -381,13 +382,16 @@ def _fake_src(tmp_path):
 @pytest.mark.skipif(not HAS_GYMNAX, reason="gymnax not installed")
 def test_protocol_end_to_end_on_cartpole(tmp_path, monkeypatch, capsys):
     """eant2_jax's real run and the stand-in, judged on one task; files and labels. The
-    judging runs in its own process, as the protocol runs it (the stand-in too); eant2_jax's
-    training runs here, through the same argv (it shares its compiled programs with
-    `test_eant2_training_goes_on_from_its_run_directory`)."""
+    stand-in trains in its own process, as the protocol runs it; eant2_jax's training and the
+    judging run here, through the same argv and the workers' ``main`` (sharing their compiled
+    programs with `test_eant2_training_goes_on_from_its_run_directory` and
+    `test_both_methods_start_from_the_same_states_and_a_mismatch_is_refused`); that the
+    workers' module runs as the protocol's fresh child process is
+    `test_the_workers_run_as_a_child_process_of_the_protocol`."""
     argv, _ = fake_tensorneat(tmp_path)
     monkeypatch.setitem(field_protocol.METHODS, "tensorneat", argv)
     _fake_src(tmp_path)
-    workers_in_process(monkeypatch, what=("train",))
+    workers_in_process(monkeypatch)
     payload = _protocol(tmp_path, "--seeds", "1", "--population", "2", "--max-iters", "3")
     (rec,) = payload["seeds"]
     assert payload["trial"] and rec["env"] == "cartpole" and rec["seed"] == 0
@@ -404,6 +408,32 @@ def test_protocol_end_to_end_on_cartpole(tmp_path, monkeypatch, capsys):
     assert "A trial, not the protocol's result" in md and '"max_iters": 100' in md
     assert [r["budget"] for r in payload["summary"]] == [100, 200, 400]
     capsys.readouterr()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_GYMNAX, reason="gymnax not installed")
+def test_the_workers_run_as_a_child_process_of_the_protocol(tmp_path):
+    """``python -m bench.field_workers judge``, started as the protocol starts its children
+    (``protocol_child_env``: this checkout on ``PYTHONPATH``, no compilation cache), runs in
+    a fresh process and writes its judged file; a failing child says what failed on its last
+    stderr line. A run without a curve is not judged: the child's imports, task and file are
+    the point here, the judging itself runs in-process in the tests above."""
+    run = tmp_path / "run.json"
+    run.write_text(json.dumps({"method": "eant2", "kind": "eant2", "curve": []}))
+    out = tmp_path / "judged.json"
+    argv = [sys.executable, "-m", "bench.field_workers", "judge", "--env", "cartpole",
+            "--out", str(out), "--budgets", "100", "--runs", str(run)]  # fmt: skip
+
+    def child(argv):
+        return subprocess.run(argv, capture_output=True, text=True, timeout=600,
+                              env=field_protocol.protocol_child_env())  # fmt: skip
+
+    proc = child(argv)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads(out.read_text()) == {}
+    proc = child([*argv[:-1], str(tmp_path / "missing.json")])
+    assert proc.returncode != 0
+    assert "missing.json" in proc.stderr.strip().splitlines()[-1]
 
 
 @pytest.mark.slow

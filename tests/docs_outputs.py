@@ -60,10 +60,10 @@ def loose(text: str) -> str:
 
 
 _DEMO = "$ eant2 demo\n"
-_demo_printed: list[str] = []  # what `eant2 demo` printed in this process, once it ran
+demo_printed: list[str] = []  # what `eant2 demo` printed in this process, once it ran
 
 
-def _quickstart_demo() -> Example:
+def quickstart_demo() -> Example:
     page = (ROOT / "docs" / "quickstart.md").read_text()
     (demo,) = [e for e in examples(page) if e.code.startswith(_DEMO)]
     return demo
@@ -75,11 +75,11 @@ def recording_machine() -> bool:
     demo` prints the numbers docs/quickstart.md shows (a CMA-ES run of XOR, which any
     difference in rounding changes). The demo runs once per process: `check` of a page
     that shows it hands over what it printed."""
-    demo = _quickstart_demo()
-    if not _demo_printed:
+    demo = quickstart_demo()
+    if not demo_printed:
         with tempfile.TemporaryDirectory() as tmp:
-            _demo_printed.append(run(demo, Path(tmp)))
-    return mask(_demo_printed[0]) == mask(demo.shown)
+            demo_printed.append(run(demo, Path(tmp)))
+    return mask(demo_printed[0]) == mask(demo.shown)
 
 
 def same(got: str, shown: str) -> bool:
@@ -147,8 +147,8 @@ def check(path: Path, write: bool = False) -> list[tuple[Example, str]]:
     with tempfile.TemporaryDirectory() as tmp:
         for ex in examples(page):
             got = run(ex, Path(tmp))
-            if ex.code.startswith(_DEMO) and ex == _quickstart_demo() and not _demo_printed:
-                _demo_printed.append(got)  # `recording_machine` need not run it again
+            if ex.code.startswith(_DEMO) and ex == quickstart_demo() and not demo_printed:
+                demo_printed.append(got)  # `recording_machine` need not run it again
             if not same(got, ex.shown):
                 wrong.append((ex, got))
             pieces += [page[last : ex.span[0]], got]

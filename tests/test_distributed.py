@@ -36,7 +36,10 @@ genomes = [E.Genome.parse(t) for t in [
     "N0/4*1 I0*0.1 I1*0.1 I2*0.1 B*0.0",
     "N0/4*1 N1/2*0.0 I0*0.3 I2*-0.2 I0*0.1 I1*0.1 I2*0.1",
 ]]
-cfg = E.ExploitConfig(max_iters=200, pruner="covariance", prune_window=40)
+# One engine configuration for every scenario (max_iters, patience and prune_window are
+# traced, not compiled in), so that its programs of one device and of two compile once.
+cfg = E.ExploitConfig(max_iters=200, chunk=4, pruner="covariance", prune_window=40,
+                      prune_at_stop=False)
 """
 
 
@@ -107,10 +110,11 @@ DEVICES_2 = {
         assert np.array_equal(one, ref)
         assert "scan" in str(jax.make_jaxpr(jax.vmap(linalg.solve))(m, b))
         # Four structures, two per device, of the bucket, rows, chunk and pruner of the
-        # scenarios below (so the engine's two programs, one device and two, compile once).
+        # scenarios below (so the engine's two programs, one device and two, compile once);
+        # the covariance pruner's programs hold its solves too.
         from eant2_jax import exploitation as ex
         four = [*genomes, E.Genome.parse("N0/3*1 I0*0.2 I1*-0.3 B*0.1")]
-        c1 = ex.ExploitConfig(max_iters=4, chunk=4, pruner="none")
+        c1 = cfg.replace(max_iters=4)
         prep = tuning.prepare(four, task, key=jax.random.key(0), config=c1, min_rows=2)
         assert prep.batch.layout.slot.shape[0] == 4  # two real structures per device
         def go(mesh):
@@ -126,9 +130,10 @@ DEVICES_2 = {
     "one_iteration": """
         # The structures of the tune below padded to 4 rows, 2 per device, in no_hang's
         # programs (its rows, bucket, chunk and pruner; max_iters is traced, not compiled in):
-        # one chunk of 4 iterations on one device and split over two.
+        # one chunk of 4 iterations on one device and split over two (no pruning attempt:
+        # its window is 40 iterations).
         from eant2_jax import exploitation as ex
-        c1 = ex.ExploitConfig(max_iters=4, chunk=4, pruner="none")
+        c1 = cfg.replace(max_iters=4)
         prep = tuning.prepare(genomes, task, key=jax.random.key(0), config=c1, min_rows=4)
         assert prep.popsize == 10 and prep.batch.layout.slot.shape[0] == 4
         def go(mesh):
@@ -142,7 +147,8 @@ DEVICES_2 = {
         """,
     "sharded_tune": """
         assert len(jax.devices()) == 2
-        one = tuning.tune(genomes, task, key=jax.random.key(3), config=cfg)
+        # One device's 4 rows (a padding row, as on two devices): no_hang's program.
+        one = tuning.tune(genomes, task, key=jax.random.key(3), config=cfg, min_rows=4)
         mesh = distributed.make_mesh("all")
         two = tuning.tune(genomes, task, key=jax.random.key(3), config=cfg, mesh=mesh)
         out = {"one": one.costs, "two": two.costs,
@@ -160,8 +166,9 @@ DEVICES_2 = {
         """,
     "warm_start": """
         from eant2_jax import exploitation as ex
-        c = ex.ExploitConfig(max_iters=12, chunk=4, pruner="none")
-        first = tuning.tune(genomes, task, key=jax.random.key(3), config=c, keep_search=True)
+        c = cfg.replace(max_iters=12)  # too short for a pruning attempt (window 40)
+        first = tuning.tune(genomes, task, key=jax.random.key(3), config=c, keep_search=True,
+                            min_rows=4)  # no_hang's program of one device
         mesh = distributed.make_mesh(2)
         args = dict(key=jax.random.key(4), config=c, start=first.searches)
         def bits(st):
@@ -170,7 +177,7 @@ DEVICES_2 = {
             return [np.asarray(a).tobytes() for a in jax.tree.leaves(st)]
         one = tuning.prepare(first.genomes, task, multiple_of=2, **args).state
         two = tuning.prepare(first.genomes, task, mesh=mesh, **args).state
-        a = tuning.tune(first.genomes, task, **args)
+        a = tuning.tune(first.genomes, task, min_rows=4, **args)
         b = tuning.tune(first.genomes, task, mesh=mesh, **args)
         out = {"same": bits(one) == bits(two),
                "devices": sorted({len(x.sharding.device_set) for x in jax.tree.leaves(two)}),
@@ -181,8 +188,8 @@ DEVICES_2 = {
         # The chunk of the scenarios above (max_iters and patience are traced, not compiled
         # in): rows 0-1 (device 0) tune two structures for many chunks; rows 2-3 (device 1)
         # are padding, which never runs: device 1's loop ends at once in every chunk while
-        # device 0's runs on
-        c = ex.ExploitConfig(max_iters=30, chunk=4, pruner="none", patience=10)
+        # device 0's runs on (30 iterations: too few for a pruning attempt, window 40)
+        c = cfg.replace(max_iters=30, patience=10)
         two = [genomes[2], genomes[1]]
         prep = tuning.prepare(two, task, key=jax.random.key(0), config=c, min_rows=4)
         def go(mesh):

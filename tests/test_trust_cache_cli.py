@@ -2,13 +2,15 @@
 every entry (and at the older store's ``.pkl`` names), then every entry replaced by another
 program's valid entry, each leave ``eant2 run`` exit 0 with the records of the run on a cold
 cache, and the pickle's code never runs. (One flipped byte in every XLA and store entry:
-tests/test_cache_damage.py; the same cases in-process: tests/test_programstore.py.)"""
+tests/test_cache_damage.py, which starts from the same cold run, `cold_run`; the same cases
+in-process: tests/test_programstore.py.)"""
 
 from __future__ import annotations
 
 import json
 import os
 import pickle
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -31,6 +33,19 @@ def _run(out: Path, cache: Path, *extra: str) -> list[dict]:
     assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
     records = [json.loads(line) for line in (out / "generations.jsonl").read_text().splitlines()]
     return [{k: v for k, v in r.items() if k not in RUN_DEPENDENT} for r in records]
+
+
+_COLD: dict[str, tuple[list[dict], Path]] = {}
+
+
+def cold_run(tmp_path_factory) -> tuple[list[dict], Path]:
+    """The run on an empty cache folder: its records and the cache folder it filled. Made
+    once per process and shared with tests/test_cache_damage.py (the same command: one
+    process start and compilation fewer); each test changes a copy of the folder only."""
+    if "run" not in _COLD:
+        base = tmp_path_factory.mktemp("cold")
+        _COLD["run"] = (_run(base / "cold", base / "cache"), base / "cache")
+    return _COLD["run"]
 
 
 def _other_programs(folder: Path) -> list[Path]:
@@ -60,9 +75,13 @@ class _Plant:
 
 
 @pytest.mark.slow
-def test_planted_pickles_and_foreign_entries_leave_eant2_run_as_it_was(tmp_path):
+def test_planted_pickles_and_foreign_entries_leave_eant2_run_as_it_was(tmp_path, tmp_path_factory):
+    """A pickle at every store entry (and at the older store's ``.pkl`` names), then another
+    program's valid entry at every one: ``eant2 run`` on each cache gives the cold run's
+    records, the pickle never runs, and every entry is replaced by a good one."""
+    cold, cold_cache = cold_run(tmp_path_factory)
     cache = tmp_path / "cache"
-    cold = _run(tmp_path / "cold", cache)
+    shutil.copytree(cold_cache, cache)  # the cold run's cache, as it left it
     store = cache / programstore.DIRNAME
     entries = sorted(store.glob(f"*{programstore.SUFFIX}"))
     assert entries

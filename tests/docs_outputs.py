@@ -113,7 +113,7 @@ def examples(page: str) -> list[Example]:
     return found
 
 
-def _env() -> dict:
+def example_env() -> dict:
     path = os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])
     return dict(os.environ, PYTHONPATH=path)
 
@@ -121,7 +121,7 @@ def _env() -> dict:
 def run(example: Example, cwd: Path) -> str:
     """What the example prints now (for a console block: the block as it would read)."""
     if example.kind == "python":
-        proc = subprocess.run([sys.executable, "-c", example.code], cwd=cwd, env=_env(),
+        proc = subprocess.run([sys.executable, "-c", example.code], cwd=cwd, env=example_env(),
                               capture_output=True, text=True, timeout=600)  # fmt: skip
         if proc.returncode:
             raise RuntimeError(f"example failed:\n{example.code}\n{proc.stderr[-3000:]}")
@@ -133,7 +133,7 @@ def run(example: Example, cwd: Path) -> str:
         command = line[2:]
         out.append(line)
         shell = re.sub(r"^eant2\b", f"{sys.executable} -m eant2_jax.app.cli", command)
-        proc = subprocess.run(shell, shell=True, cwd=cwd, env=_env(), stdout=subprocess.PIPE,
+        proc = subprocess.run(shell, shell=True, cwd=cwd, env=example_env(), stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True, timeout=600)  # fmt: skip
         out.append(proc.stdout.rstrip("\n"))
     return "\n".join(out) + "\n"

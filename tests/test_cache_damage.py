@@ -8,7 +8,7 @@ from __future__ import annotations
 import shutil
 
 import pytest
-from test_trust_cache_cli import _run, cold_run
+from test_trust_cache_cli import cli_run, cold_run
 
 
 @pytest.mark.slow
@@ -26,4 +26,4 @@ def test_a_damaged_cache_leaves_the_run_as_it_was(tmp_path, tmp_path_factory):
         data = bytearray(p.read_bytes())
         data[len(data) // 2] ^= 0x40
         p.write_bytes(bytes(data))
-    assert _run(tmp_path / "damaged", cache) == cold
+    assert cli_run(tmp_path / "damaged", cache) == cold

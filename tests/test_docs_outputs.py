@@ -10,7 +10,7 @@ from pathlib import Path
 
 import docs_outputs
 import pytest
-from docs_outputs import ROOT, _env, examples, loose, mask, run, same
+from docs_outputs import ROOT, example_env, examples, loose, mask, run, same
 
 # One fresh process for several Python examples: each is compiled and run as its own
 # `__main__` script with fresh globals, its stdout captured alone; the outputs (or the
@@ -36,7 +36,7 @@ real.write("\\n" + json.dumps(outs) + "\\n")
 
 def _run_python(found: list, cwd: Path) -> list[str]:
     """What each of these Python examples prints, run one after another in one process."""
-    proc = subprocess.run([sys.executable, "-c", _DRIVER], cwd=cwd, env=_env(), timeout=600,
+    proc = subprocess.run([sys.executable, "-c", _DRIVER], cwd=cwd, env=example_env(), timeout=600,
                           input=json.dumps([e.code for e in found]), capture_output=True,
                           text=True)  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -41,14 +41,18 @@ def xla_cache(tmp_path_factory):
         jax.config.update(name, value)
 
 
+def fresh_store(mp: pytest.MonkeyPatch, folder):
+    """The store in ``folder``, with this process's programs forgotten (a new process)."""
+    mp.setattr(programstore, "directory", lambda: folder)
+    mp.setattr(programstore, "_PROGRAMS", {})
+    mp.setattr(programstore, "_FAILED", [])
+    return folder
+
+
 @pytest.fixture
 def store(tmp_path, monkeypatch):
     """The store in a fresh folder, with this process's programs forgotten (a new process)."""
-    folder = tmp_path / "programs"
-    monkeypatch.setattr(programstore, "directory", lambda: folder)
-    monkeypatch.setattr(programstore, "_PROGRAMS", {})
-    monkeypatch.setattr(programstore, "_FAILED", [])
-    return folder
+    return fresh_store(monkeypatch, tmp_path / "programs")
 
 
 @pytest.fixture(scope="module")
@@ -59,9 +63,7 @@ def stored_run(tmp_path_factory):
     run is about 3 s here, nearly all of it compiling the program)."""
     folder = tmp_path_factory.mktemp("stored") / "programs"
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(programstore, "directory", lambda: folder)
-        mp.setattr(programstore, "_PROGRAMS", {})
-        mp.setattr(programstore, "_FAILED", [])
+        fresh_store(mp, folder)
         first = _run(generations=0)
     (path,) = folder.glob("*.program")
     return first, path.name, path.read_bytes()
@@ -117,7 +119,7 @@ def test_off_cold_and_warm_store_give_the_same_run(store, monkeypatch, task, sto
     assert sorted(store.glob("*.program")) == files  # read, not written again
 
 
-def _chunk_args(task_name: str, config: ExploitConfig):
+def chunk_args(task_name: str, config: ExploitConfig):
     """``(task, args)``: the engine chunk's arguments for one minimal structure (4 rows)."""
     from eant2_jax import tuning
     from eant2_jax.exploration import initial_genome
@@ -136,7 +138,7 @@ def test_the_engine_state_is_equal_to_the_last_bit(store):
     """One chunk of the engine: the stored program's outputs equal jit's, every leaf. (XOR's
     chunk, with the covariance pruner: a small program; a servo run computes the same with
     the store off, cold and warm, `test_off_cold_and_warm_store_give_the_same_run`.)"""
-    task, args = _chunk_args("xor", CONFIG.exploit)
+    task, args = chunk_args("xor", CONFIG.exploit)
     stored = programstore.lookup(exploitation.run_chunk, args, {"length": 5}, task=task)
     assert stored is not None
     plain = exploitation.run_chunk(*args, length=5)
@@ -152,7 +154,7 @@ def _keys(folder) -> set[str]:
 
 def _store_chunk(config: ExploitConfig) -> None:
     """Store (trace, not compile) the engine's chunk for one XOR structure under ``config``."""
-    task, args = _chunk_args("xor", config)
+    task, args = chunk_args("xor", config)
     assert programstore.lookup(exploitation.run_chunk, args, {"length": 5}, task=task)
 
 
@@ -236,7 +238,7 @@ def _whole(path: Path) -> bool:
 
 def _stored_leaves():
     """The entry's key and the arguments' leaves of `_run`'s generation 0 program."""
-    task, args = _chunk_args("xor", CONFIG.exploit)
+    task, args = chunk_args("xor", CONFIG.exploit)
     return jax.tree.leaves(args)
 
 
@@ -362,7 +364,7 @@ def test_a_folder_others_can_write_is_refused_with_one_warning(store, monkeypatc
         uid = os.getuid()
         monkeypatch.setattr(os, "getuid", lambda: uid + 1)
     with pytest.warns(programstore.UntrustedFolderWarning) as caught:
-        task, args = _chunk_args("xor", CONFIG.exploit)
+        task, args = chunk_args("xor", CONFIG.exploit)
         for _ in range(2):
             stored = programstore.lookup(exploitation.run_chunk, args, {"length": 5}, task=task)
             assert stored is None

@@ -21,7 +21,7 @@ from eant2_jax.loop import RUN_DEPENDENT
 from eant2_jax.programs import store as programstore
 
 
-def _run(out: Path, cache: Path, *extra: str) -> list[dict]:
+def cli_run(out: Path, cache: Path, *extra: str) -> list[dict]:
     env = {**os.environ, "EANT2_CACHE_DIR": str(cache)}
     # A small run without a pruner: what is planted and replaced is its programs' entries,
     # whatever they compute (a smaller engine program compiles in two thirds of the time).
@@ -44,22 +44,20 @@ def cold_run(tmp_path_factory) -> tuple[list[dict], Path]:
     process start and compilation fewer); each test changes a copy of the folder only."""
     if "run" not in _COLD:
         base = tmp_path_factory.mktemp("cold")
-        _COLD["run"] = (_run(base / "cold", base / "cache"), base / "cache")
+        _COLD["run"] = (cli_run(base / "cold", base / "cache"), base / "cache")
     return _COLD["run"]
 
 
 def _other_programs(folder: Path) -> list[Path]:
     """Valid store entries (manifest, bytes, their hash) of another program than the run's:
     the engine's chunk for one XOR structure at popsize 9, as the store writes it."""
-    from test_programstore import _chunk_args
+    from test_programstore import chunk_args, fresh_store
 
     from eant2_jax import ExploitConfig, exploitation
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(programstore, "directory", lambda: folder)
-        mp.setattr(programstore, "_PROGRAMS", {})
-        mp.setattr(programstore, "_FAILED", [])
-        task, args = _chunk_args("xor", ExploitConfig(popsize=9, pruner="none"))
+        fresh_store(mp, folder)
+        task, args = chunk_args("xor", ExploitConfig(popsize=9, pruner="none"))
         assert programstore.lookup(exploitation.run_chunk, args, {"length": 5}, task=task)
     return sorted(folder.glob(f"*{programstore.SUFFIX}"))
 
@@ -95,11 +93,11 @@ def test_planted_pickles_and_foreign_entries_leave_eant2_run_as_it_was(tmp_path,
     for p in entries:
         p.write_bytes(planted)
         p.with_suffix(".pkl").write_bytes(planted)
-    assert _run(tmp_path / "pickled", cache) == cold
+    assert cli_run(tmp_path / "pickled", cache) == cold
     assert not marker.exists()
     assert all(p.read_bytes() != planted for p in entries)  # each replaced by a good entry
     foreign = {p: others[i % len(others)].read_bytes() for i, p in enumerate(entries)}
     for p, data in foreign.items():  # another program's entry under each of this run's keys
         p.write_bytes(data)
-    assert _run(tmp_path / "foreign", cache) == cold
+    assert cli_run(tmp_path / "foreign", cache) == cold
     assert all(p.read_bytes() != data for p, data in foreign.items())  # replaced, not used

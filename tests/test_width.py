@@ -16,6 +16,7 @@ import jax
 import numpy as np
 import pytest
 from rundirs import run_main
+from test_distributed import xla_flags  # the suite's flags, with N CPU devices
 
 import eant2_jax
 from eant2_jax import EANT2Config, ExploitConfig, Genome
@@ -162,10 +163,7 @@ print(json.dumps({"rows": [r.history.running.shape[1] for r in runs],
 def test_a_device_mesh_changes_placement_only_not_the_popsize():
     """Width counts the whole batch, on every device; the rows a mesh adds to split the
     batch evenly (3 rows -> 4 over 4 CPU devices) change neither the popsize nor the run."""
-    # The suite's XLA_FLAGS (tests/conftest.py: the faster-compiling CPU emitters), 4 devices.
-    kept = [f for f in os.environ.get("XLA_FLAGS", "").split() if "device_count" not in f]
-    flags = " ".join([*kept, "--xla_force_host_platform_device_count=4"])
-    env = {**os.environ, "XLA_FLAGS": flags}
+    env = {**os.environ, "XLA_FLAGS": xla_flags(4)}
     proc = subprocess.run([sys.executable, "-W", "error", "-c", textwrap.dedent(MESH)],
                           env=env, capture_output=True, text=True, timeout=240)  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-4000:]

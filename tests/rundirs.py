@@ -8,7 +8,16 @@ import json
 import sys
 
 from eant2_jax.app.cli import main
+from eant2_jax.records import RUN_DEPENDENT
 from eant2_jax.rundir import CHECKPOINT, CONFIG
+
+
+def run_records(run_dir) -> list[dict]:
+    """A run directory's generation records without the fields that describe the process,
+    not the run (wall times, and what it compiled: a second run in one process compiles
+    nothing)."""
+    lines = (run_dir / "generations.jsonl").read_text().splitlines()
+    return [{k: v for k, v in json.loads(x).items() if k not in RUN_DEPENDENT} for x in lines]
 
 
 def retask(out, task, options):

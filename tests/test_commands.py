@@ -17,7 +17,7 @@ from pathlib import Path
 
 import jax
 import pytest
-from rundirs import run_main
+from rundirs import run_main, run_records
 from test_report import make_run
 
 import eant2_jax
@@ -253,11 +253,6 @@ def _files(d: Path) -> dict[str, bytes]:
     return {p.name: p.read_bytes() for p in sorted(d.iterdir())}
 
 
-def _records(d: Path) -> list[dict]:
-    rows = [json.loads(x) for x in (d / "generations.jsonl").read_text().splitlines()]
-    return [{k: v for k, v in r.items() if k not in RUN_DEPENDENT} for r in rows]
-
-
 @pytest.mark.slow
 def test_resume_records_its_new_generations_and_reports_agree(
     xor_runs, tmp_path, capsys, monkeypatch
@@ -270,7 +265,7 @@ def test_resume_records_its_new_generations_and_reports_agree(
     meta = json.loads((d / "config.json").read_text())
     assert meta["generations"] == 2
     assert meta["resumed"] == [{"after_generation": 1, "generations": 2}]
-    assert _records(d) == _records(xor_runs / "two")
+    assert run_records(d) == run_records(xor_runs / "two")
     v = validate(str(d))  # the checkpoint's checksum of the new config.json holds
     assert v.generations == 2 and "config_next" not in json.loads((d / CHECKPOINT).read_text())
     argv = ["report", d, xor_runs / "two", "--out", tmp_path / "rep"]
@@ -297,7 +292,7 @@ def test_resume_changes_budgets_and_stopping_options_recorded(
         meta = json.loads((d / "config.json").read_text())
         assert (meta["generations"], meta["config"][field]) == (5, value)
         assert meta["resumed"] == [{"after_generation": 1, "generations": 5, field: value}]
-        assert len(_records(d)) == 2  # stopped at once: the target or budget is met
+        assert len(run_records(d)) == 2  # stopped at once: the target or budget is met
         assert validate(str(d)).config == dataclasses.replace(base, **{field: value})
     assert one["best_cost"] < 10 and one["evaluations"] > 1
     # null is the target eant2 run would resolve: the task's solved level while the stop
@@ -385,7 +380,7 @@ def test_a_kill_inside_the_config_update_leaves_a_run_that_resumes(
     assert calls == [CHECKPOINT, "config.json"][:killed_after]
     assert validate(str(d)).generations == (1, 2)[killed_after - 1]
     eant2_jax.resume(str(d), generations=2)
-    assert _records(d) == _records(xor_runs / "two")
+    assert run_records(d) == run_records(xor_runs / "two")
     assert "config_next" not in json.loads((d / CHECKPOINT).read_text())
     assert validate(str(d)).generations == 2
 

@@ -3,6 +3,7 @@
 import json
 
 import pytest
+from rundirs import run_records
 
 # The command's short setting.
 SERVO_ARGV = [
@@ -96,17 +97,6 @@ def plain_xor(tmp_path_factory):
     return out, events
 
 
-def _records(out, run):
-    """A run directory's generation records, without what describes the process (what it
-    compiled, and every "..._s" timing)."""
-    drop = ("compiles", "cache_hits", "cache_misses")
-    lines = (out / run / "generations.jsonl").read_text().splitlines()
-    return [
-        {k: v for k, v in json.loads(line).items() if not k.endswith("_s") and k not in drop}
-        for line in lines
-    ]
-
-
 @pytest.mark.slow
 def test_the_condition_experiment_in_a_background_thread_gives_the_same_result(tmp_path, plain_xor):
     """``overlap_condition`` runs the experiment in a thread (float64 there alone) while the
@@ -130,7 +120,7 @@ def test_the_condition_experiment_in_a_background_thread_gives_the_same_result(t
     for evs in (plain_events, events):
         assert [e["phase"] for e in evs if e["event"] == "condition"] == ["start", "done"]
     for run in ("covariance-s0", "none-s0"):  # the runs are the same too
-        assert _records(plain, run) == _records(out, run), run
+        assert run_records(plain / run) == run_records(out / run), run
 
 
 def test_a_background_error_reaches_the_caller():
@@ -170,4 +160,4 @@ def test_later_arms_first_programs_compiled_ahead_are_used_and_change_nothing(
     assert calls == [True]  # the covariance arm's, before the unpruned arm ran
     assert used  # the arms ran programs compiled ahead, strictly
     for run in ("covariance-s0", "none-s0"):
-        assert _records(plain, run) == _records(tmp_path / "ahead", run), run
+        assert run_records(plain / run) == run_records(tmp_path / "ahead" / run), run

@@ -8,12 +8,13 @@ import json
 
 import jax
 import pytest
+from rundirs import run_records
 
 from eant2_jax import tasks
 from eant2_jax.app.cli import main
 from eant2_jax.app.experiments import MANIFEST, reproduce, resume_reproduction
 from eant2_jax.config import ExploitConfig
-from eant2_jax.loop import RUN_DEPENDENT, EANT2Config
+from eant2_jax.loop import EANT2Config
 from eant2_jax.rundir import RunDirError
 
 SETTINGS = dict(
@@ -31,14 +32,6 @@ SETTINGS = dict(
     condition_dtype="float64",  # JAX's x64 mode for that experiment alone
 )
 RUNS = ("covariance-s0", "covariance-s1", "none-s0", "none-s1")
-
-
-def _records(run_dir):
-    """The generation records without the fields that describe the process, not the run
-    (wall times, and what it compiled: a second reproduction in one process compiles
-    nothing)."""
-    rows = [json.loads(line) for line in (run_dir / "generations.jsonl").read_text().splitlines()]
-    return [{k: v for k, v in r.items() if k not in RUN_DEPENDENT} for r in rows]
 
 
 @pytest.mark.slow
@@ -71,7 +64,7 @@ def test_a_killed_reproduction_resumes_to_the_uninterrupted_result(
 
     whole = tmp_path / "whole"
     for run in RUNS:
-        assert _records(cut / run) == _records(whole / run), run
+        assert run_records(cut / run) == run_records(whole / run), run
         assert (cut / run / "best.genome").read_text() == (whole / run / "best.genome").read_text()
     summary = [json.loads((d / "report" / "summary.json").read_text()) for d in (cut, whole)]
     assert summary[0] == summary[1]

@@ -15,6 +15,7 @@ Regenerate a page after a change that alters its outputs::
 from __future__ import annotations
 
 import functools
+import json
 import os
 import re
 import subprocess
@@ -60,10 +61,10 @@ def loose(text: str) -> str:
 
 
 _DEMO = "$ eant2 demo\n"
-demo_printed: list[str] = []  # what `eant2 demo` printed in this process, once it ran
+_demo_printed: list[str] = []  # what `eant2 demo` printed in this process, once it ran
 
 
-def quickstart_demo() -> Example:
+def _quickstart_demo() -> Example:
     page = (ROOT / "docs" / "quickstart.md").read_text()
     (demo,) = [e for e in examples(page) if e.code.startswith(_DEMO)]
     return demo
@@ -75,11 +76,11 @@ def recording_machine() -> bool:
     demo` prints the numbers docs/quickstart.md shows (a CMA-ES run of XOR, which any
     difference in rounding changes). The demo runs once per process: `check` of a page
     that shows it hands over what it printed."""
-    demo = quickstart_demo()
-    if not demo_printed:
+    demo = _quickstart_demo()
+    if not _demo_printed:
         with tempfile.TemporaryDirectory() as tmp:
-            demo_printed.append(run(demo, Path(tmp)))
-    return mask(demo_printed[0]) == mask(demo.shown)
+            _demo_printed.append(run(demo, Path(tmp)))
+    return mask(_demo_printed[0]) == mask(demo.shown)
 
 
 def same(got: str, shown: str) -> bool:
@@ -113,7 +114,7 @@ def examples(page: str) -> list[Example]:
     return found
 
 
-def example_env() -> dict:
+def _env() -> dict:
     path = os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])
     return dict(os.environ, PYTHONPATH=path)
 
@@ -121,7 +122,7 @@ def example_env() -> dict:
 def run(example: Example, cwd: Path) -> str:
     """What the example prints now (for a console block: the block as it would read)."""
     if example.kind == "python":
-        proc = subprocess.run([sys.executable, "-c", example.code], cwd=cwd, env=example_env(),
+        proc = subprocess.run([sys.executable, "-c", example.code], cwd=cwd, env=_env(),
                               capture_output=True, text=True, timeout=600)  # fmt: skip
         if proc.returncode:
             raise RuntimeError(f"example failed:\n{example.code}\n{proc.stderr[-3000:]}")
@@ -133,26 +134,82 @@ def run(example: Example, cwd: Path) -> str:
         command = line[2:]
         out.append(line)
         shell = re.sub(r"^eant2\b", f"{sys.executable} -m eant2_jax.app.cli", command)
-        proc = subprocess.run(shell, shell=True, cwd=cwd, env=example_env(), stdout=subprocess.PIPE,
+        proc = subprocess.run(shell, shell=True, cwd=cwd, env=_env(), stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True, timeout=600)  # fmt: skip
         out.append(proc.stdout.rstrip("\n"))
     return "\n".join(out) + "\n"
 
 
-def check(path: Path, write: bool = False) -> list[tuple[Example, str]]:
-    """Run every example of the page; the ones whose output differs (or, with ``write``,
-    rewrite the page with the new outputs and return nothing)."""
+# One fresh process for several Python examples (`outputs` with ``one_process``): each is
+# compiled and run as its own `__main__` script with fresh globals, its stdout captured
+# alone; the outputs (or the first failure's traceback) come back as JSON on the last line
+# of the process's stdout. The process runs with the settings the `eant2` command uses
+# (`eant2_jax.enable_compilation_cache()`, EANT2_CACHE_DIR).
+_DRIVER = """
+import contextlib, io, json, sys, traceback
+import eant2_jax
+eant2_jax.enable_compilation_cache()
+codes, outs = json.loads(sys.stdin.read()), []
+real = sys.stdout
+for i, code in enumerate(codes):
+    buf = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(buf):
+            exec(compile(code, f"<example {i}>", "exec"), {"__name__": "__main__"})
+    except BaseException:
+        outs.append({"error": traceback.format_exc(), "code": code})
+        break
+    outs.append({"out": buf.getvalue()})
+real.write("\\n" + json.dumps(outs) + "\\n")
+"""
+
+
+def run_python(found: list[Example], cwd: Path) -> list[str]:
+    """What each of these Python examples prints, run one after another in one process."""
+    proc = subprocess.run([sys.executable, "-c", _DRIVER], cwd=cwd, env=_env(), timeout=600,
+                          input=json.dumps([e.code for e in found]), capture_output=True,
+                          text=True)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    outs = json.loads(proc.stdout.splitlines()[-1])
+    failed = [o for o in outs if "error" in o]
+    assert not failed, f"example failed:\n{failed[0]['code']}\n{failed[0]['error'][-3000:]}"
+    assert len(outs) == len(found)
+    return [o["out"] for o in outs]
+
+
+def outputs(found: list[Example], cwd: Path, one_process: bool = False) -> list[str]:
+    """What each example prints now, run in page order in ``cwd``: each console command in
+    its own process, each Python example in its own (`run`), or with ``one_process`` each
+    run of consecutive Python examples in ONE fresh process (`run_python`), which pays the
+    import and the programs an earlier example compiled once."""
+    got, i = [], 0
+    while i < len(found):
+        j = i + 1
+        if one_process and found[i].kind == "python":
+            while j < len(found) and found[j].kind == "python":
+                j += 1
+            got += run_python(found[i:j], cwd)
+        else:
+            got.append(run(found[i], cwd))
+        i = j
+    return got
+
+
+def check(path: Path, write: bool = False, one_process: bool = False) -> list[tuple[Example, str]]:
+    """Run every example of the page (`outputs`); the ones whose output differs (or, with
+    ``write``, rewrite the page with the new outputs and return nothing)."""
     page = path.read_text()
-    wrong, pieces, last = [], [], 0
+    found = examples(page)
     with tempfile.TemporaryDirectory() as tmp:
-        for ex in examples(page):
-            got = run(ex, Path(tmp))
-            if ex.code.startswith(_DEMO) and ex == quickstart_demo() and not demo_printed:
-                demo_printed.append(got)  # `recording_machine` need not run it again
-            if not same(got, ex.shown):
-                wrong.append((ex, got))
-            pieces += [page[last : ex.span[0]], got]
-            last = ex.span[1]
+        got = outputs(found, Path(tmp), one_process)
+    wrong, pieces, last = [], [], 0
+    for ex, out in zip(found, got, strict=True):
+        if ex.code.startswith(_DEMO) and ex == _quickstart_demo() and not _demo_printed:
+            _demo_printed.append(out)  # `recording_machine` need not run it again
+        if not same(out, ex.shown):
+            wrong.append((ex, out))
+        pieces += [page[last : ex.span[0]], out]
+        last = ex.span[1]
     if write:  # whole, never through a link (the applications' one way to write a file)
         from eant2_jax.app.outputs import write_text
 

@@ -32,6 +32,11 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 _MADE_CACHE = "EANT2_CACHE_DIR" not in os.environ
 if _MADE_CACHE:
     os.environ["EANT2_CACHE_DIR"] = tempfile.mkdtemp(prefix="eant2-test-cache-")
+# Results that one test session computes once for all its workers (tests/shared.py), made
+# and removed the same way.
+_MADE_SHARED = "EANT2_TEST_SHARED_DIR" not in os.environ
+if _MADE_SHARED:
+    os.environ["EANT2_TEST_SHARED_DIR"] = tempfile.mkdtemp(prefix="eant2-test-shared-")
 
 # Compiling is most of this suite's time, and XLA:CPU's older LLVM emitters compile the
 # engine's programs faster than its fusion emitters (README: the test suite). The suite
@@ -73,6 +78,8 @@ settings.load_profile(
 def pytest_unconfigure(config):
     if _MADE_CACHE:
         shutil.rmtree(os.environ["EANT2_CACHE_DIR"], ignore_errors=True)
+    if _MADE_SHARED:
+        shutil.rmtree(os.environ["EANT2_TEST_SHARED_DIR"], ignore_errors=True)
 
 
 @pytest.fixture(autouse=True)

@@ -19,6 +19,7 @@ import textwrap
 
 import numpy as np
 import pytest
+from shared import once
 
 pytestmark = pytest.mark.slow
 
@@ -213,7 +214,8 @@ DEVICES_2 = {
 @pytest.fixture(scope="module")
 def devices_2() -> dict:
     # The hang scenario first, in a fresh process as before; a hang fails at the timeout.
-    return _scenarios(DEVICES_2, devices=2, timeout=600)
+    # Once for the session, whichever worker gets a test of this file first (tests/shared.py).
+    return once("distributed-devices-2", lambda: _scenarios(DEVICES_2, devices=2, timeout=600))
 
 
 def test_sharded_exploitation_matches_single_device(devices_2):

@@ -15,6 +15,7 @@ import sys
 import textwrap
 
 import pytest
+from shared import once
 
 pytestmark = pytest.mark.slow
 
@@ -142,7 +143,7 @@ def _scenario() -> dict:
 
 @pytest.fixture(scope="module")
 def scenario() -> dict:
-    return _scenario()
+    return once("multidevice-scenario", _scenario)  # once for the session (tests/shared.py)
 
 
 def test_each_devices_rows_are_one_devices_bits(scenario):

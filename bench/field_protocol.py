@@ -7,9 +7,10 @@ one judging process that puts both methods' candidates through the champion rule
 task object (bench/field_champions.py). Each seed's judged record is appended to the
 checkpoint (``--checkpoint``, default beside the result file: ``...checkpoint.jsonl``), and a
 finished training run is kept in ``...checkpoint.jsonl.runs/`` until its seed is judged;
-``--resume --force`` skips the seeds and runs already there. eant2_jax's run keeps its run
-directory there too and a killed one goes on from its last committed generation; a killed
-TensorNEAT run starts again (a device call's time limit loses at most that). The summary
+``--resume --force`` skips the seeds and runs already there. Each run keeps its state there
+too (eant2_jax's run directory; TensorNEAT's state after each generation,
+bench/field_tnstate.py), and a killed one goes on from its last generation (a device call's
+time limit loses at most that), so a run longer than one call finishes over several. The summary
 (bench/field_stats.py) and the result file ``bench/results/field-protocol-<device>.{json,md}``
 are rewritten after every seed.
 
@@ -78,8 +79,9 @@ def _train_argv(method: str, args: argparse.Namespace, env: str, seed: int, out:
             argv += [flag, str(v)]
     if method == "tensorneat":
         argv += ["--tensorneat", str(args.tensorneat)]
-    if method == "eant2":  # kept beside its log: a killed run goes on from it
-        argv += ["--rundir", str(out.with_suffix(".rundir"))]
+    # Kept beside its log: a killed run goes on from it (eant2_jax's run directory,
+    # TensorNEAT's state after its last generation: bench/field_tnstate.py).
+    argv += ["--rundir", str(out.with_suffix(".rundir"))]
     return argv
 
 

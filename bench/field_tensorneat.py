@@ -18,7 +18,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["algorithm", "compact", "import_from", "problem", "train"]
+from bench import field_tnstate
+from bench.common import BenchInputError
+
+__all__ = ["algorithm", "compact", "import_from", "problem", "run_generations", "train"]
 
 
 def import_from(src: str | Path) -> None:
@@ -133,16 +136,20 @@ def compact(nodes: np.ndarray, conns: np.ndarray) -> dict[str, Any]:
 
 def train(env: dict[str, Any], *, seed: int, src: str, n_inputs: int, n_outputs: int,
           log, top: int, pop: int | None = None, generations: int | None = None,
-          deadline_s: float = math.inf) -> None:  # fmt: skip
+          deadline_s: float = math.inf, rundir: str | Path | None = None) -> None:  # fmt: skip
     """The protocol's TensorNEAT run: its example's settings (``env["tensorneat"]``),
     generation by generation through ``Pipeline.step``; after each generation ``log.point``
     with the evaluations, the best training fitness, and the ``top`` best distinct genomes
-    by training fitness seen so far (their arrays go into ``log.data["candidates"]``)."""
+    by training fitness seen so far (their arrays go into ``log.data["candidates"]``).
+
+    With ``rundir`` the state after each generation is kept there (`bench.field_tnstate`)
+    and a run that finds one goes on from it, with ``log`` as
+    `bench.field_workers.resume_log` reopened it: a run longer than one device call
+    finishes over several, its wall times going on (each new process's setup and compile
+    count against it)."""
     import_from(src)
     import jax
     from tensorneat.pipeline import Pipeline
-
-    from bench.field_champions import Archive
 
     tn = env["tensorneat"]
     pop = pop or tn["pop_size"]
@@ -156,16 +163,46 @@ def train(env: dict[str, Any], *, seed: int, src: str, n_inputs: int, n_outputs:
                    obs_norm_episodes=tn["obs_norm_episodes"])  # fmt: skip
     pipeline = Pipeline(algorithm=algo, problem=prob, seed=seed, generation_limit=generations,
                         fitness_target=math.inf)  # fmt: skip
-    log.data.update(kind="tensorneat", activations=[tn["activation"]],
-                    settings={**tn, "pop_size": pop, "generations": generations})  # fmt: skip
+    settings = {**tn, "pop_size": pop, "generations": generations}
+    log.data.update(kind="tensorneat", activations=[tn["activation"]], settings=settings)
     state = pipeline.setup()
     if tn["obs_norm_episodes"]:  # what its problem subtracts and divides by
         log.data["obs_mean"] = np.asarray(state.problem_obs_mean).tolist()
         log.data["obs_std"] = np.asarray(state.problem_obs_std).tolist()
     # As Pipeline.auto_run compiles it: ahead of time, once.
     step = jax.jit(pipeline.step).lower(state).compile()
+    digest = field_tnstate.settings_digest(
+        {"env": env["name"], "seed": seed, "n": [n_inputs, n_outputs], **settings}
+    )
+    run_generations(step, state, log=log, top=top, pop=pop, generations=generations,
+                    deadline_s=deadline_s, rundir=rundir, digest=digest)  # fmt: skip
+
+
+def run_generations(step, state, *, log, top: int, pop: int, generations: int,
+                    deadline_s: float = math.inf, rundir: str | Path | None = None,
+                    digest: str = "") -> None:  # fmt: skip
+    """`train`'s generations: ``step`` (TensorNEAT's compiled ``Pipeline.step``) from
+    ``state`` (its setup's) to ``generations``, or on from the state kept in ``rundir``."""
+    import jax
+
+    from bench.field_champions import Archive
+
     archive, candidates = Archive(top), log.data.setdefault("candidates", {})
-    for g in range(generations):
+    start = 0
+    if rundir is not None:
+        kept = field_tnstate.load(rundir, state, digest)
+        curve = log.data["curve"]
+        if kept is not None:
+            state, start = kept
+        if len(curve) < start or (kept is None and curve):
+            raise BenchInputError(f"TensorNEAT run in {rundir}: {start} generations kept, "
+                                  f"its log holds {len(curve)}")  # fmt: skip
+        # A kill between a generation's point and its state leaves one point more: the
+        # generation runs again from the kept state and writes the same point.
+        del curve[start:]
+        for ident, fitness in curve[-1]["archive"] if curve else []:
+            archive.offer(ident, fitness)
+    for g in range(start, generations):
         state, population, fitness = step(state)
         fitness = np.asarray(jax.device_get(fitness), np.float64)
         nodes, conns = (np.asarray(a) for a in jax.device_get(population))
@@ -176,6 +213,8 @@ def train(env: dict[str, Any], *, seed: int, src: str, n_inputs: int, n_outputs:
                 candidates.setdefault(genome["digest"], genome)
         log.point(evaluations=(g + 1) * pop, train_return=archive.best(),
                   archive=archive.entries())  # fmt: skip
+        if rundir is not None:
+            field_tnstate.save(rundir, state, g + 1, digest)
         if log.wall() > deadline_s:
             log.data["deadline"] = True
             break

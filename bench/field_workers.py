@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from bench import field_tnstate
 from bench.field_settings import ENVS, TOP, budgets
 
 __all__ = [
@@ -236,7 +237,12 @@ def judge(env_name: str, runs: dict[str, dict[str, Any]], budget_list: list[int]
 def _train(args: argparse.Namespace) -> None:
     env = ENVS[args.env]
     meta = {"method": args.method, "env": args.env, "seed": args.seed}
-    log = resume_log(args.out, args.t0, meta) if args.rundir else Log(args.out, args.t0, meta)
+    # A run goes on from its log where its rundir holds what it needs (eant2_jax's run
+    # directory; TensorNEAT's kept state, else its run starts again).
+    resumes = args.rundir is not None and (
+        args.method == "eant2" or (Path(args.rundir) / field_tnstate.FILE).is_file()
+    )
+    log = resume_log(args.out, args.t0, meta) if resumes else Log(args.out, args.t0, meta)
     log.data.setdefault("start_s", log.wall())
     budget = env["tensorneat"]["pop_size"] * env["tensorneat"]["generations"]
     if args.generations:
@@ -251,7 +257,8 @@ def _train(args: argparse.Namespace) -> None:
         task = protocol_task(env, 1)
         train(env, seed=args.seed, src=args.tensorneat, n_inputs=task.n_inputs,
               n_outputs=task.n_outputs, log=log, top=TOP, pop=args.pop,
-              generations=args.generations, deadline_s=args.deadline_s)  # fmt: skip
+              generations=args.generations, deadline_s=args.deadline_s,
+              rundir=args.rundir)  # fmt: skip
     log.data["done"] = True
     log.write()
 
@@ -273,7 +280,7 @@ def main(argv: list[str]) -> int:
     p.add_argument("--max-iters", type=int, default=None, help="a trial's eant2 iterations")
     p.add_argument("--width", type=int, default=None, help="a trial's eant2 batch width")
     p.add_argument("--deadline-s", type=float, default=math.inf)
-    p.add_argument("--rundir", default=None, help="eant2: keep (and go on from) this run dir")
+    p.add_argument("--rundir", default=None, help="keep (and go on from) the run's state here")
     p.add_argument("--budgets", type=int, nargs="+", default=None, help="reporting budgets")
     p.add_argument("--runs", nargs="+", default=[], help="the training runs' JSON files")
     args = p.parse_args(argv)

@@ -9,7 +9,7 @@ import pytest
 from scipy import stats
 
 import eant2_jax
-from bench import bench_pole, harness
+from bench import bench_pole, harness, pole_tables
 from bench.common import BenchInputError
 from eant2_jax import EANT2Config, ExploitConfig, tasks
 from eant2_jax.records import RUN_DEPENDENT
@@ -111,17 +111,17 @@ def test_wilson_interval_matches_scipy(n):
     """Against scipy's Wilson score interval (binomtest's proportion_ci) at every count."""
     for k in range(n + 1):
         ci = stats.binomtest(k, n).proportion_ci(0.95, method="wilson")
-        low, high = bench_pole.wilson_interval(k, n)
+        low, high = pole_tables.wilson_interval(k, n)
         np.testing.assert_allclose([low, high], [ci.low, ci.high], rtol=1e-9, atol=1e-12)
 
 
 def test_wilson_interval_known_values_and_bad_counts():
-    z2 = bench_pole.Z95**2
-    assert bench_pole.wilson_interval(0, 10) == (0.0, pytest.approx(z2 / (10 + z2)))
-    low, high = bench_pole.wilson_interval(19, 20)
+    z2 = pole_tables.Z95**2
+    assert pole_tables.wilson_interval(0, 10) == (0.0, pytest.approx(z2 / (10 + z2)))
+    low, high = pole_tables.wilson_interval(19, 20)
     assert (round(low, 4), round(high, 4)) == (0.7639, 0.9911)
     with pytest.raises(ValueError, match="0 <= solved <= runs"):
-        bench_pole.wilson_interval(3, 2)
+        pole_tables.wilson_interval(3, 2)
 
 
 @pytest.mark.slow
@@ -131,7 +131,7 @@ def test_protocol_row_counts_unsolved_runs_as_never():
         {"seed": 1, "solved": True, "evaluations": 1000, "generations": 1, "tests": 2},
         {"seed": 2, "solved": False, "evaluations": 41_000, "generations": 5, "tests": 6},
     ]
-    row = bench_pole.protocol_row("dpnv-rr-champion", runs, budget=40_000)
+    row = pole_tables.protocol_row("dpnv-rr-champion", runs, budget=40_000)
     assert (row["task"], row["start"], row["solution_rule"]) == (
         "dpnv",
         "recurrent-ready",
@@ -142,14 +142,14 @@ def test_protocol_row_counts_unsolved_runs_as_never():
     assert row["median_low"] <= 1000 <= row["median_high"]
     assert row["mean_evals_solved"] == 700 and row["mean_evals_failures_as_budget"] == 41_400 / 3
     assert row["tests_per_run"] == 3
-    lost = bench_pole.protocol_row("dpv-structure", runs[2:], budget=40_000)
+    lost = pole_tables.protocol_row("dpv-structure", runs[2:], budget=40_000)
     assert lost["median_text"] == "never [never, never]"
 
 
 def test_protocol_options():
     args = harness.parse_args(bench_pole.SUITE, ["--protocol"])
     assert (args.first_seed, args.seeds) == (5000, 20)
-    assert args.variants == list(bench_pole.PROTOCOL) and args.variants[0].startswith("dpnv")
+    assert args.variants == list(pole_tables.PROTOCOL) and args.variants[0].startswith("dpnv")
     assert args.out.endswith(".json") and "pole-protocol-" in args.out
     plain = harness.parse_args(bench_pole.SUITE, [])
     assert (plain.first_seed, plain.seeds, plain.solution_rule) == (0, 20, "structure")

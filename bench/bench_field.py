@@ -27,7 +27,7 @@ action is the argmax of one output per action on both; a continuous one is ``tan
 outputs scaled onto the action bounds on both. brax runs the same ``--backend`` on both.
 On ``servo`` (the paper's task, deterministic: ``tasks.make("servo")``) TensorNEAT's
 network outputs at the 1023 start measurements go through the task's own move and cost
-(``bench_peers.outputs_cost``), and the "return" is minus the task's cost.
+(``peer_methods.outputs_cost``), and the "return" is minus the task's cost.
 
 **What is compared.** After each generation a method has a champion: for eant2_jax the best
 individual after selection, for TensorNEAT the genome of the highest training fitness seen
@@ -171,7 +171,7 @@ ENVS = {
     ),
     # The paper's task (kinematic, one move from each of 1023 starts; deterministic): the
     # "return" is minus the task's cost. TensorNEAT's outputs go through the task's own
-    # tanh step (bench_peers.outputs_cost), as eant2_jax's identity outputs do.
+    # tanh step (peer_methods.outputs_cost), as eant2_jax's identity outputs do.
     "servo": Env("servo", "servo", 10, 3, False, 1.0, 1, 1, 200_000, 20, 1000, min_bucket=None),
 }
 TENSORNEAT_POP = 1000

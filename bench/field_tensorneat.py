@@ -40,7 +40,7 @@ def problem(family: str, name: str, *, n_inputs: int, n_outputs: int, max_steps:
     if family == "servo":
         from tensorneat.problem import BaseProblem
 
-        from bench.bench_peers import outputs_cost
+        from bench.peer_methods import outputs_cost
         from eant2_jax import tasks
 
         task = tasks.make("servo")

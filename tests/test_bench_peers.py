@@ -17,13 +17,13 @@ pytestmark = pytest.mark.slow
 def test_outputs_cost_matches_network_cost():
     # The NEAT path scores raw outputs; for a network it must equal task.cost exactly
     # (same moves, same cost): float32, same ops, so a tight tolerance.
-    from bench import bench_peers
+    from bench import peer_methods
     from eant2_jax import tasks
     from eant2_jax.compiler import networks
     from eant2_jax.kernels import network as kn
 
     task = tasks.make("servo", n_starts=17)
-    genome = bench_peers.fixed_genome(np.random.default_rng(1), 2, scale=0.5)
+    genome = peer_methods.fixed_genome(np.random.default_rng(1), 2, scale=0.5)
     nets = networks([genome], task.n_inputs)
     want = np.asarray(task.cost(None, nets))
     net = jax.tree.map(lambda a: a[0], nets)
@@ -31,7 +31,7 @@ def test_outputs_cost_matches_network_cost():
     y = jax.vmap(lambda x: kn.step(net, x, h0, hidden=task.hidden, output=task.output)[0])(
         task.x_start
     )
-    got = np.asarray(bench_peers.outputs_cost(task, y[None]))
+    got = np.asarray(peer_methods.outputs_cost(task, y[None]))
     np.testing.assert_allclose(got, want, rtol=1e-5)
 
 

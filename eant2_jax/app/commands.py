@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     task = eant2_jax.tasks.make(spec, **options)
     out = Path(args.out) if args.out else free_dir(spec, args.seed)
     # Generation 0's program starts compiling before the key exists: making the key
-    # compiles two small programs, 0.4 s on a GPU with a cold cache.
+    # compiles two small programs of its own (docs/benchmarks.md, "Cold start").
     _start_first_program(task, args.seed, config)
     # config.json records the task's spec and options (tasks.make remembers them).
     result = eant2_jax.run(

@@ -57,11 +57,11 @@ def process_defaults(environ=None) -> dict[str, str]:
 
     * ``XLA_PYTHON_CLIENT_PREALLOCATE=false`` (unless any ``XLA_PYTHON_CLIENT_*`` allocator
       variable is set): JAX's GPU backend otherwise reserves 75% of the GPU's memory when it
-      starts. On an H100 host that reservation was most of the backend's start: 1.5-2.9 s
-      against 0.4 s without it (docs/benchmarks.md, "Cold start"), and a run uses a few
-      hundred MB. Memory is then taken as programs need it and kept; results do not change.
+      starts, most of the backend's start time (docs/benchmarks.md, "Cold start"), while a
+      run uses a few hundred MB. Memory is then taken as programs need it and kept; results
+      do not change.
     * ``MUJOCO_GL=disable``: ``import mujoco`` otherwise loads an OpenGL (GLFW) library for
-      rendering, 0.4 s on that host; the command never renders.
+      rendering; the command never renders.
 
     Must run before JAX starts its backend and before MuJoCo is imported.
     """
@@ -162,8 +162,8 @@ def user_modules() -> None:
 def start_backend():
     """Start JAX's backend in a daemon thread and return the thread: the runtime's start and
     the first transfer to the default device (on a GPU, the context and the allocator's
-    pool: about 1 s on an H100 host, docs/benchmarks.md, "Cold start") then overlap the
-    imports of the task (MuJoCo MJX: 2-3 s there) instead of following them. Nothing is
+    pool: docs/benchmarks.md, "Cold start") then overlap the imports of the task (MuJoCo
+    MJX's among them) instead of following them. Nothing is
     computed; an error is left for the main thread to meet at its first JAX call. JAX itself
     is imported here, in this thread, so that the two threads never import it at once."""
     import jax

@@ -10,10 +10,10 @@ A network controls the environment for one episode at a time:
 * **physics backend**: ``backend="generalized"`` by default, brax's own default for each
   of its environments (so returns compare with brax's published ones); ``mjx`` (MuJoCo's
   JAX port, the engine of the servo task), ``positional`` and ``spring`` can be chosen
-  instead. All four run with the project's mujoco/mujoco-mjx 3.17.0. On a 2-core CPU
-  (2026-11-23) ``generalized`` and ``mjx`` stepped ``inverted_pendulum`` and ``hopper`` at
-  about the same rate (within 15%), and ``generalized`` compiled an episode in 10 s
-  against 17 s for ``mjx``.
+  instead. All four run with the project's mujoco/mujoco-mjx 3.17.0; their step rates and
+  compile times differ by environment and device (``spring``, one small loop, compiles
+  faster than ``generalized``: bench/bench_brax.py; the field benchmark's brax runs use it,
+  docs/protocol.md section 3).
 * **observation -> inputs**: the observation vector as it is (float32), by default
   (``normalize="none"``). brax's trainers normalise observations with running statistics;
   this adapter does not, for the reason the gymnax adapter gives: a running normaliser

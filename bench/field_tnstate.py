@@ -32,11 +32,23 @@ def settings_digest(settings: dict[str, Any]) -> str:
 
 
 def _leaf(x) -> tuple[np.ndarray, str]:
+    """A state leaf as saved: its array (a typed key's data) and its key implementation."""
     import jax
 
     if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
         return np.asarray(jax.random.key_data(x)), str(jax.random.key_impl(x))
     return np.asarray(x), ""
+
+
+def _spec(x) -> tuple[tuple[int, ...], np.dtype, str]:
+    """What `_leaf` would save of ``x``: shape, dtype and key implementation, without
+    copying it to the host."""
+    import jax
+
+    if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
+        data = jax.eval_shape(jax.random.key_data, x)
+        return data.shape, np.dtype(data.dtype), str(jax.random.key_impl(x))
+    return tuple(np.shape(x)), np.dtype(x.dtype), ""
 
 
 def save(rundir: str | Path, state, generation: int, digest: str) -> None:
@@ -65,27 +77,26 @@ def load(rundir: str | Path, template, digest: str) -> tuple[Any, int] | None:
     try:
         with np.load(path, allow_pickle=False) as f:
             data = {k: f[k] for k in f.files}
-        generation, saved, impls = int(data["generation"]), str(data["digest"]), data["keys"]
-        impls = json.loads(str(impls))
+        generation, saved = int(data["generation"]), str(data["digest"])
+        impls = json.loads(str(data["keys"]))
     except (OSError, ValueError, KeyError) as e:
         raise BenchInputError(f"TensorNEAT state {path}: cannot read it ({e})") from None
     if saved != digest:
         raise BenchInputError(f"TensorNEAT state {path} belongs to a run of other settings")
+    if generation < 0:
+        raise BenchInputError(f"TensorNEAT state {path}: generation {generation} < 0")
     want, treedef = jax.tree.flatten(template)
-    if len(impls) != len(want) or sorted(data) != sorted(
-        ["generation", "digest", "keys", *(f"leaf{i}" for i in range(len(want)))]
-    ):
+    names = [f"leaf{i}" for i in range(len(want))]
+    if len(impls) != len(want) or sorted(data) != sorted(["generation", "digest", "keys", *names]):
         raise BenchInputError(f"TensorNEAT state {path}: {len(impls)} arrays, the run has "
                               f"{len(want)}")  # fmt: skip
     leaves = []
     for i, (t, impl) in enumerate(zip(want, impls, strict=True)):
-        a, t_impl = data[f"leaf{i}"], _leaf(t)
-        if impl != t_impl[1] or a.shape != t_impl[0].shape or a.dtype != t_impl[0].dtype:
+        a, (shape, dtype, t_impl) = data[names[i]], _spec(t)
+        if impl != t_impl or a.shape != shape or a.dtype != dtype:
             raise BenchInputError(
                 f"TensorNEAT state {path}: array {i} is {impl or a.dtype}{list(a.shape)}, the "
-                f"run's is {t_impl[1] or t_impl[0].dtype}{list(t_impl[0].shape)}"
+                f"run's is {t_impl or dtype}{list(shape)}"
             )
         leaves.append(jax.random.wrap_key_data(a, impl=impl) if impl else jnp.asarray(a))
-    if generation < 0:
-        raise BenchInputError(f"TensorNEAT state {path}: generation {generation} < 0")
     return jax.tree.unflatten(treedef, leaves), generation

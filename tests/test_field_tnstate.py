@@ -78,10 +78,9 @@ def test_a_killed_run_goes_on_from_its_state_to_the_same_run(tmp_path, kill_befo
                 raise _Killed
 
     rundir, held = tmp_path / "cut.rundir", []
-    step = _step
 
     def keep(state):  # the state after each step, for the kill after its save
-        out = step(state)
+        out = _step(state)
         held[:] = [out[0]]
         return out
 

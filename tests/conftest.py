@@ -62,6 +62,9 @@ with warnings.catch_warnings():
     except ImportError:
         pass
 
+# `--compile-profile DIR`: JAX's compile time per test and program (tests/compile_profile.py).
+pytest_plugins = ["compile_profile"]
+
 # Implicit rank promotion hides shape bugs (a [H] bias broadcast against [G, H] by accident);
 # the library and these tests pass with it as an error, as equinox's tests run.
 jax.config.update("jax_numpy_rank_promotion", "raise")

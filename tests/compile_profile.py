@@ -1,6 +1,6 @@
 """Where the suite's time goes: JAX's compile time per test and per program.
 
-``python -m pytest -n auto --compile-profile DIR`` records, in every pytest process, the
+``EANT2_TEST_COMPILE_PROFILE=DIR python -m pytest -n auto`` records, in every pytest process, the
 seconds JAX spends tracing (``jaxpr_trace_duration``), lowering (``jaxpr_to_mlir_module_
 duration``) and compiling (``backend_compile_duration``) for each test and each program
 (JAX's ``jax.monitoring`` events), writes one JSON file per process into ``DIR`` and prints
@@ -9,7 +9,9 @@ time on a CPU, so this is the first measurement before cutting it. Processes the
 (``eant2`` commands, bench children) are not counted: their time shows in the test's own
 duration (``--durations``). Nested traces are counted in each enclosing trace too.
 
-A plugin of the suite (``tests/conftest.py`` loads it); it does nothing without the option.
+A plugin of the suite (``tests/conftest.py`` loads it); it does nothing without the variable.
+A variable, not a command-line option: pytest-xdist's workers parse the command line before
+they load ``tests/conftest.py``, so an option a conftest adds is unknown to them.
 """
 
 from __future__ import annotations
@@ -78,19 +80,13 @@ def summary(records: list[dict], top: int = 15) -> str:
 _RECORDER: Recorder | None = None
 
 
-def pytest_addoption(parser):
-    parser.addoption(
-        "--compile-profile",
-        metavar="DIR",
-        default=None,
-        help="record JAX's trace, lowering and compile seconds per test and program into "
-        "DIR and print the largest (tests/compile_profile.py)",
-    )
+def _folder() -> str | None:
+    return os.environ.get("EANT2_TEST_COMPILE_PROFILE") or None
 
 
 def pytest_configure(config):
     global _RECORDER
-    folder = config.getoption("--compile-profile")
+    folder = _folder()
     if folder is None or _RECORDER is not None:
         return
     Path(folder).mkdir(parents=True, exist_ok=True)
@@ -113,7 +109,7 @@ def pytest_runtest_protocol(item, nextitem):
 def pytest_sessionfinish(session):
     # Before pytest-xdist's worker reports that it finished, so that the controller's
     # summary reads every worker's file.
-    folder = session.config.getoption("--compile-profile")
+    folder = _folder()
     if _RECORDER is None or folder is None:
         return
     name = os.environ.get("PYTEST_XDIST_WORKER", "main")
@@ -122,7 +118,7 @@ def pytest_sessionfinish(session):
 
 
 def pytest_terminal_summary(terminalreporter, config):
-    folder = config.getoption("--compile-profile")
+    folder = _folder()
     if folder is None or os.environ.get("PYTEST_XDIST_WORKER"):
         return
     records = []

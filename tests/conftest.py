@@ -62,7 +62,7 @@ with warnings.catch_warnings():
     except ImportError:
         pass
 
-# `--compile-profile DIR`: JAX's compile time per test and program (tests/compile_profile.py).
+# EANT2_TEST_COMPILE_PROFILE=DIR: JAX's compile time per test and program (compile_profile.py).
 pytest_plugins = ["compile_profile"]
 
 # Implicit rank promotion hides shape bugs (a [H] bias broadcast against [G, H] by accident);

@@ -53,7 +53,7 @@ def test_summary_ranks_programs_and_tests_by_seconds():
 
 
 @pytest.mark.slow  # a pytest process of its own
-def test_the_option_writes_a_file_per_process_and_prints_the_summary(tmp_path):
+def test_the_variable_writes_a_file_per_process_and_prints_the_summary(tmp_path):
     tests = tmp_path / "t"
     tests.mkdir()
     (tests / "test_one.py").write_text(
@@ -67,9 +67,9 @@ def test_the_option_writes_a_file_per_process_and_prints_the_summary(tmp_path):
     out = tmp_path / "profile"
     proc = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "compile_profile",
-         "--compile-profile", str(out), str(tests)],
+         str(tests)],
         capture_output=True, text=True, cwd=tmp_path,
-        env={**os.environ, "PYTHONPATH": str(here)},
+        env={**os.environ, "PYTHONPATH": str(here), "EANT2_TEST_COMPILE_PROFILE": str(out)},
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     (path,) = out.glob("compiles-*.json")

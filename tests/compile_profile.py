@@ -112,14 +112,16 @@ def pytest_sessionfinish(session):
     folder = _folder()
     if _RECORDER is None or folder is None:
         return
-    name = os.environ.get("PYTEST_XDIST_WORKER", "main")
+    # An xdist worker's config carries ``workerinput`` (its environment may have been
+    # inherited by a pytest the tests start, so the variable PYTEST_XDIST_WORKER is not it).
+    name = getattr(session.config, "workerinput", {}).get("workerid", "main")
     path = Path(folder) / f"compiles-{name}.json"
     path.write_text(json.dumps(_RECORDER.records()))
 
 
 def pytest_terminal_summary(terminalreporter, config):
     folder = _folder()
-    if folder is None or os.environ.get("PYTEST_XDIST_WORKER"):
+    if folder is None or hasattr(config, "workerinput"):
         return
     records = []
     for path in sorted(Path(folder).glob("compiles-*.json")):

@@ -90,6 +90,9 @@ def pytest_configure(config):
     if folder is None or _RECORDER is not None:
         return
     Path(folder).mkdir(parents=True, exist_ok=True)
+    if not hasattr(config, "workerinput"):  # a session's summary is of that session only
+        for old in Path(folder).glob("compiles-*.json"):
+            old.unlink()
     from jax import monitoring
 
     _RECORDER = Recorder()

@@ -65,6 +65,8 @@ def test_the_variable_writes_a_file_per_process_and_prints_the_summary(tmp_path)
     )
     here = Path(__file__).parent
     out = tmp_path / "profile"
+    out.mkdir()
+    (out / "compiles-gw9.json").write_text("[]")  # an earlier session's: removed at the start
     proc = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "compile_profile",
          str(tests)],

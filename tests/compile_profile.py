@@ -9,7 +9,7 @@ time on a CPU, so this is the first measurement before cutting it. Processes the
 (``eant2`` commands, bench children) are not counted: their time shows in the test's own
 duration (``--durations``). Nested traces are counted in each enclosing trace too.
 
-A plugin of the suite (``tests/conftest.py`` loads it); it does nothing without the variable.
+A plugin of the suite, loaded by ``tests/conftest.py`` only where the variable is set.
 A variable, not a command-line option: pytest-xdist's workers parse the command line before
 they load ``tests/conftest.py``, so an option a conftest adds is unknown to them.
 """

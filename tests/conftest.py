@@ -63,7 +63,9 @@ with warnings.catch_warnings():
         pass
 
 # EANT2_TEST_COMPILE_PROFILE=DIR: JAX's compile time per test and program (compile_profile.py).
-pytest_plugins = ["compile_profile"]
+# Loaded only then: without the variable the suite runs without it.
+if os.environ.get("EANT2_TEST_COMPILE_PROFILE"):
+    pytest_plugins = ["compile_profile"]
 
 # Implicit rank promotion hides shape bugs (a [H] bias broadcast against [G, H] by accident);
 # the library and these tests pass with it as an error, as equinox's tests run.

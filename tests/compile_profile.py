@@ -56,7 +56,7 @@ class Recorder:
 
 
 def summary(records: list[dict], top: int = 15) -> str:
-    """The totals per event, then the ``top`` programs and tests by compile-related seconds."""
+    """The totals per event, then the ``top`` programs (by JAX's names) and tests by seconds."""
     totals: dict[str, float] = defaultdict(float)
     programs: dict[str, list[float]] = defaultdict(lambda: [0.0, 0])
     tests: dict[str, float] = defaultdict(float)
@@ -68,7 +68,9 @@ def summary(records: list[dict], top: int = 15) -> str:
             programs[r["program"]][1] += r["count"]
     lines = ["compile profile (seconds in pytest's processes): "
              + ", ".join(f"{e} {totals[e]:.1f}" for e in EVENTS.values())]  # fmt: skip
-    lines.append("programs with the most (trace + lower + compile; compiles):")
+    # JAX names a trace by its function (``f``) and the lowering and compile by the module
+    # (``jit(f)``): one program shows as those two rows.
+    lines.append("programs with the most (seconds of each name's events; compiles):")
     for name, (s, n) in sorted(programs.items(), key=lambda kv: -kv[1][0])[:top]:
         lines.append(f"  {s:8.1f} s {n:6d}  {name}")
     lines.append("tests with the most:")

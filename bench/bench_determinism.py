@@ -12,7 +12,8 @@ Two parts (``--parts``), each case in a fresh process with no persistent compila
 * ``repeat``: ``eant2 run TASK --population P --generations G`` twice, each time in a fresh
   process with an empty cache (so XLA compiles and autotunes afresh), with the command
   line's deterministic default and with ``EANT2_GPU_DETERMINISTIC=0``: the best cost of each
-  generation and whether the second run's best network equals the first's to the bit.
+  generation and whether the second run's best network equals the first's to the bit
+  (``--quick`` adds ``--no-prune``).
 
 On a CPU both flags give the same programs; the suite is meant for GPUs.
 
@@ -23,6 +24,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -84,11 +87,22 @@ _CHILD = textwrap.dedent(
 )
 
 
-def _env(pythonpath: str | None, **extra: str) -> dict[str, str]:
-    """A child's environment: no persistent cache, XLA_FLAGS only as ``extra`` sets them."""
+# XLA:CPU's choice of emitters, which a --quick child keeps from its caller's XLA_FLAGS: the
+# test suite compiles with the faster older ones (tests/conftest.py), and a smoke test's
+# children need not compile slower than the suite around them. It changes no result on a GPU.
+_CPU_EMITTERS = re.compile(r"--xla_cpu_use_fusion_emitters=\S*")
+
+
+def _env(pythonpath: str | None, quick: bool, **extra: str) -> dict[str, str]:
+    """A child's environment: no persistent cache, XLA_FLAGS only as ``extra`` sets them
+    (with ``quick``, plus the caller's choice of XLA:CPU's emitters)."""
     env = child_env(pythonpath, EANT2_CACHE_DIR="", JAX_ENABLE_COMPILATION_CACHE="false",
                     **extra)  # fmt: skip
-    if "XLA_FLAGS" not in extra:
+    kept = _CPU_EMITTERS.findall(os.environ.get("XLA_FLAGS", "")) if quick else []
+    flags = " ".join([extra.get("XLA_FLAGS", ""), *kept]).strip()
+    if flags:
+        env["XLA_FLAGS"] = flags
+    else:
         env.pop("XLA_FLAGS", None)
     return env
 
@@ -99,7 +113,7 @@ def _iteration(args, label: str, pythonpath: str | None, deterministic: bool) ->
         spec = Path(tmp) / "spec.json"
         spec.write_text(json.dumps({"genomes": [str(g) for g in genomes], "chunk": args.chunk,
                                     "repeats": args.repeats, "pruners": args.pruners}))  # fmt: skip
-        env = _env(pythonpath, XLA_FLAGS=FLAG if deterministic else "")
+        env = _env(pythonpath, args.quick, XLA_FLAGS=FLAG if deterministic else "")
         proc = subprocess.run([sys.executable, "-c", _CHILD, str(spec)], env=env, cwd=tmp,
                               capture_output=True, text=True)  # fmt: skip
     if proc.returncode:
@@ -110,12 +124,14 @@ def _iteration(args, label: str, pythonpath: str | None, deterministic: bool) ->
 
 def _repeat(args, deterministic: bool, index: int) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
-        env = _env(None, EANT2_GPU_DETERMINISTIC="1" if deterministic else "0")
+        env = _env(None, args.quick, EANT2_GPU_DETERMINISTIC="1" if deterministic else "0")
         env["EANT2_CACHE_DIR"] = str(Path(tmp) / "cache")  # empty: compiled afresh
         run_dir = Path(tmp) / "run"
         cmd = eant2_argv("run", args.task, "--population", str(args.population),
                          "--generations", str(args.generations), "--seed", str(args.seed),
                          "--out", str(run_dir))  # fmt: skip
+        if args.quick:  # the engine without a pruner, as the quick iteration part times it
+            cmd.append("--no-prune")
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, env=env, cwd=tmp, capture_output=True, text=True)
         total = time.perf_counter() - t0

@@ -8,7 +8,8 @@ environment's default budget), or at ``--deadline-s`` seconds from its start.
 
 * ``eant2``: this project, ``eant2_jax.run`` on ``tasks.make("gymnax:NAME")`` or
   ``tasks.make("brax:NAME")`` with covariance pruning, ``max_evaluations`` = the budget.
-  Its settings per environment are in ``ENVS`` (``--population``/``--max-iters`` override).
+  Its settings per environment are in ``ENVS`` (``--population``/``--max-iters`` override;
+  ``--quick`` runs no pruner).
 * ``tensorneat``: TensorNEAT (EMI-Group/tensorneat; its source is fetched, never vendored:
   ``--tensorneat SRC``, the folder that holds the ``tensorneat`` package), NEAT with the
   settings of its own examples (``examples/gymnax/cartpole.py``, ``examples/brax/hopper.py``:
@@ -257,8 +258,11 @@ def _spawn(method: str, env: str, seed: int, args: argparse.Namespace, budget: i
            "--seed", str(seed), "--budget", str(budget), "--deadline-s", str(args.deadline_s),
            "--out", str(out), "--test-episodes", str(args.test_episodes),
            "--backend", args.backend, "--tensorneat-pop", str(args.tensorneat_pop)]  # fmt: skip
+    # --quick, a smoke test of the runs' bookkeeping, runs eant2 without a pruner: its engine
+    # compiles sooner.
     for flag, v in (("--population", args.population), ("--max-iters", args.max_iters),
-                    ("--tensorneat", args.tensorneat)):  # fmt: skip
+                    ("--tensorneat", args.tensorneat),
+                    ("--pruner", "none" if args.quick else None)):  # fmt: skip
         if v is not None:
             cmd += [flag, str(v)]
     environ = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR",)}

@@ -15,10 +15,10 @@ evaluation = one network scored on all 1023 starts). Every cost is the task's ow
   computed on the host (`bench.peer_methods.neat_outputs`, vectorised over starts) and scored
   on device by `bench.peer_methods.outputs_cost` (the servo move from each start, exactly what
   ``Servo.episode`` does for one move). One evaluation per genome, as NEAT counts.
-* ``eant2``: this project (``eant2_jax.loop.run``, covariance pruning); its evaluations come
-  from its generation records, so its curve has one point per generation and it may overshoot
-  the budget by part of a generation (the best cost *at* the budget is taken from the last
-  generation within it).
+* ``eant2``: this project (``eant2_jax.loop.run``, covariance pruning; none with
+  ``--quick``); its evaluations come from its generation records, so its curve has one point
+  per generation and it may overshoot the budget by part of a generation (the best cost *at*
+  the budget is taken from the last generation within it).
 
 For each method: best cost against evaluations and against wall time (a point every
 ``--every`` evaluations; wall time from the method's start, XLA compilation included),
@@ -124,7 +124,8 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     eant2_config = loop.EANT2Config(
         population=args.eant2_population,
         exploit=ex.ExploitConfig(
-            pruner="covariance",
+            # --quick, a smoke test of the suite, runs no pruner: its engine compiles sooner.
+            pruner="none" if args.quick else "covariance",
             max_iters=args.eant2_max_iters,
             patience=args.eant2_patience,
             prune_window=args.eant2_prune_window,

@@ -411,6 +411,7 @@ def task_config(
         name in args.recurrent_start,
         getattr(args, "solution_rule", "structure"),
     )
+    quick = getattr(args, "quick", False) and not getattr(args, "protocol", False)
     return loop.EANT2Config(
         population=args.population,
         offspring=args.offspring,
@@ -419,7 +420,9 @@ def task_config(
         inherit_search=getattr(args, "inherit_search", False),
         reexploit=getattr(args, "reexploit", False),
         exploit=ex.ExploitConfig(
-            pruner="covariance",
+            # --quick, a smoke test of the suite, runs no pruner: its engine compiles sooner
+            # (the protocol's variants keep theirs).
+            pruner="none" if quick else "covariance",
             popsize=args.popsize,
             sigma0=args.sigma0,
             max_iters=args.max_iters,

@@ -43,6 +43,7 @@ _CHILD = textwrap.dedent(
     spec = json.loads(sys.argv[1])
     task = E.tasks.make(spec["task"], **spec["options"])
     exploit = {} if spec["max_iters"] is None else {"max_iters": spec["max_iters"]}
+    exploit.update({"pruner": spec["pruner"]} if "pruner" in spec else {})
     config = E.EANT2Config(population=spec["population"], exploit=E.ExploitConfig(**exploit))
     keys = [jax.random.key(s) for s in range(spec["seed"], spec["seed"] + spec["runs"])]
     before = compilestats.snapshot()
@@ -72,6 +73,8 @@ def _one(args, mode: str) -> dict[str, Any]:
         "max_iters": args.max_iters, "seed": args.seed, "lockstep": lockstep,
         "workers": args.workers if workers == "workers" else 1,
     }  # fmt: skip
+    if args.quick:  # a smoke test of the modes: the engine without a pruner compiles sooner
+        spec["pruner"] = "none"
     env = child_env(EANT2_CACHE_DIR="", JAX_ENABLE_COMPILATION_CACHE="false")
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()

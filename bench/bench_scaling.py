@@ -1,9 +1,10 @@
 """Multi-device scaling of a servo generation's exploitation (weak and strong).
 
 One exploitation batch — S random structures, a fixed number of CMA-ES iterations, 1023
-moves each, pruning on — is timed on 1, 2, 4, ... devices of a 1-D mesh along the structure
-axis. Weak scaling: S grows with the device count (``--per-device`` structures each); strong
-scaling: S is fixed (``--strong``). Each case is timed after a warm-up call that compiles.
+moves each, pruning on (off with ``--quick``) — is timed on 1, 2, 4, ... devices of a 1-D
+mesh along the structure axis. Weak scaling: S grows with the device count (``--per-device``
+structures each); strong scaling: S is fixed (``--strong``). Each case is timed after a
+warm-up call that compiles.
 
 Each row also times the engine alone (`eant2_jax.exploitation.run` on a batch that
 `tuning.prepare` made on the devices, as `tune` makes it: the devices' loops, the host's one
@@ -146,9 +147,11 @@ def _prepare(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     counts = args.devices or [d for d in (1, 2, 4, 8) if d <= jax.device_count()]
     task = tasks.make("servo", n_starts=args.moves)
+    # --quick (a smoke test of the split into placement and loops) runs the engine without a
+    # pruner: on a 2-core CPU its two programs then compile in half the time.
     config = ex.ExploitConfig(
         max_iters=args.iters, chunk=args.iters, patience=10**6, sigma_tol=0.0,
-        tolfun=None, pruner="covariance", prune_window=50,
+        tolfun=None, pruner="none" if args.quick else "covariance", prune_window=50,
     )  # fmt: skip
     cases = [(kind, d, args.per_device * d if kind == "weak" else args.strong)
              for kind in ("weak", "strong") for d in counts]  # fmt: skip

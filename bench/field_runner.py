@@ -52,7 +52,7 @@ def _worker_eant2(env: Env, args: argparse.Namespace, log: Log) -> None:
         # The field compares returns at equal budgets: both methods spend the whole budget.
         stop_when_solved=False,
         exploit=eant2_jax.ExploitConfig(
-            pruner="covariance",
+            pruner=args.pruner,
             max_iters=args.max_iters or env.max_iters,
             rescore=env.rescore,
             popsize=env.popsize,
@@ -185,6 +185,7 @@ def worker(argv: list[str]) -> int:
     p.add_argument("--backend", default="spring")
     p.add_argument("--population", type=int, default=None)
     p.add_argument("--max-iters", type=int, default=None)
+    p.add_argument("--pruner", default="covariance", help="eant2's pruner (--quick: none)")
     p.add_argument("--tensorneat", default=None)
     p.add_argument("--tensorneat-pop", type=int, default=TENSORNEAT_POP)
     args = p.parse_args(argv)

@@ -18,7 +18,9 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.slow
 def test_quick_rows_split_the_engine_into_placement_and_loops(tmp_path):
     out = tmp_path / "scaling.json"
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    # Two virtual devices, added to the suite's own XLA flags (its faster CPU emitters).
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2"
+    env = dict(os.environ, XLA_FLAGS=flags.strip())
     proc = subprocess.run(
         [sys.executable, "-m", "bench", "scaling", "--quick", "--devices", "1", "2",
          "--genes", "20", "--out", str(out), "--trace-dir", str(tmp_path / "traces")],

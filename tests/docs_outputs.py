@@ -24,6 +24,8 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from shared import once
+
 ROOT = Path(__file__).resolve().parents[1]
 _FENCE = re.compile(r"```(\w+)\n(.*?)```", re.S)
 # Wall times, rates and their JSON fields change from run to run; nothing else may.
@@ -62,6 +64,9 @@ def loose(text: str) -> str:
 
 _DEMO = "$ eant2 demo\n"
 _demo_printed: list[str] = []  # what `eant2 demo` printed in this process, once it ran
+# What `eant2 demo` printed, kept for the whole test session (tests/shared.py): every
+# worker's `recording_machine` reads the one run of the session.
+_DEMO_SHARED = "docs-outputs-eant2-demo"
 
 
 def _quickstart_demo() -> Example:
@@ -74,13 +79,18 @@ def _quickstart_demo() -> Example:
 def recording_machine() -> bool:
     """Whether this machine computes as the one the pages were recorded on: its `eant2
     demo` prints the numbers docs/quickstart.md shows (a CMA-ES run of XOR, which any
-    difference in rounding changes). The demo runs once per process: `check` of a page
-    that shows it hands over what it printed."""
+    difference in rounding changes). The demo runs once per test session (`shared.once`;
+    once per process outside the suite): `check` of a page that shows it hands over what
+    it printed."""
     demo = _quickstart_demo()
     if not _demo_printed:
-        with tempfile.TemporaryDirectory() as tmp:
-            _demo_printed.append(run(demo, Path(tmp)))
+        _demo_printed.append(once(_DEMO_SHARED, functools.partial(_run_demo, demo)))
     return mask(_demo_printed[0]) == mask(demo.shown)
+
+
+def _run_demo(demo: Example) -> str:
+    with tempfile.TemporaryDirectory() as tmp:
+        return run(demo, Path(tmp))
 
 
 def same(got: str, shown: str) -> bool:
@@ -144,9 +154,14 @@ def run(example: Example, cwd: Path) -> str:
 # compiled and run as its own `__main__` script with fresh globals, its stdout captured
 # alone; the outputs (or the first failure's traceback) come back as JSON on the last line
 # of the process's stdout. The process runs with the settings the `eant2` command uses
-# (`eant2_jax.enable_compilation_cache()`, EANT2_CACHE_DIR).
+# (`eant2_jax.enable_compilation_cache()`, EANT2_CACHE_DIR) and with its XLA flags
+# (`process.deterministic_gpu`, before the backend starts; a CPU ignores the flag): the flags
+# are part of a compiled program's cache key, so without them no program of an `eant2`
+# command above would be read back here.
 _DRIVER = """
 import contextlib, io, json, sys, traceback
+from eant2_jax.app import process
+process.deterministic_gpu()
 import eant2_jax
 eant2_jax.enable_compilation_cache()
 codes, outs = json.loads(sys.stdin.read()), []
@@ -205,7 +220,8 @@ def check(path: Path, write: bool = False, one_process: bool = False) -> list[tu
     wrong, pieces, last = [], [], 0
     for ex, out in zip(found, got, strict=True):
         if ex.code.startswith(_DEMO) and ex == _quickstart_demo() and not _demo_printed:
-            _demo_printed.append(out)  # `recording_machine` need not run it again
+            # `recording_machine` need not run it again, in this process or another
+            _demo_printed.append(once(_DEMO_SHARED, lambda out=out: out))
         if not same(out, ex.shown):
             wrong.append((ex, out))
         pieces += [page[last : ex.span[0]], out]

@@ -199,10 +199,13 @@ def test_python_run_of_a_made_task_resumes_with_the_task_named_again(user_dir, t
         eant2_jax.resume(str(out), generations=1)
     res = eant2_jax.resume(str(out), tasks.make(f"{f}:reach_task"), generations=1)
     assert [g.generation for g in res.generations] == [0, 1]
-    # A task built by hand is recorded by its type; resume then says what to do.
+    # A task built by hand is recorded by its type; resume then says what to do. (The same
+    # task class as above, built without `make`: the run reuses its compiled programs.)
     other = tmp_path / "by-hand"
-    eant2_jax.run(Constant(), key=jax.random.key(0), config=TINY, generations=0, out=str(other))
-    with pytest.raises(RunDirError, match=r"records no task spec \(its task, .*Constant, was"):
+    by_hand = type(task)()
+    assert tasks.spec_of(by_hand) is None
+    eant2_jax.run(by_hand, key=jax.random.key(0), config=TINY, generations=0, out=str(other))
+    with pytest.raises(RunDirError, match=r"records no task spec \(its task, .*Reach, was"):
         eant2_jax.resume(str(other), generations=1)
 
 
@@ -391,13 +394,15 @@ def test_rescoring_keeps_the_point_of_lower_fresh_cost():
 
 
 @pytest.mark.slow
-def test_progress_reporter_announces_compilation(monkeypatch):
+def test_progress_reporter_announces_compilation(user_dir, monkeypatch):
     from eant2_jax import programs
 
     monkeypatch.setattr(programs.REGISTRY, "ran", set())  # as in a fresh process
     stream = io.StringIO()
+    # The run of the user's task above (its programs, if this process compiled them, are
+    # reused: the announcement follows what ran in this process, not the jit cache).
     eant2_jax.run(
-        tasks.make("xor"),
+        tasks.make(f"{user_dir / 'reach_cli.py'}:reach_task"),
         key=jax.random.key(0),
         config=TINY,
         generations=0,

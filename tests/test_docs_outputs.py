@@ -36,8 +36,9 @@ def test_printed_outputs_match_the_code(page, monkeypatch):
     # are paid once. Each example still runs alone, as its own script (its own globals,
     # `__main__`), and prints what it prints. That process runs with the settings the page's
     # `eant2` commands use, as the page advises ("Compile once, across processes":
-    # `eant2_jax.enable_compilation_cache()`, EANT2_CACHE_DIR), so that its `eant2_jax.run`
-    # of the `eant2 run` above reads that run's programs instead of compiling them again.
+    # `eant2_jax.enable_compilation_cache()`, EANT2_CACHE_DIR), and with their XLA flags, so
+    # that its `eant2_jax.run` of the `eant2 run` above reads that run's programs instead of
+    # compiling them again (and its `optimize`, the programs of `eant2 demo`).
     # What the examples print does not depend on it.
     if os.environ.get("EANT2_CACHE_DIR"):
         monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", os.environ["EANT2_CACHE_DIR"])

@@ -107,14 +107,25 @@ ANCHORS = [
 ]
 
 
+# The compiled path runs every anchor on inputs of one shape: its own steps, then zeros up to
+# the most steps of any anchor, and zero columns up to the most inputs. A step reads no later
+# step and no gene reads the added inputs, so the anchor's steps keep their values; anchors of
+# one activation pair and number of outputs then share one program.
+ANCHOR_T = max(len(a[3]) for a in ANCHORS)
+ANCHOR_IN = max(len(a[3][0][0]) for a in ANCHORS)
+
+
 @pytest.mark.parametrize(("text", "hidden", "output", "x", "y"), ANCHORS)
 @pytest.mark.slow
 def test_hand_computed_values(text, hidden, output, x, y):
     g = Genome.parse(text)
     x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
     np.testing.assert_allclose(interpret(g, x, hidden=hidden, output=output), y)
-    got = eant2_jax.evaluate(g, x, hidden=hidden, output=output)
-    np.testing.assert_allclose(np.asarray(got)[0], y, rtol=1e-6)
+    t, m, n_in = x.shape
+    padded = np.zeros((ANCHOR_T, m, ANCHOR_IN))
+    padded[:t, :, :n_in] = x
+    got = eant2_jax.evaluate(g, padded, hidden=hidden, output=output)
+    np.testing.assert_allclose(np.asarray(got)[0, :t], y, rtol=1e-6)
 
 
 @pytest.mark.slow
@@ -178,7 +189,8 @@ def test_evaluate_matches_reference(batch, shape, acts, data):
 @pytest.mark.slow
 def test_text_and_genomes_are_accepted():
     text = "N0/2*1 I1*0.5 B*-1"
-    x = np.random.default_rng(1).normal(size=(3, 2, 2))
+    # The anchors' input shape: one genome is then the program of the first anchors.
+    x = np.random.default_rng(1).normal(size=(ANCHOR_T, 1, ANCHOR_IN))
     a = eant2_jax.evaluate(text, x)
     b = eant2_jax.evaluate([Genome.parse(text)], x)
     c = eant2_jax.evaluate((text, Genome.parse(text)), jnp.asarray(x))

@@ -633,9 +633,6 @@ def test_gpu_step_branches_only_large_batches_of_dot_networks(monkeypatch, neuro
     args = (layout, params, x, h)
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
 
-    def fresh(rule):
-        return _batched_step_fn.__wrapped__(rule, "tanh", "identity")
-
     small = neurons <= kn.UNROLL_MAX
     assert _cuda_text(args).count(_TRITON) == small
     monkeypatch.setattr(kn, "FUSED", False)
@@ -643,7 +640,10 @@ def test_gpu_step_branches_only_large_batches_of_dot_networks(monkeypatch, neuro
     monkeypatch.setattr(kn, "GPU_BRANCH_MIN", 0)
     assert _conditionals(_cuda_text(args)) == (not small)
     bad = x.at[1, 2].set(np.nan)
-    fast, ruled = fresh(False), fresh(True)  # each traced once, under the settings above
+    fast = _batched_step_fn.__wrapped__(False, "tanh", "identity")  # traced under the above
+    # The rule inline (`kn.step_inline`) reads no setting above: the CPU test's program,
+    # compiled once for both tests where the bucket is theirs (8 slots).
+    ruled = _batched_step_fn(True, "tanh", "identity")
     for inputs in (x, bad):
         args = (layout, params, inputs, h)
         _assert_same_values(fast(*args), ruled(*args))
@@ -723,7 +723,8 @@ def test_fused_step_takes_the_rule_when_a_value_inside_overflows():
     kernel finds it from the final states and takes the rule: the same NaN and inf
     entries as `kn.step_inline` with the rule."""
     (layout, params, x, h), nets, xs = _fused_args(3, 8, scale=1e20)
-    want = _ruled(layout, params, x, h, "identity", "identity")
+    # The rule inline, batched as the CPU test batches it: that test's program.
+    want = _batched_step(layout, params, x, h, rule=True, hidden="identity", output="identity")
     assert not np.all(np.isfinite(np.asarray(want[1])))
     _assert_same_values(_fused(nets, xs, h, "identity", "identity"), want)
     plain = _plain_identity_step(layout, params, x, h)  # the networks of `nets`, built again

@@ -1020,8 +1020,8 @@ def test_first_program_compiled_ahead_from_shapes_is_used_and_changes_nothing(mo
     """On an accelerator generation 0's engine program starts compiling from shapes alone,
     before any key or engine state exists (`programs.guesses.compile_first_ahead`). Forced on here:
     generation 0 runs that very program (called without jit's fallback, so arguments placed
-    otherwise than foreseen would raise), and the run is exactly that of the usual path. The
-    servo task's arrays are committed to the device; XOR's are not."""
+    otherwise than foreseen would raise), and the run is exactly that of the usual path, on
+    two tasks (XOR and servo)."""
     from eant2_jax import programs
     from eant2_jax.programs import guesses
 

@@ -13,7 +13,7 @@ Two parts (``--parts``), each case in a fresh process with no persistent compila
   process with an empty cache (so XLA compiles and autotunes afresh), with the command
   line's deterministic default and with ``EANT2_GPU_DETERMINISTIC=0``: the best cost of each
   generation and whether the second run's best network equals the first's to the bit
-  (``--quick`` adds ``--no-prune``).
+  (``--quick``: without a pruner).
 
 On a CPU both flags give the same programs; the suite is meant for GPUs.
 
@@ -40,6 +40,7 @@ from bench.common import (
     Column,
     child_env,
     eant2_argv,
+    eant2_pruner,
     environment,
     markdown_table,
     random_population,
@@ -131,7 +132,7 @@ def _repeat(args, deterministic: bool, index: int) -> dict:
                          "--generations", str(args.generations), "--seed", str(args.seed),
                          "--out", str(run_dir))  # fmt: skip
         if args.quick:  # the engine without a pruner, as the quick iteration part times it
-            cmd.append("--no-prune")
+            cmd += ["--pruner", eant2_pruner(args.quick)]
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, env=env, cwd=tmp, capture_output=True, text=True)
         total = time.perf_counter() - t0

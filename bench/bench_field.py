@@ -63,7 +63,7 @@ from pathlib import Path
 from typing import Any
 
 from bench import field_protocol, harness
-from bench.common import BenchInputError, Column, environment, markdown_table
+from bench.common import BenchInputError, Column, eant2_pruner, environment, markdown_table
 
 __all__ = ["ENVS", "METHODS", "Env", "first_reaching", "main", "summarise"]
 # The runs themselves: bench/field_runner.py; the learning curves: bench/field_figure.py.
@@ -258,11 +258,9 @@ def _spawn(method: str, env: str, seed: int, args: argparse.Namespace, budget: i
            "--seed", str(seed), "--budget", str(budget), "--deadline-s", str(args.deadline_s),
            "--out", str(out), "--test-episodes", str(args.test_episodes),
            "--backend", args.backend, "--tensorneat-pop", str(args.tensorneat_pop)]  # fmt: skip
-    # --quick, a smoke test of the runs' bookkeeping, runs eant2 without a pruner: its engine
-    # compiles sooner.
     for flag, v in (("--population", args.population), ("--max-iters", args.max_iters),
                     ("--tensorneat", args.tensorneat),
-                    ("--pruner", "none" if args.quick else None)):  # fmt: skip
+                    ("--pruner", eant2_pruner(args.quick))):  # fmt: skip
         if v is not None:
             cmd += [flag, str(v)]
     environ = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR",)}

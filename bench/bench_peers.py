@@ -37,7 +37,7 @@ from typing import Any
 import jax
 
 from bench import harness
-from bench.common import Column, environment, markdown_table
+from bench.common import Column, eant2_pruner, environment, markdown_table
 from bench.peer_methods import Curve, run_eant2, run_evosax, run_neat, run_pycma
 from eant2_jax import exploitation as ex
 from eant2_jax import loop, tasks
@@ -124,8 +124,7 @@ def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     eant2_config = loop.EANT2Config(
         population=args.eant2_population,
         exploit=ex.ExploitConfig(
-            # --quick, a smoke test of the suite, runs no pruner: its engine compiles sooner.
-            pruner="none" if args.quick else "covariance",
+            pruner=eant2_pruner(args.quick),
             max_iters=args.eant2_max_iters,
             patience=args.eant2_patience,
             prune_window=args.eant2_prune_window,

@@ -65,7 +65,7 @@ from typing import Any
 import jax
 
 from bench import harness
-from bench.common import BenchInputError, default_out, environment
+from bench.common import BenchInputError, default_out, eant2_pruner, environment
 from bench.pole_tables import (
     ACCOUNTING,
     PROTOCOL,
@@ -411,7 +411,6 @@ def task_config(
         name in args.recurrent_start,
         getattr(args, "solution_rule", "structure"),
     )
-    quick = getattr(args, "quick", False) and not getattr(args, "protocol", False)
     return loop.EANT2Config(
         population=args.population,
         offspring=args.offspring,
@@ -420,9 +419,10 @@ def task_config(
         inherit_search=getattr(args, "inherit_search", False),
         reexploit=getattr(args, "reexploit", False),
         exploit=ex.ExploitConfig(
-            # --quick, a smoke test of the suite, runs no pruner: its engine compiles sooner
-            # (the protocol's variants keep theirs).
-            pruner="none" if quick else "covariance",
+            # The protocol's variants keep their pruner in a quick run too.
+            pruner=eant2_pruner(
+                getattr(args, "quick", False) and not getattr(args, "protocol", False)
+            ),
             popsize=args.popsize,
             sigma0=args.sigma0,
             max_iters=args.max_iters,

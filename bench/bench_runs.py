@@ -30,7 +30,7 @@ import time
 from typing import Any
 
 from bench import harness
-from bench.common import Column, child_env, environment, markdown_table
+from bench.common import Column, child_env, eant2_pruner, environment, markdown_table
 from eant2_jax.app.parser import task_options
 
 _CHILD = textwrap.dedent(
@@ -42,8 +42,9 @@ _CHILD = textwrap.dedent(
     from eant2_jax.programs import stats as compilestats
     spec = json.loads(sys.argv[1])
     task = E.tasks.make(spec["task"], **spec["options"])
-    exploit = {} if spec["max_iters"] is None else {"max_iters": spec["max_iters"]}
-    exploit.update({"pruner": spec["pruner"]} if "pruner" in spec else {})
+    exploit = {"pruner": spec["pruner"]}
+    if spec["max_iters"] is not None:
+        exploit["max_iters"] = spec["max_iters"]
     config = E.EANT2Config(population=spec["population"], exploit=E.ExploitConfig(**exploit))
     keys = [jax.random.key(s) for s in range(spec["seed"], spec["seed"] + spec["runs"])]
     before = compilestats.snapshot()
@@ -72,9 +73,8 @@ def _one(args, mode: str) -> dict[str, Any]:
         "generations": args.generations, "population": args.population,
         "max_iters": args.max_iters, "seed": args.seed, "lockstep": lockstep,
         "workers": args.workers if workers == "workers" else 1,
+        "pruner": eant2_pruner(args.quick),
     }  # fmt: skip
-    if args.quick:  # a smoke test of the modes: the engine without a pruner compiles sooner
-        spec["pruner"] = "none"
     env = child_env(EANT2_CACHE_DIR="", JAX_ENABLE_COMPILATION_CACHE="false")
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()

@@ -46,6 +46,7 @@ from bench.bench_profile import analyse_trace, traced
 from bench.common import (
     BenchInputError,
     Column,
+    eant2_pruner,
     environment,
     markdown_table,
     random_population,
@@ -147,11 +148,9 @@ def _prepare(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     counts = args.devices or [d for d in (1, 2, 4, 8) if d <= jax.device_count()]
     task = tasks.make("servo", n_starts=args.moves)
-    # --quick (a smoke test of the split into placement and loops) runs the engine without a
-    # pruner: on a 2-core CPU its two programs then compile in half the time.
     config = ex.ExploitConfig(
         max_iters=args.iters, chunk=args.iters, patience=10**6, sigma_tol=0.0,
-        tolfun=None, pruner="none" if args.quick else "covariance", prune_window=50,
+        tolfun=None, pruner=eant2_pruner(args.quick), prune_window=50,
     )  # fmt: skip
     cases = [(kind, d, args.per_device * d if kind == "weak" else args.strong)
              for kind in ("weak", "strong") for d in counts]  # fmt: skip

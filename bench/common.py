@@ -157,6 +157,13 @@ def default_out(name: str) -> Path:
     return RESULTS_DIR / f"{name}-{device_tag()}.json"
 
 
+def eant2_pruner(quick: bool) -> str:
+    """eant2's pruner in a bench run: covariance, the paper's method; none in a ``--quick``
+    run, a smoke test of the bench's bookkeeping, whose engine then compiles in about half the
+    time on a CPU (the pruner itself is tested by the test suite's own tests)."""
+    return "none" if quick else "covariance"
+
+
 # ------------------------------------------------------------------------ child processes
 def eant2_argv(*args: str) -> list[str]:
     """The argv of ``eant2 ARGS`` run by this interpreter (no console script needed)."""

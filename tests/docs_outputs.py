@@ -52,7 +52,7 @@ def mask(text: str) -> str:
 # the host CPU round differently, and CMA-ES carries a last-bit difference into another
 # trajectory (docs/algorithm.md, "Determinism and keys"). Elsewhere, numbers are masked and the
 # "compiling" lines, which follow the trajectory's gene buckets, are dropped.
-_NUMBER = re.compile(r"-?\d[\d,]*(\.\d+)?(e[-+]?\d+)?")
+_NUMBER = re.compile(r"-?\d(?:[\d,]*\d)?(\.\d+)?(e[-+]?\d+)?")  # "20,868", not "0,"
 _COMPILING = "compiling the exploitation program"
 
 
@@ -75,13 +75,33 @@ def _quickstart_demo() -> Example:
     return demo
 
 
+# The pages were recorded on a CPU with AVX-512. XLA writes vector code for the host's
+# instruction sets, and a CPU without AVX-512 (seen: a 2-core AMD EPYC of family 25) printed
+# the demo's numbers exactly but rounded later runs of the quickstart differently.
+_RECORDING_FLAGS = frozenset({"avx512f"})
+
+
+def _cpu_flags() -> frozenset[str]:
+    """The host CPU's instruction-set flags (Linux's /proc/cpuinfo; empty elsewhere)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return frozenset()
+    for line in text.splitlines():
+        if line.startswith("flags"):
+            return frozenset(line.split(":", 1)[1].split())
+    return frozenset()
+
+
 @functools.cache
 def recording_machine() -> bool:
-    """Whether this machine computes as the one the pages were recorded on: its `eant2
-    demo` prints the numbers docs/quickstart.md shows (a CMA-ES run of XOR, which any
-    difference in rounding changes). The demo runs once per test session (`shared.once`;
-    once per process outside the suite): `check` of a page that shows it hands over what
-    it printed."""
+    """Whether this machine computes as the one the pages were recorded on: its CPU has the
+    recording CPU's instruction sets (`_RECORDING_FLAGS`) and its `eant2 demo` prints the
+    numbers docs/quickstart.md shows (a CMA-ES run of XOR, which any difference in rounding
+    changes). The demo runs once per test session (`shared.once`; once per process outside
+    the suite): `check` of a page that shows it hands over what it printed."""
+    if not _RECORDING_FLAGS <= _cpu_flags():
+        return False
     demo = _quickstart_demo()
     if not _demo_printed:
         _demo_printed.append(once(_DEMO_SHARED, functools.partial(_run_demo, demo)))

@@ -24,6 +24,9 @@ def test_loose_masks_numbers_and_compiling_lines_only():
     assert loose(a) != loose(a.replace("best", "worst"))  # words still count
     assert loose(a) != loose(a + "N1/2*0.5\n")  # and lines
     assert loose("N0/3*1.65 I0*-0.83") != loose("N0/3*1.65 B*-0.83")  # and gene kinds
+    # a comma after a number is text, one inside it is not
+    assert loose("best cost 0, size 6") == loose("best cost 8.88178e-16, size 6")
+    assert loose("best cost 0, size 6") != loose("best cost 0 size 6")
 
 
 @pytest.mark.slow

@@ -20,7 +20,8 @@ INHERIT = EANT2Config(
     inherit_search=True,
     exploit=CONFIG.exploit,
 )
-# The default stop: XOR's solved level (it solves XOR at generation 1 of 3). CONFIG's sizes
+# The default stop: XOR's solved level (on the CPU the docs were recorded on it solves XOR at
+# generation 1 of 3; another CPU rounds differently and may not). CONFIG's sizes
 # and exploit settings, so that its programs are CONFIG's.
 SOLVING = EANT2Config(population=4, exploit=CONFIG.exploit)
 
@@ -58,8 +59,10 @@ def test_a_ten_line_driver_is_the_run(config):
     assert [i.to_json() for i in state.population] == [i.to_json() for i in res.population]
     assert str(best.genome) == str(res.best) and best.cost == res.population[0].cost
     if config.stop_when_solved:
-        assert records[-1].best_cost <= tasks.XOR_SOLVED < records[-2].best_cost
-        assert len(records) < generations + 1
+        # The run stops at the first generation at XOR's solved level, or after the last one.
+        reached = [r.best_cost <= tasks.XOR_SOLVED for r in records]
+        assert config.target_cost == tasks.XOR_SOLVED and not any(reached[:-1])
+        assert reached[-1] or len(records) == generations + 1
     else:
         assert len(records) == generations + 1
 

@@ -25,6 +25,7 @@ end Python knows), deep nesting, comment lines and line ends of every kind.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 
 import numpy as np
@@ -53,6 +54,7 @@ def fewer_examples(fraction: float, least: int = 5) -> settings:
     return settings(max_examples=max(least, int(settings.default.max_examples * fraction)))
 
 
+@functools.cache  # strategies are immutable: one per argument set, not one per draw
 def weights(bound: float = 2.0, *, subnormal: bool = True) -> st.SearchStrategy[float]:
     """Finite weights in ``[-bound, bound]``; ``subnormal=False`` leaves out the float32
     subnormals (which XLA's CPU arithmetic flushes to zero)."""
@@ -285,6 +287,7 @@ _HOSTILE_PIECES = [
 ]  # fmt: skip
 
 
+@functools.cache  # strategies are immutable: one per size, not one per draw
 def hostile_strings(max_size: int = 12) -> st.SearchStrategy[str]:
     """Strings built of pieces that break out of quotes, lines or comments, and any text."""
     pieces = st.lists(st.sampled_from(_HOSTILE_PIECES) | st.text(max_size=4), max_size=max_size)
@@ -308,6 +311,17 @@ _JSON = st.recursive(
 _FIELDS = ("format", "hidden", "output", "n_inputs", "n_outputs", "task", "task_options")
 
 
+# genome_file_texts' fixed strategies, built once (building them on every draw was most of
+# the fuzz's time).
+_FILE_GENOMES = genomes(max_neurons=4)
+_TASKS = st.none() | hostile_strings()
+_TASK_OPTIONS = st.none() | st.dictionaries(hostile_strings(4), _JSON, max_size=3)
+_FIELD_EDITS = st.lists(st.sampled_from(_FIELDS), max_size=3, unique=True)
+_DEPTHS = st.sampled_from([0, 0, 0, 30, 40, 100_000])
+_SEPARATORS = st.sampled_from([" ", "  ", "\t", "\n", "\r\n", "\u00a0", "\u3000", *LINE_BREAKS])
+_LINE_ENDS = st.sampled_from(["\n", "\r\n", *LINE_BREAKS])
+
+
 @st.composite
 def genome_file_texts(draw, activations: tuple[str, ...] = ("tanh", "sigmoid", "identity")):
     """The text of a genome file, valid or not (module docstring).
@@ -317,17 +331,17 @@ def genome_file_texts(draw, activations: tuple[str, ...] = ("tanh", "sigmoid", "
     (``ensure_ascii=False``), the object wrapped in deep brackets, comment lines added, the
     lines ended by any line end, and the genome's tokens separated by any whitespace.
     """
-    g = draw(genomes(max_neurons=4))
+    g = draw(_FILE_GENOMES)
     head = {
         "format": 1,
         "hidden": draw(st.sampled_from(activations)),
         "output": draw(st.sampled_from(activations)),
         "n_inputs": g.n_inputs + draw(st.integers(0, 2)),
         "n_outputs": g.n_outputs,
-        "task": draw(st.none() | hostile_strings()),
-        "task_options": draw(st.none() | st.dictionaries(hostile_strings(4), _JSON, max_size=3)),
+        "task": draw(_TASKS),
+        "task_options": draw(_TASK_OPTIONS),
     }
-    for key in draw(st.lists(st.sampled_from(_FIELDS), max_size=3, unique=True)):
+    for key in draw(_FIELD_EDITS):
         if draw(st.booleans()):
             head[key] = draw(_JSON)
         else:
@@ -335,13 +349,12 @@ def genome_file_texts(draw, activations: tuple[str, ...] = ("tanh", "sigmoid", "
     if draw(st.booleans()):
         head[draw(hostile_strings(4))] = draw(_JSON)
     body = json.dumps(head, ensure_ascii=draw(st.booleans()))
-    depth = draw(st.sampled_from([0, 0, 0, 30, 40, 100_000]))
+    depth = draw(_DEPTHS)
     if depth:
         body = body[:-1] + ', "deep": ' + "[" * depth + "]" * depth * draw(st.booleans()) + "}"
     lines = [] if draw(st.integers(0, 4)) == 0 else ["# eant2-genome " + body]
     lines += ["#" + draw(hostile_strings()) for _ in range(draw(st.integers(0, 2)))]
     tokens = [str(gene) for gene in g]
-    seps = st.sampled_from([" ", "  ", "\t", "\n", "\r\n", "\u00a0", "\u3000", *LINE_BREAKS])
-    genes = tokens[0] + "".join(draw(seps) + t for t in tokens[1:])
-    end = draw(st.sampled_from(["\n", "\r\n", *LINE_BREAKS]))
+    genes = tokens[0] + "".join(draw(_SEPARATORS) + t for t in tokens[1:])
+    end = draw(_LINE_ENDS)
     return end.join([*lines, genes]) + draw(st.sampled_from(["", "\n", end]))

@@ -87,11 +87,17 @@ def test_gymnax_episode_states_are_the_tasks_own(cartpole):
         reset_key, step_key = jax.random.split(key)
         first = env.reset(reset_key, params)[1]
         np.testing.assert_allclose(ep.states.theta[0], first.theta, rtol=1e-6)
-        keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(step_key, jnp.arange(ep.length - 1))
-        before = jax.tree.map(lambda a: a[:-1], ep.states)
-        after = jax.vmap(env.step, in_axes=(0, 0, 0, None))(keys, before, ep.actions[:-1], params)
+        # Steps 0 .. length-2, their rows repeated up to the task's max_steps - 1 so that
+        # every trial's step program has one shape (one compilation); only the real rows
+        # are compared.
+        n = ep.length - 1
+        at = np.minimum(np.arange(task.max_steps - 1), max(n - 1, 0))
+        keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(step_key, jnp.asarray(at))
+        before = jax.tree.map(lambda a, at=at: np.asarray(a)[at], ep.states)
+        actions = np.asarray(ep.actions)[at]
+        after = jax.vmap(env.step, in_axes=(0, 0, 0, None))(keys, before, actions, params)
         for name in ("x", "x_dot", "theta", "theta_dot"):
-            np.testing.assert_allclose(getattr(after[1], name), getattr(ep.states, name)[1:],
+            np.testing.assert_allclose(getattr(after[1], name)[:n], getattr(ep.states, name)[1:],
                                        rtol=1e-5, atol=1e-6, err_msg=name)  # fmt: skip
     assert render.gymnax_episode(task, net, key, steps=5).states.theta.shape == (5,)
 

@@ -15,6 +15,7 @@ runs (many runs of one configuration on one device: lock-step, threads, one at a
 determinism (what XLA's deterministic GPU mode costs; whether runs repeat without it).
 throughput (network-episodes and env steps per second against batch width, brax, issue 41).
 width (the batch-width choice of docs/protocol.md section 6 from the field's choice runs).
+normalize (the observation-normalisation choice of docs/protocol.md section 8, likewise).
 Each writes JSON (device, versions, config, compile time apart from steady state) and a
 markdown table, and never over an existing result file unless ``--force`` is given;
 ``--help`` after the suite name lists its options.
@@ -46,6 +47,7 @@ SUITES = {
     "finetune": "bench.bench_finetune",
     "throughput": "bench.bench_throughput",
     "width": "bench.field_width",
+    "normalize": "bench.field_normalize",
 }
 
 

@@ -314,6 +314,10 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--width", type=int, default=None,
                    help="--protocol trial: eant2's ExploitConfig.width (networks per engine "
                         "batch) in place of its frozen popsize")  # fmt: skip
+    p.add_argument("--normalize", choices=("none", "random"), default=None,
+                   help="--protocol trial: eant2's input convention; random: observations "
+                        "normalised by frozen statistics of random-policy episodes "
+                        "(docs/protocol.md section 8)")  # fmt: skip
     p.add_argument("--tensorneat", default=None,
                    help="folder holding TensorNEAT's tensorneat package (its src/)")  # fmt: skip
     p.add_argument("--tensorneat-pop", type=int, default=None,
@@ -328,8 +332,9 @@ def _prepare(args: argparse.Namespace) -> None:
         return field_protocol.prepare(args)
     if args.resume or args.checkpoint or args.peer_runs:
         raise BenchInputError("--checkpoint, --resume and --peer-runs belong to --protocol")
-    if args.width is not None:
-        raise BenchInputError("--width belongs to --protocol (a trial's option)")
+    for flag in ("width", "normalize"):
+        if getattr(args, flag) is not None:
+            raise BenchInputError(f"--{flag} belongs to --protocol (a trial's option)")
     args.seeds = 3 if args.seeds is None else args.seeds
     args.first_seed = 0 if args.first_seed is None else args.first_seed
     args.deadline_s = args.deadline_s or 600.0

@@ -53,7 +53,10 @@ __all__ = [
     "trial_overrides",
 ]
 
-TRIAL = ("budget", "population", "max_iters", "width", "tensorneat_pop")
+TRIAL = ("budget", "population", "max_iters", "width", "normalize", "tensorneat_pop")
+# Trial options added after checkpoints existed: left out of a call's settings while unset,
+# so that a checkpoint written before them still matches the call that resumes it.
+_LATER = ("width", "normalize")
 
 
 def _tensorneat_size(args: argparse.Namespace, env: str) -> tuple[int, int]:
@@ -73,7 +76,8 @@ def _train_argv(method: str, args: argparse.Namespace, env: str, seed: int, out:
         pop, generations = _tensorneat_size(args, env)
         argv += ["--pop", str(pop), "--generations", str(generations)]
     eant2 = (("--population", args.population), ("--max-iters", args.max_iters),
-             ("--width", args.width))  # fmt: skip
+             ("--width", args.width),
+             ("--normalize", getattr(args, "normalize", None)))  # fmt: skip
     for flag, v in eant2:
         if v is not None and method == "eant2":
             argv += [flag, str(v)]
@@ -157,9 +161,8 @@ def call_settings(args: argparse.Namespace) -> dict[str, Any]:
     call's options and its seeds (not ``--peer-runs``: a reused run is the run it would
     train, and each record names its reused runs)."""
     keep = ("envs", "methods", "seeds", "first_seed", *TRIAL)
-    # --width came later: left out while unset, so a checkpoint written before it still
-    # matches the call that resumes it.
-    given = {k: getattr(args, k) for k in keep if k != "width" or args.width is not None}
+    given = {k: getattr(args, k, None) for k in keep
+             if k not in _LATER or getattr(args, k, None) is not None}  # fmt: skip
     return {"frozen": table(args.envs), "args": given,
             "seed_lists": {e: _seeds(args, e) for e in args.envs}}  # fmt: skip
 
@@ -255,14 +258,23 @@ def _reused(records: list[dict]) -> list[dict]:
             for r in records for m, run in r["runs"].items() if run.get("reused_from")]  # fmt: skip
 
 
+def judge_argv(args: argparse.Namespace, env: str, out: Path, budget_list: list[int],
+               paths: list[Path]) -> list[str]:  # fmt: skip
+    """The judging process's command: the runs ``paths`` at ``budget_list``, into ``out``,
+    on the task eant2_jax trained on (a trial's ``--normalize``)."""
+    argv = [sys.executable, "-m", "bench.field_workers", "judge", "--env", env,
+            "--out", str(out), "--budgets", *map(str, budget_list), "--runs",
+            *map(str, paths)]  # fmt: skip
+    if getattr(args, "normalize", None):
+        argv += ["--normalize", args.normalize]
+    return argv
+
+
 def _seed(args, env: str, seed: int, runs: Path, budget_list: list[int], device: dict) -> dict:
     trained = {m: _train(m, args, env, seed, runs, device) for m in args.methods}
     paths = [runs / f"{env}-s{seed}-{m}.json" for m in args.methods]
     judged_path = runs / f"{env}-s{seed}-judged.json"
-    argv = [sys.executable, "-m", "bench.field_workers", "judge", "--env", env,
-            "--out", str(judged_path), "--budgets", *map(str, budget_list), "--runs",
-            *map(str, paths)]  # fmt: skip
-    err = _call(argv, args.deadline_s)
+    err = _call(judge_argv(args, env, judged_path, budget_list, paths), args.deadline_s)
     if err:
         raise BenchInputError(f"field protocol: judging {env} seed {seed} failed: {err}")
     judged = json.loads(judged_path.read_text())

@@ -28,6 +28,8 @@ __all__ = [
     "BUDGET_FRACTIONS",
     "CURVE_POINTS",
     "ENVS",
+    "NORM_EPISODES",
+    "NORM_SEED",
     "SEEDS",
     "TEST_EPISODES",
     "TEST_KEY",
@@ -47,6 +49,10 @@ BUDGET_FRACTIONS = (0.25, 0.5, 1.0)  # of TensorNEAT's example evaluations
 # budget: the last generation within each such share.
 CURVE_POINTS = 20
 SEEDS = {"gymnax": tuple(range(4000, 4010)), "brax": tuple(range(4000, 4005))}
+# A trial's --normalize random (docs/protocol.md section 8): eant2_jax's inputs normalised by
+# the statistics of TensorNEAT's halfcheetah example's count of random-policy episodes
+# (`eant2_jax.tasks.obsnorm`), from jax.random.key(NORM_SEED), the same for every seed.
+NORM_EPISODES, NORM_SEED = 1000, 0
 
 _TN = {"pop_size": 1000, "species_size": 20, "survival_threshold": 0.1,
        "compatibility_threshold": 1.0, "generations": 100, "activation": "tanh",

@@ -27,10 +27,19 @@ from typing import Any
 
 import numpy as np
 
-from bench.common import BenchInputError, Column, markdown_table
+from bench.common import BenchInputError, Column, markdown_table, write_new_json
 from bench.field_stats import return_at
 
-__all__ = ["CANDIDATES", "ENVS", "SEEDS", "return_at", "choose", "render"]
+__all__ = [
+    "CANDIDATES",
+    "ENVS",
+    "SEEDS",
+    "choice_main",
+    "choice_runs",
+    "choose",
+    "render",
+    "return_at",
+]
 
 ENVS = ("hopper", "halfcheetah")
 SEEDS = [100, 101, 102]
@@ -97,38 +106,48 @@ def _order(name: str) -> float:
     return -1.0 if width is None else float(width)
 
 
-def choose(folder: str | Path) -> dict[str, Any]:
-    """The rule applied to ``folder``'s ``ENV-NAME.json`` files (see the module docstring):
-    per environment each candidate's seed values, median and rank; the summed ranks; the
-    winner (None, with ``missing`` listing the absent files, until all eight exist)."""
+def choice_runs(folder: str | Path, envs, names, read, values) -> tuple[dict, list[str], Any]:
+    """A choice's result files ``folder/ENV-NAME.json``: ``({env: {name: [value per seed of
+    SEEDS]}}, missing, device_kind)``. ``read(path, env, name)`` checks a file's payload,
+    ``values(payload, path)`` gives its judged seeds' values; a file absent or with other
+    seeds than `SEEDS` judged is listed in ``missing``. Refused: no such folder, or files
+    from more than one device kind."""
     folder = Path(folder)
     if not folder.is_dir():
         raise BenchInputError(f"{folder}: no such folder")
-    envs: dict[str, dict[str, Any]] = {}
+    found: dict[str, dict[str, list[float]]] = {}
     missing, devices = [], {}
-    for env in ENVS:
-        rows = {}
-        for name in CANDIDATES:
+    for env in envs:
+        found[env] = {}
+        for name in names:
             path = folder / f"{env}-{name}.json"
             if not path.is_file():
                 missing.append(path.name)
                 continue
-            payload = _checked(path, env, name)
+            payload = read(path, env, name)
             devices[path.name] = (payload.get("environment") or {}).get("device_kind")
-            values = _seed_values(payload, path)
-            if sorted(values) != SEEDS:  # a run still going: judged seeds are written as they end
-                missing.append(f"{path.name} (seeds judged: {sorted(values)})")
+            got = values(payload, path)
+            if sorted(got) != SEEDS:  # a run still going: judged seeds are written as they end
+                missing.append(f"{path.name} (seeds judged: {sorted(got)})")
                 continue
-            rows[name] = {
-                "values": [values[s] for s in SEEDS],
-                "median": float(np.median([values[s] for s in SEEDS])),
-            }
+            found[env][name] = [got[s] for s in SEEDS]
+    if len(set(devices.values())) > 1:
+        raise BenchInputError(f"choice runs on more than one device kind: {devices}")
+    return found, missing, next(iter(set(devices.values())), None)
+
+
+def choose(folder: str | Path) -> dict[str, Any]:
+    """The rule applied to ``folder``'s ``ENV-NAME.json`` files (see the module docstring):
+    per environment each candidate's seed values, median and rank; the summed ranks; the
+    winner (None, with ``missing`` listing the absent files, until all eight exist)."""
+    found, missing, device = choice_runs(folder, ENVS, CANDIDATES, _checked, _seed_values)
+    envs: dict[str, dict[str, Any]] = {}
+    for env, by in found.items():
+        rows = {n: {"values": v, "median": float(np.median(v))} for n, v in by.items()}
         if rows:
             for name, rank in _ranks({n: r["median"] for n, r in rows.items()}).items():
                 rows[name]["rank"] = rank
         envs[env] = rows
-    if len(set(devices.values())) > 1:
-        raise BenchInputError(f"choice runs on more than one device kind: {devices}")
     winner, summed = None, {}
     if not missing:
         summed = {n: sum(envs[e][n]["rank"] for e in ENVS) for n in CANDIDATES}
@@ -141,7 +160,7 @@ def choose(folder: str | Path) -> dict[str, Any]:
         "winner": winner,
         "width": CANDIDATES[winner][0] if winner else None,
         "missing": missing,
-        "device_kind": next(iter(set(devices.values())), None),
+        "device_kind": device,
     }
 
 
@@ -176,20 +195,19 @@ def render(choice: dict[str, Any]) -> str:
     return md
 
 
-def main(argv: list[str]) -> None:
-    p = argparse.ArgumentParser(prog="python -m bench width", description=__doc__.split("\n")[0])
-    p.add_argument(
-        "--dir",
-        default="bench/results/field-width",
-        help="the choice runs' folder (default: %(default)s)",
-    )
+def choice_main(argv: list[str], *, prog: str, doc: str, folder: str, choose, render) -> None:
+    """A choice's command: ``--dir`` (default ``folder``) through ``choose``, printed by
+    ``render``; ``--out FILE`` also writes the choice as JSON (never over a file)."""
+    p = argparse.ArgumentParser(prog=prog, description=doc.split("\n")[0])
+    p.add_argument("--dir", default=folder, help="the choice runs' folder (default: %(default)s)")
     p.add_argument("--out", help="also write the choice as JSON here (never over a file)")
     args = p.parse_args(argv)
     choice = choose(args.dir)
     print(render(choice))
     if args.out:
-        out = Path(args.out)
-        if out.exists():
-            raise BenchInputError(f"{out} exists; not written over")
-        finite = json.loads(json.dumps(choice), parse_constant=lambda _: None)  # -inf: null
-        out.write_text(json.dumps(finite, indent=1) + "\n")
+        write_new_json(args.out, choice)
+
+
+def main(argv: list[str]) -> None:
+    choice_main(argv, prog="python -m bench width", doc=__doc__, folder="bench/results/field-width",
+                choose=choose, render=render)  # fmt: skip

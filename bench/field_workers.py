@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from bench import field_tnstate
-from bench.field_settings import ENVS, TOP, budgets
+from bench.field_settings import ENVS, NORM_EPISODES, NORM_SEED, TOP, budgets
 
 __all__ = [
     "Log",
@@ -62,16 +62,23 @@ class Log:
         os.replace(tmp, self.path)
 
 
-def protocol_task(env: dict[str, Any], episodes: int):
-    """The environment's task object (eant2_jax's input convention, `ENVS`)."""
+def protocol_task(env: dict[str, Any], episodes: int, normalize: str | None = None):
+    """The environment's task object with eant2_jax's input convention: its frozen one
+    (`ENVS`: gymnax's ``normalize``, brax's raw observations) or a trial's ``normalize``
+    (``"random"``: statistics of `NORM_EPISODES` random-policy episodes from
+    ``jax.random.key(NORM_SEED)``, frozen into the task; docs/protocol.md section 8)."""
     from eant2_jax import tasks
 
+    options: dict[str, Any] = {"episodes": episodes, "max_steps": env["max_steps"]}
     if env["family"] == "gymnax":
-        normalize = env["eant2"]["normalize"]
-        return tasks.make(f"gymnax:{env['name']}", episodes=episodes,
-                          max_steps=env["max_steps"], normalize=normalize)  # fmt: skip
-    return tasks.make(f"brax:{env['name']}", episodes=episodes, max_steps=env["max_steps"],
-                      backend=env["backend"])  # fmt: skip
+        options["normalize"] = env["eant2"]["normalize"]
+    else:
+        options["backend"] = env["backend"]
+    if normalize is not None:
+        options["normalize"] = normalize
+    if options.get("normalize") == "random":
+        options.update(norm_episodes=NORM_EPISODES, norm_seed=NORM_SEED)
+    return tasks.make(f"{env['family']}:{env['name']}", **options)
 
 
 def eant2_config(env: dict[str, Any], *, budget: int, population: int | None = None,
@@ -97,7 +104,8 @@ def eant2_config(env: dict[str, Any], *, budget: int, population: int | None = N
 
 def train_eant2(env: dict[str, Any], *, seed: int, budget: int, log: Log, top: int = TOP,
                 population: int | None = None, max_iters: int | None = None,
-                width: int | None = None, rundir: str | Path | None = None) -> None:  # fmt: skip
+                width: int | None = None, rundir: str | Path | None = None,
+                normalize: str | None = None) -> None:  # fmt: skip
     """The protocol's eant2_jax run: ``eant2_jax.run`` with the frozen settings; after each
     generation its population after selection (read from the run directory, the time not
     counted) offered to the archive.
@@ -113,10 +121,12 @@ def train_eant2(env: dict[str, Any], *, seed: int, budget: int, log: Log, top: i
     from bench.field_champions import Archive
     from eant2_jax import checkpoint
 
-    task = protocol_task(env, env["episodes"])
+    task = protocol_task(env, env["episodes"], normalize)
     config = eant2_config(env, budget=budget, population=population, max_iters=max_iters,
                           width=width)  # fmt: skip
     log.data.update(kind="eant2", settings=config.to_dict())
+    if normalize is not None:
+        log.data["normalize"] = normalize
     archive, candidates = Archive(top), log.data.setdefault("candidates", {})
     curve = log.data["curve"]
     for ident, fitness in curve[-1]["archive"] if curve else []:
@@ -206,7 +216,7 @@ def method_networks(task, run: dict[str, Any]):
 
 
 def judge(env_name: str, runs: dict[str, dict[str, Any]], budget_list: list[int] | None = None,
-          *, test_keys=None) -> dict[str, Any]:  # fmt: skip
+          *, test_keys=None, normalize: str | None = None) -> dict[str, Any]:  # fmt: skip
     """Both methods' runs of one (environment, seed) under the champion rule, through one
     task object; refused when their test episodes start from different states.
 
@@ -214,11 +224,13 @@ def judge(env_name: str, runs: dict[str, dict[str, Any]], budget_list: list[int]
       runs: method -> its training run's JSON.
       budget_list: the reporting budgets (default: the protocol's, `budgets`).
       test_keys: method -> test key (default: the protocol's for all; a test's override).
+      normalize: the trial's input convention eant2_jax trained with (`protocol_task`);
+        TensorNEAT's networks take the task's inputs through `bench.field_tnet.input_affine`.
     """
     from bench.field_champions import Judge, check_same_starts, judge_run, starts_digest
 
     env = ENVS[env_name]
-    task = protocol_task(env, 1)
+    task = protocol_task(env, 1, normalize)
     judges = {}
     for m, run in runs.items():
         if not run.get("curve"):
@@ -250,7 +262,8 @@ def _train(args: argparse.Namespace) -> None:
     log.data["budget"] = budget
     if args.method == "eant2":
         train_eant2(env, seed=args.seed, budget=budget, log=log, population=args.population,
-                    max_iters=args.max_iters, width=args.width, rundir=args.rundir)  # fmt: skip
+                    max_iters=args.max_iters, width=args.width, rundir=args.rundir,
+                    normalize=args.normalize)  # fmt: skip
     else:
         from bench.field_tensorneat import train
 
@@ -279,6 +292,8 @@ def main(argv: list[str]) -> int:
     p.add_argument("--population", type=int, default=None, help="a trial's eant2 population")
     p.add_argument("--max-iters", type=int, default=None, help="a trial's eant2 iterations")
     p.add_argument("--width", type=int, default=None, help="a trial's eant2 batch width")
+    p.add_argument("--normalize", choices=("none", "random"), default=None,
+                   help="a trial's eant2 input convention (protocol_task)")  # fmt: skip
     p.add_argument("--deadline-s", type=float, default=math.inf)
     p.add_argument("--rundir", default=None, help="keep (and go on from) the run's state here")
     p.add_argument("--budgets", type=int, nargs="+", default=None, help="reporting budgets")
@@ -291,7 +306,8 @@ def main(argv: list[str]) -> int:
     for path in args.runs:
         run = json.loads(Path(path).read_text())
         runs[run["method"]] = run
-    Path(args.out).write_text(json.dumps(judge(args.env, runs, args.budgets)))
+    judged = judge(args.env, runs, args.budgets, normalize=args.normalize)
+    Path(args.out).write_text(json.dumps(judged))
     return 0
 
 

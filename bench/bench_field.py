@@ -64,6 +64,7 @@ from typing import Any
 
 from bench import field_protocol, harness
 from bench.common import BenchInputError, Column, eant2_pruner, environment, markdown_table
+from bench.field_settings import NORMALIZE
 
 __all__ = ["ENVS", "METHODS", "Env", "first_reaching", "main", "summarise"]
 # The runs themselves: bench/field_runner.py; the learning curves: bench/field_figure.py.
@@ -314,7 +315,7 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--width", type=int, default=None,
                    help="--protocol trial: eant2's ExploitConfig.width (networks per engine "
                         "batch) in place of its frozen popsize")  # fmt: skip
-    p.add_argument("--normalize", choices=("none", "random"), default=None,
+    p.add_argument("--normalize", choices=NORMALIZE, default=None,
                    help="--protocol trial: eant2's input convention; random: observations "
                         "normalised by frozen statistics of random-policy episodes "
                         "(docs/protocol.md section 8)")  # fmt: skip

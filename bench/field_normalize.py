@@ -16,14 +16,12 @@ with the difference named. Result files are read as JSON only.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from bench.common import BenchInputError
-from bench.field_width import SEEDS, choice_main, choice_runs
+from bench.field_width import SEEDS, checked_result, choice_main, choice_runs
 
 __all__ = ["CANDIDATES", "ENVS", "SEEDS", "choose", "main", "render"]
 
@@ -32,21 +30,10 @@ CANDIDATES = {"raw": None, "random": "random"}  # file name -> the call's --norm
 
 
 def _payload(path: Path, env: str, name: str) -> dict[str, Any]:
-    try:
-        payload = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise BenchInputError(f"{path}: not a readable JSON result file ({e})") from None
-    args = payload.get("args") if isinstance(payload, dict) else None
-    if not isinstance(args, dict) or not payload.get("protocol"):
-        raise BenchInputError(f"{path}: not a `bench field --protocol` result file")
     want = {"envs": [env], "methods": ["eant2"], "first_seed": SEEDS[0], "seeds": len(SEEDS),
             "normalize": CANDIDATES[name], "budget": None, "population": None,
             "max_iters": None, "width": None}  # fmt: skip
-    wrong = [f"{k} is {args.get(k)!r}, section 8 says {v!r}"
-             for k, v in want.items() if args.get(k) != v]  # fmt: skip
-    if wrong:
-        raise BenchInputError(f"{path}: not section 8's {env} {name} run: " + "; ".join(wrong))
-    return payload
+    return checked_result(path, want, 8, f"{env} {name}")
 
 
 def _returns(payload: dict[str, Any], path: Path) -> dict[int, float]:

@@ -76,8 +76,7 @@ def _train_argv(method: str, args: argparse.Namespace, env: str, seed: int, out:
         pop, generations = _tensorneat_size(args, env)
         argv += ["--pop", str(pop), "--generations", str(generations)]
     eant2 = (("--population", args.population), ("--max-iters", args.max_iters),
-             ("--width", args.width),
-             ("--normalize", getattr(args, "normalize", None)))  # fmt: skip
+             ("--width", args.width), ("--normalize", args.normalize))  # fmt: skip
     for flag, v in eant2:
         if v is not None and method == "eant2":
             argv += [flag, str(v)]
@@ -161,8 +160,7 @@ def call_settings(args: argparse.Namespace) -> dict[str, Any]:
     call's options and its seeds (not ``--peer-runs``: a reused run is the run it would
     train, and each record names its reused runs)."""
     keep = ("envs", "methods", "seeds", "first_seed", *TRIAL)
-    given = {k: getattr(args, k, None) for k in keep
-             if k not in _LATER or getattr(args, k, None) is not None}  # fmt: skip
+    given = {k: getattr(args, k) for k in keep if k not in _LATER or getattr(args, k) is not None}
     return {"frozen": table(args.envs), "args": given,
             "seed_lists": {e: _seeds(args, e) for e in args.envs}}  # fmt: skip
 
@@ -265,7 +263,7 @@ def judge_argv(args: argparse.Namespace, env: str, out: Path, budget_list: list[
     argv = [sys.executable, "-m", "bench.field_workers", "judge", "--env", env,
             "--out", str(out), "--budgets", *map(str, budget_list), "--runs",
             *map(str, paths)]  # fmt: skip
-    if getattr(args, "normalize", None):
+    if args.normalize is not None:
         argv += ["--normalize", args.normalize]
     return argv
 

@@ -28,6 +28,7 @@ __all__ = [
     "BUDGET_FRACTIONS",
     "CURVE_POINTS",
     "ENVS",
+    "NORMALIZE",
     "NORM_EPISODES",
     "NORM_SEED",
     "SEEDS",
@@ -53,6 +54,7 @@ SEEDS = {"gymnax": tuple(range(4000, 4010)), "brax": tuple(range(4000, 4005))}
 # the statistics of TensorNEAT's halfcheetah example's count of random-policy episodes
 # (`eant2_jax.tasks.obsnorm`), from jax.random.key(NORM_SEED), the same for every seed.
 NORM_EPISODES, NORM_SEED = 1000, 0
+NORMALIZE = ("none", "random")  # a trial's --normalize choices
 
 _TN = {"pop_size": 1000, "species_size": 20, "survival_threshold": 0.1,
        "compatibility_threshold": 1.0, "generations": 100, "activation": "tanh",

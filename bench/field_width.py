@@ -34,6 +34,7 @@ __all__ = [
     "CANDIDATES",
     "ENVS",
     "SEEDS",
+    "checked_result",
     "choice_main",
     "choice_runs",
     "choose",
@@ -52,11 +53,29 @@ CANDIDATES: dict[str, tuple[int | None, dict[str, int | None]]] = {
 }
 
 
-def _checked(path: Path, env: str, name: str) -> dict[str, Any]:
+def checked_result(path: Path, want: dict[str, Any], section: int, what: str) -> dict[str, Any]:
+    """A choice run's result file, read as JSON only: refused (one error naming ``path`` and
+    each difference) unless it is a ``--protocol`` run whose ``args`` hold ``want``."""
     try:
         payload = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as e:
         raise BenchInputError(f"{path}: not a readable JSON result file ({e})") from None
+    args = payload.get("args") if isinstance(payload, dict) else None
+    if not isinstance(args, dict):
+        raise BenchInputError(f"{path}: no 'args' object; not a `bench field` result file")
+    wrong = [
+        f"{k} is {args.get(k)!r}, section {section} says {v!r}"
+        for k, v in want.items()
+        if args.get(k) != v
+    ]
+    if wrong:
+        raise BenchInputError(f"{path}: not section {section}'s {what} run: " + "; ".join(wrong))
+    if not payload.get("protocol"):
+        raise BenchInputError(f"{path}: not a `--protocol` run")
+    return payload
+
+
+def _checked(path: Path, env: str, name: str) -> dict[str, Any]:
     width, iters = CANDIDATES[name]
     want = {
         "envs": [env],
@@ -65,17 +84,7 @@ def _checked(path: Path, env: str, name: str) -> dict[str, Any]:
         "width": width,
         "max_iters": iters[env],
     }
-    args = payload.get("args") if isinstance(payload, dict) else None
-    if not isinstance(args, dict):
-        raise BenchInputError(f"{path}: no 'args' object; not a `bench field` result file")
-    wrong = [
-        f"{k} is {args.get(k)!r}, section 6 says {v!r}" for k, v in want.items() if args.get(k) != v
-    ]
-    if wrong:
-        raise BenchInputError(f"{path}: not section 6's {env} {name} run: " + "; ".join(wrong))
-    if not payload.get("protocol"):
-        raise BenchInputError(f"{path}: not a `--protocol` run")
-    return payload
+    return checked_result(path, want, 6, f"{env} {name}")
 
 
 def _seed_values(payload: dict, path: Path) -> dict[int, float]:

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from bench import field_tnstate
-from bench.field_settings import ENVS, NORM_EPISODES, NORM_SEED, TOP, budgets
+from bench.field_settings import ENVS, NORM_EPISODES, NORM_SEED, NORMALIZE, TOP, budgets
 
 __all__ = [
     "Log",
@@ -292,7 +292,7 @@ def main(argv: list[str]) -> int:
     p.add_argument("--population", type=int, default=None, help="a trial's eant2 population")
     p.add_argument("--max-iters", type=int, default=None, help="a trial's eant2 iterations")
     p.add_argument("--width", type=int, default=None, help="a trial's eant2 batch width")
-    p.add_argument("--normalize", choices=("none", "random"), default=None,
+    p.add_argument("--normalize", choices=NORMALIZE, default=None,
                    help="a trial's eant2 input convention (protocol_task)")  # fmt: skip
     p.add_argument("--deadline-s", type=float, default=math.inf)
     p.add_argument("--rundir", default=None, help="keep (and go on from) the run's state here")

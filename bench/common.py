@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import hashlib
-import json
 import os
 import platform
 import re
@@ -49,7 +48,6 @@ __all__ = [
     "random_genome",
     "random_population",
     "time_call",
-    "write_new_json",
 ]
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
@@ -374,13 +372,3 @@ def git_commit() -> str:
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return head + ("+dirty" if dirty else "")
-
-
-def write_new_json(path: str | Path, value: Any) -> None:
-    """``value`` as indented JSON at ``path``, never over an existing file (one error naming
-    it); non-finite numbers (a choice's ``-inf``) written as null."""
-    out = Path(path)
-    if out.exists():
-        raise BenchInputError(f"{out} exists; not written over")
-    finite = json.loads(json.dumps(value), parse_constant=lambda _: None)
-    out.write_text(json.dumps(finite, indent=1) + "\n")

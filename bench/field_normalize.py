@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.field_width import SEEDS, checked_result, choice_main, choice_runs
+from bench.field_choice import SEEDS, checked_result, choice_main, choice_runs
 
 __all__ = ["CANDIDATES", "ENVS", "SEEDS", "choose", "main", "render"]
 

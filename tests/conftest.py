@@ -69,11 +69,12 @@ if os.environ.get("EANT2_TEST_COMPILE_PROFILE"):
 
 # Workers, and the commands the tests start, compile many of the same programs: they share the
 # session's cache folder (above) as JAX's persistent compilation cache, so that a program is
-# compiled once per session, not once per process. EANT2_TEST_SHARED_CACHE=0 turns it off.
-if os.environ.get("EANT2_TEST_SHARED_CACHE", "1") != "0" and os.environ["EANT2_CACHE_DIR"]:
-    jax.config.update("jax_compilation_cache_dir", os.environ["EANT2_CACHE_DIR"])
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+# compiled once per session, not once per process: the library's own switch, as the eant2
+# command turns it on (EANT2_CACHE_DIR, every program kept). EANT2_TEST_SHARED_CACHE=0: off.
+if os.environ.get("EANT2_TEST_SHARED_CACHE", "1") != "0":
+    from eant2_jax import enable_compilation_cache
+
+    enable_compilation_cache()
 
 # Implicit rank promotion hides shape bugs (a [H] bias broadcast against [G, H] by accident);
 # the library and these tests pass with it as an error, as equinox's tests run.

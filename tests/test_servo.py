@@ -22,8 +22,8 @@ Tolerances (float32 eps = 6e-8; image coordinates are O(1)):
   O(1) terms against a float64 difference with truncation error ~h^2 = 1e-10).
 * kinematic vs dynamic mode for IBVS: the servos end within ~1e-3 rad of their targets after
   0.3 s (arm.xml); 1e-3 rad at the camera's lever arms (0.3 to 0.6 m) is up to 0.6 mm, i.e.
-  2.3e-3 normalised image units. Per start ``5e-3``, on the mean ``1e-3``; largest seen
-  3.0e-3 and 3.2e-4.
+  2.3e-3 normalised image units. Per start ``5e-3``, on the mean ``1e-3``, over the first
+  256 start poses; largest seen 3.0e-3 and 3.2e-4 (all 1023 alike).
 """
 
 from __future__ import annotations
@@ -242,6 +242,9 @@ def test_image_jacobian_matches_finite_differences(task):
 
 
 # ------------------------------------------------------------------ physics modes
+DYNAMIC_STARTS = 256  # start poses simulated in dynamic mode (the first of the task's)
+
+
 @pytest.mark.slow
 def test_kinematic_and_dynamic_modes_agree_for_ibvs(task, sweep):
     gain = task.ibvs_gain()
@@ -250,8 +253,10 @@ def test_kinematic_and_dynamic_modes_agree_for_ibvs(task, sweep):
     # (the sweep fixture's compiled program; each gain's row is computed on its own).
     swept = sweep[0]
     kin = np.asarray(sv.ibvs_start_costs(task, jnp.asarray(swept, jnp.float32)))
-    kin = kin[[swept.index(0.0), swept.index(gain)]]
-    dyn = np.asarray(sv.ibvs_start_costs(tasks.make("servo", mode="dynamic"), gains))
+    # The dynamic mode on a prefix of the same start poses (each start's cost is its own).
+    kin = kin[[swept.index(0.0), swept.index(gain)], :DYNAMIC_STARTS]
+    dynamic = tasks.make("servo", mode="dynamic", n_starts=DYNAMIC_STARTS)
+    dyn = np.asarray(sv.ibvs_start_costs(dynamic, gains))
     # Gain 0: the servos hold the arm at rest exactly where it is.
     np.testing.assert_allclose(dyn[0], kin[0], rtol=1e-6)
     np.testing.assert_allclose(dyn[1], kin[1], atol=5e-3, rtol=0)

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from shared import once
 
 from eant2_jax.loop import RUN_DEPENDENT
 from eant2_jax.programs import store as programstore
@@ -40,11 +41,17 @@ _COLD: dict[str, tuple[list[dict], Path]] = {}
 
 def cold_run(tmp_path_factory) -> tuple[list[dict], Path]:
     """The run on an empty cache folder: its records and the cache folder it filled. Made
-    once per process and shared with tests/test_cache_damage.py (the same command: one
-    process start and compilation fewer); each test changes a copy of the folder only."""
+    once per session, whichever worker asks first (tests/shared.py), and shared with
+    tests/test_cache_damage.py (the same command: one process start and compilation fewer);
+    each test changes a copy of the folder only."""
     if "run" not in _COLD:
-        base = tmp_path_factory.mktemp("cold")
-        _COLD["run"] = (cli_run(base / "cold", base / "cache"), base / "cache")
+
+        def compute():
+            base = tmp_path_factory.mktemp("cold")
+            return [cli_run(base / "cold", base / "cache"), str(base / "cache")]
+
+        records, cache = once("trust-cache-cold-run", compute)
+        _COLD["run"] = (records, Path(cache))
     return _COLD["run"]
 
 

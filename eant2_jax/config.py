@@ -472,8 +472,10 @@ class EANT2Config(Configured):
         "program to compile, while a generation is latency-bound and padding costs it "
         "little: a floor sized for the networks a run will reach compiles once. The default "
         "CMA-ES population follows the gene bucket (`eant2_jax.tuning.popsize_for`), so a "
-        "floor also raises it (fix it with ``exploit.popsize``); the same key and config "
-        "give the same run either way.",
+        "floor also raises it (fix it with ``exploit.popsize``). A run with a floor is as "
+        "deterministic as one without, but not the same run to the bit: padded structures "
+        "follow their unpadded search up to float rounding (`eant2_jax.kernels.cmaes`), "
+        "which a long search or a chaotic task can amplify.",
         convert=bucket_value,
         want=f"None or three integers (neurons, genes, sweeps) in [1, {MAX_BUCKET}]",
         added="0.1.0 (8993ec2)",

@@ -36,23 +36,18 @@ def cli_run(out: Path, cache: Path, *extra: str) -> list[dict]:
     return [{k: v for k, v in r.items() if k not in RUN_DEPENDENT} for r in records]
 
 
-_COLD: dict[str, tuple[list[dict], Path]] = {}
-
-
 def cold_run(tmp_path_factory) -> tuple[list[dict], Path]:
     """The run on an empty cache folder: its records and the cache folder it filled. Made
     once per session, whichever worker asks first (tests/shared.py), and shared with
     tests/test_cache_damage.py (the same command: one process start and compilation fewer);
     each test changes a copy of the folder only."""
-    if "run" not in _COLD:
 
-        def compute():
-            base = tmp_path_factory.mktemp("cold")
-            return [cli_run(base / "cold", base / "cache"), str(base / "cache")]
+    def compute():
+        base = tmp_path_factory.mktemp("cold")
+        return [cli_run(base / "cold", base / "cache"), str(base / "cache")]
 
-        records, cache = once("trust-cache-cold-run", compute)
-        _COLD["run"] = (records, Path(cache))
-    return _COLD["run"]
+    records, cache = once("trust-cache-cold-run", compute)
+    return records, Path(cache)
 
 
 def _other_programs(folder: Path) -> list[Path]:

@@ -9,7 +9,8 @@ environment's default budget), or at ``--deadline-s`` seconds from its start.
 * ``eant2``: this project, ``eant2_jax.run`` on ``tasks.make("gymnax:NAME")`` or
   ``tasks.make("brax:NAME")`` with covariance pruning, ``max_evaluations`` = the budget.
   Its settings per environment are in ``ENVS`` (``--population``/``--max-iters`` override;
-  ``--quick`` runs no pruner).
+  ``--quick`` runs no pruner, one episode of at most ``QUICK_MAX_STEPS`` steps per evaluation
+  and the smallest padding bucket that fits).
 * ``tensorneat``: TensorNEAT (EMI-Group/tensorneat; its source is fetched, never vendored:
   ``--tensorneat SRC``, the folder that holds the ``tensorneat`` package), NEAT with the
   settings of its own examples (``examples/gymnax/cartpole.py``, ``examples/brax/hopper.py``:
@@ -179,6 +180,10 @@ ENVS = {
 TENSORNEAT_POP = 1000
 QUICK = {"seeds": 1, "budget": 300, "deadline_s": 240.0,
          "test_episodes": 3, "population": 2, "max_iters": 8, "tensorneat_pop": 100}  # fmt: skip
+# --quick's environments, a smoke test of the bookkeeping (its workers get --quick): one
+# episode per evaluation, of at most this many steps, and eant2_jax's smallest padding bucket
+# that fits (no min_bucket), so that its programs compile and run small.
+QUICK_MAX_STEPS = 100
 
 
 # ---------------------------------------------------------------------------- the parent
@@ -259,6 +264,8 @@ def _spawn(method: str, env: str, seed: int, args: argparse.Namespace, budget: i
            "--seed", str(seed), "--budget", str(budget), "--deadline-s", str(args.deadline_s),
            "--out", str(out), "--test-episodes", str(args.test_episodes),
            "--backend", args.backend, "--tensorneat-pop", str(args.tensorneat_pop)]  # fmt: skip
+    if args.quick:
+        cmd.append("--quick")
     for flag, v in (("--population", args.population), ("--max-iters", args.max_iters),
                     ("--tensorneat", args.tensorneat),
                     ("--pruner", eant2_pruner(args.quick))):  # fmt: skip

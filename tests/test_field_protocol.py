@@ -329,9 +329,25 @@ def fake_tensorneat(tmp_path: Path):
     return argv, calls
 
 
+# The protocol's CartPole as this file's runs train and judge it: its frozen settings but for
+# episodes of at most SHORT steps and eant2_jax's smallest padding bucket that fits (no
+# min_bucket), so that its programs compile and run small. Every test here that trains or
+# judges on CartPole takes it, and so shares one set of programs.
+SHORT = 50
+
+
+@pytest.fixture
+def short_cartpole(monkeypatch):
+    from bench.field_settings import ENVS
+
+    monkeypatch.setitem(ENVS["cartpole"], "max_steps", SHORT)
+    monkeypatch.setitem(ENVS["cartpole"]["eant2"], "min_bucket", None)
+    return ENVS["cartpole"]
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_GYMNAX, reason="gymnax not installed")
-def test_both_methods_start_from_the_same_states_and_a_mismatch_is_refused():
+def test_both_methods_start_from_the_same_states_and_a_mismatch_is_refused(short_cartpole):
     from bench.field_workers import judge
 
     rng = np.random.default_rng()
@@ -348,7 +364,7 @@ def test_both_methods_start_from_the_same_states_and_a_mismatch_is_refused():
     assert out["eant2"]["starts_sha256"] == out["tensorneat"]["starts_sha256"]
     assert out["eant2"]["budgets"] == out["tensorneat"]["budgets"]
     (b,) = out["tensorneat"]["budgets"]
-    assert b["champion"] in ("t0", "t1") and 1 <= b["test_return"] <= 500
+    assert b["champion"] in ("t0", "t1") and 1 <= b["test_return"] <= SHORT
     with pytest.raises(BenchInputError, match="start from different states"):
         judge("cartpole", {"eant2": twin, "tensorneat": tn}, [100],
               test_keys={"tensorneat": jax.random.key(9001)})  # fmt: skip
@@ -383,7 +399,7 @@ def _fake_src(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_GYMNAX, reason="gymnax not installed")
-def test_protocol_end_to_end_on_cartpole(tmp_path, monkeypatch, capsys):
+def test_protocol_end_to_end_on_cartpole(tmp_path, monkeypatch, capsys, short_cartpole):
     """eant2_jax's real run and the stand-in, judged on one task; files and labels. The
     stand-in trains in its own process, as the protocol runs it; eant2_jax's training and the
     judging run here, through the same argv and the workers' ``main`` (sharing their compiled
@@ -395,25 +411,26 @@ def test_protocol_end_to_end_on_cartpole(tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(field_protocol.METHODS, "tensorneat", argv)
     _fake_src(tmp_path)
     workers_in_process(monkeypatch)
-    # A budget that ends eant2_jax's run with its second generation (98 and 294
-    # evaluations), both judged; TensorNEAT's stand-in: 4 generations of 49.
-    small = ("--budget", "294", "--tensorneat-pop", "49")
+    # A budget that ends eant2_jax's run with its second generation (78 and 234
+    # evaluations), both judged; TensorNEAT's stand-in: 4 generations of 39.
+    small = ("--budget", "234", "--tensorneat-pop", "39")
     payload = _protocol(tmp_path, "--seeds", "1", "--population", "2", "--max-iters", "3", *small)
     (rec,) = payload["seeds"]
     assert payload["trial"] and rec["env"] == "cartpole" and rec["seed"] == 0
     for m in ("eant2", "tensorneat"):
         judged = rec["judged"][m]
-        assert [b["budget"] for b in judged["budgets"]] == [74, 147, 294]
+        assert [b["budget"] for b in judged["budgets"]] == [58, 117, 234]
         assert judged["budgets"][-1]["champion"] is not None, m
         for b in judged["budgets"]:
             if b["champion"] is not None:
-                assert b["evaluations"] <= b["budget"] and 1 <= b["test_return"] <= 500
+                # CartPole's returns are episode lengths, at most the task's max_steps.
+                assert b["evaluations"] <= b["budget"] and 1 <= b["test_return"] <= SHORT
                 assert b["champion"] in [c["id"] for c in b["candidates"]]
                 assert b["champion"] in rec["runs"][m]["champions"]
     assert rec["judged"]["eant2"]["starts_sha256"] == rec["judged"]["tensorneat"]["starts_sha256"]
     md = (tmp_path / "f.md").read_text()
     assert "A trial, not the protocol's result" in md and '"max_iters": 100' in md
-    assert [r["budget"] for r in payload["summary"]] == [74, 147, 294]
+    assert [r["budget"] for r in payload["summary"]] == [58, 117, 234]
     capsys.readouterr()
 
 
@@ -445,7 +462,7 @@ def test_the_workers_run_as_a_child_process_of_the_protocol(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_GYMNAX, reason="gymnax not installed")
-def test_protocol_resumes_from_its_checkpoint(tmp_path, monkeypatch, capsys):
+def test_protocol_resumes_from_its_checkpoint(tmp_path, monkeypatch, capsys, short_cartpole):
     """A run cut after its first seed goes on from the checkpoint: the finished seed is not
     run again, and the file is the uninterrupted run's (timings aside)."""
     argv, calls = fake_tensorneat(tmp_path)
@@ -473,7 +490,9 @@ def test_protocol_resumes_from_its_checkpoint(tmp_path, monkeypatch, capsys):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_GYMNAX, reason="gymnax not installed")
-def test_width_candidates_share_tensorneats_runs_through_peer_runs(tmp_path, monkeypatch, capsys):
+def test_width_candidates_share_tensorneats_runs_through_peer_runs(
+    tmp_path, monkeypatch, capsys, short_cartpole
+):
     """docs/protocol.md section 6: a second call with another --width and the same
     ``--peer-runs`` judges TensorNEAT's run of the first (not trained again), with the same
     results, and its payload names the reuse; the shared file outlives the judging."""
@@ -659,16 +678,15 @@ class _Killed(Exception):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_GYMNAX, reason="gymnax not installed")
-def test_eant2_training_goes_on_from_its_run_directory(tmp_path):
+def test_eant2_training_goes_on_from_its_run_directory(tmp_path, short_cartpole):
     """A training run killed after a generation goes on from its run directory: the same
     generations, archives and candidates as the run never stopped, its wall times going on."""
-    from bench.field_settings import ENVS
     from bench.field_workers import Log, resume_log, train_eant2
 
-    # Two generations (98 and 294 evaluations): cut after the first, one to go on.
+    # Two generations (78 and 234 evaluations): cut after the first, one to go on.
     sizes = {"seed": 3, "budget": 100, "population": 2, "max_iters": 3}
     whole = Log(tmp_path / "whole.json", 0.0, {})
-    train_eant2(ENVS["cartpole"], log=whole, rundir=tmp_path / "whole.rundir", **sizes)
+    train_eant2(short_cartpole, log=whole, rundir=tmp_path / "whole.rundir", **sizes)
 
     class Dies(Log):
         def point(self, **point):
@@ -678,12 +696,12 @@ def test_eant2_training_goes_on_from_its_run_directory(tmp_path):
 
     path = tmp_path / "cut.json"
     with pytest.raises(_Killed):
-        train_eant2(ENVS["cartpole"], log=Dies(path, 0.0, {}), rundir=tmp_path / "cut.rundir",
+        train_eant2(short_cartpole, log=Dies(path, 0.0, {}), rundir=tmp_path / "cut.rundir",
                     **sizes)  # fmt: skip
     cut_at = json.loads(path.read_text())["curve"][-1]["wall_s"]
     log = resume_log(path, __import__("time").time(), {})
     assert log.wall() == pytest.approx(cut_at, abs=5.0)
-    train_eant2(ENVS["cartpole"], log=log, rundir=tmp_path / "cut.rundir", **sizes)
+    train_eant2(short_cartpole, log=log, rundir=tmp_path / "cut.rundir", **sizes)
 
     def strip(curve):  # as the files hold them (tuples become lists), wall times aside
         return [

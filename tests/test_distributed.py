@@ -162,7 +162,10 @@ DEVICES_2 = {
                              exploit=E.ExploitConfig(max_iters=50, pruner="none"))
         keys = [jax.random.key(i) for i in range(2)]
         many = E.run_many(task, keys, config=cfg2, generations=1, devices=2)
-        solo = [E.run(task, key=k, config=cfg2, generations=1) for k in keys]
+        # Each alone on device 0 (one of them ran on device 1 above), pinned there as
+        # run_many pins its runs: run_many's program of device 0, not one more compile.
+        with jax.default_device(jax.devices()[0]):
+            solo = [E.run(task, key=k, config=cfg2, generations=1) for k in keys]
         out = [[str(m.best), str(s.best)] for m, s in zip(many, solo)]
         """,
     "warm_start": """

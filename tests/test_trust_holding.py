@@ -321,9 +321,10 @@ def test_two_runs_on_one_cold_cache_and_two_runs_with_one_out(three_runs):
 
 # A small reproduction with every part of one (two arms of two runs in lock-step, the
 # condition experiment, the report): what the two resumes race for is its run directories
-# and files, whatever sizes its programs have and however many generations they run past
-# the cut (smaller and fewer: fewer seconds compiling and running them, in each process).
-REPRODUCTION = {**SETTINGS, "generations": 1, "condition_inits": 1}
+# and files, whatever sizes its programs have, however many generations they run past the
+# cut and whichever pruner its second arm has (smaller, fewer and cheaper to compile: the
+# magnitude pruner's programs compile faster than the covariance pruner's).
+REPRODUCTION = {**SETTINGS, "generations": 1, "condition_inits": 1, "pruners": ("magnitude",)}
 
 
 @pytest.mark.slow
@@ -337,9 +338,14 @@ def test_two_resumes_of_one_reproduction(tmp_path, monkeypatch):
 
     monkeypatch.setenv("EANT2_CACHE_DIR", "")  # in-process: leave the JAX configuration alone
 
-    def cut_short(event):  # after generation 0 of the first arm: its generation 1 is left
+    zeros = []
+
+    def cut_short(event):  # after generation 0 of the first arm's two runs (in lock-step,
+        # both committed: the resume goes on in lock-step, one program): generation 1 is left
         if event["event"] == "generation" and event["arm"] == "none" and event["generation"] == 0:
-            raise KeyboardInterrupt
+            zeros.append(event["run"])
+            if len(zeros) == REPRODUCTION["runs"]:
+                raise KeyboardInterrupt
 
     cut = tmp_path / "cut"
     with pytest.raises(KeyboardInterrupt):
@@ -353,7 +359,7 @@ def test_two_resumes_of_one_reproduction(tmp_path, monkeypatch):
         if rc == 2:
             assert "in use by another eant2 process" in err.strip().splitlines()[-1], err
     runs = sorted(p for p in cut.iterdir() if (p / CONFIG).is_file())
-    assert [p.name for p in runs] == ["covariance-s0", "covariance-s1", "none-s0", "none-s1"]
+    assert [p.name for p in runs] == ["magnitude-s0", "magnitude-s1", "none-s0", "none-s1"]
     logs = {}
     for run in runs:  # generations 0 and 1 once each (a linear unit never solves XOR: no
         # run stops after generation 0), all committed

@@ -180,10 +180,16 @@ ENVS = {
 TENSORNEAT_POP = 1000
 QUICK = {"seeds": 1, "budget": 300, "deadline_s": 240.0,
          "test_episodes": 3, "population": 2, "max_iters": 8, "tensorneat_pop": 100}  # fmt: skip
-# --quick's environments, a smoke test of the bookkeeping (its workers get --quick): one
-# episode per evaluation, of at most this many steps, and eant2_jax's smallest padding bucket
-# that fits (no min_bucket), so that its programs compile and run small.
-QUICK_MAX_STEPS = 100
+QUICK_MAX_STEPS = 100  # --quick's episodes are at most this long (`quick_env`)
+
+
+def quick_env(env: Env) -> Env:
+    """``env`` as --quick runs it (its workers get --quick), a smoke test of the bookkeeping:
+    one episode per evaluation, of at most `QUICK_MAX_STEPS` steps, and eant2_jax's smallest
+    padding bucket that fits (no ``min_bucket``), so that its programs compile and run small."""
+    return dataclasses.replace(
+        env, episodes=1, max_steps=min(env.max_steps, QUICK_MAX_STEPS), min_bucket=None
+    )
 
 
 # ---------------------------------------------------------------------------- the parent

@@ -5,13 +5,12 @@ generation and then its champions' test returns."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import sys
 
 import numpy as np
 
-from bench.bench_field import ENVS, METHODS, QUICK_MAX_STEPS, TENSORNEAT_POP, Env
+from bench.bench_field import ENVS, METHODS, TENSORNEAT_POP, Env, quick_env
 from bench.common import unseen_key
 from bench.field_workers import Log
 
@@ -190,13 +189,9 @@ def worker(argv: list[str]) -> int:
     p.add_argument("--tensorneat", default=None)
     p.add_argument("--tensorneat-pop", type=int, default=TENSORNEAT_POP)
     p.add_argument("--quick", action="store_true",
-                   help="--quick's environment (bench_field.QUICK_MAX_STEPS)")  # fmt: skip
+                   help="the environment as --quick runs it (bench_field.quick_env)")  # fmt: skip
     args = p.parse_args(argv)
-    env = ENVS[args.env]
-    if args.quick:
-        env = dataclasses.replace(
-            env, episodes=1, max_steps=min(env.max_steps, QUICK_MAX_STEPS), min_bucket=None
-        )
+    env = quick_env(ENVS[args.env]) if args.quick else ENVS[args.env]
     log = Log(args.out, args.t0, {"method": args.method, "env": args.env, "seed": args.seed,
                                    "budget": args.budget})  # fmt: skip
     log.data["start_s"] = log.wall()  # process start to the first line of Python here

@@ -37,3 +37,11 @@ def test_readme_links_resolve():
     text = (ROOT / "README.md").read_text()
     for link in re.findall(r"\]\(([^)#]+\.md)\)", text):
         assert (ROOT / link).is_file(), f"README links to missing {link}"
+
+
+def test_readme_names_every_bench_suite():
+    from bench.__main__ import SUITES
+
+    readme = (ROOT / "README.md").read_text()
+    (names,) = re.findall(r"^python -m bench \{([a-z_,]+)\}$", readme, re.M)
+    assert names.split(",") == list(SUITES)

@@ -28,8 +28,10 @@ from .configvalues import (
     FRACTION,
     NON_NEGATIVE,
     RECOMMEND,
+    SPARE_ROWS,
     TOLERANCE,
     bucket_value,
+    plain_numbers,
     weights_value,
 )
 from .configvalues import MAX_BUCKET as MAX_BUCKET  # importable here, as before
@@ -42,14 +44,6 @@ from .jaxsetup import enable_x64 as enable_x64
 from .kernels.pruning import PRUNERS
 
 __all__ = ["EANT2Config", "ExploitConfig", "enable_x64"]
-
-
-def _plain_numbers(config) -> bool:
-    # JAX rebuilds this pytree with tracers (or other placeholders) as leaves when it
-    # traces or maps over it; only a config built from plain values is normalised and
-    # validated.
-    values = [getattr(config, f.name) for f in dataclasses.fields(config)]
-    return all(v is None or isinstance(v, int | float | str | np.number) for v in values)
 
 
 @document
@@ -92,6 +86,18 @@ class ExploitConfig(Configured):
         static=True,
         added="0.1.0 (issue 41)",
         old=None,
+    )
+    spare_rows: str = option(
+        "idle",
+        "What a batch's padding rows (beyond its structures, up to ``min_rows`` and the "
+        "bucket series) do: ``idle``, nothing; ``restarts``, each runs another independent "
+        "search of a structure (row j: structure j % count, from the row's own key): each "
+        "structure keeps its search of the lowest cost and counts every search's "
+        "evaluations (`eant2_jax.spare`; docs/algorithm.md, Spare rows).",
+        check=one_of(*SPARE_ROWS),
+        static=True,
+        added="0.1.0 (issue 41)",
+        old="idle",
     )
     sigma0: float = option(0.5, "Initial step size.", check=above(0))
     max_iters: int = option(1000, "Iteration budget per structure.", check=at_least(1))
@@ -286,7 +292,7 @@ class ExploitConfig(Configured):
     )
 
     def __post_init__(self):
-        if _plain_numbers(self):
+        if plain_numbers(self):
             super().__post_init__()
 
     def check_across(self) -> None:

@@ -4,7 +4,10 @@ value sets, bounds, checks and converters that `eant2_jax.config` declares its f
 
 from __future__ import annotations
 
+import dataclasses
 import math
+
+import numpy as np
 
 from .configspec import Check, between
 
@@ -17,12 +20,15 @@ __all__ = [
     "MAX_POPULATION",
     "NON_NEGATIVE",
     "RECOMMEND",
+    "SPARE_ROWS",
     "TOLERANCE",
     "bucket_value",
+    "plain_numbers",
     "weights_value",
 ]
 
 RECOMMEND = ("best", "mean", "both")
+SPARE_ROWS = ("idle", "restarts")  # ExploitConfig.spare_rows (`eant2_jax.spare`)
 DTYPES = ("float32", "float64")
 # The default bound on cond(C) by the dtype of the CMA-ES state: float32 resolves an
 # eigenvalue to about 1e-7 of the largest, so a larger bound lets rounding noise through
@@ -63,3 +69,13 @@ def bucket_value(v) -> tuple[int, int, int]:
     ):
         raise ValueError(v)
     return tuple(v)
+
+
+def plain_numbers(config) -> bool:
+    """Whether every field of a config dataclass holds a plain value (None, a number or a
+    string), not a tracer."""
+    # JAX rebuilds this pytree with tracers (or other placeholders) as leaves when it
+    # traces or maps over it; only a config built from plain values is normalised and
+    # validated.
+    values = [getattr(config, f.name) for f in dataclasses.fields(config)]
+    return all(v is None or isinstance(v, int | float | str | np.number) for v in values)

@@ -319,6 +319,11 @@ def run_lockstep(
         raise ValueError(f"generations must be >= 0, got {generations}")
     if config.devices is not None:
         raise ValueError("run_lockstep places its batches itself: leave config.devices None")
+    if config.exploit.spare_rows != "idle" and len(keys) > 1:
+        raise ValueError(
+            f"run_lockstep: exploit.spare_rows={config.exploit.spare_rows!r} would give one run's "
+            "spare rows to another run's structures: run them apart, or leave it 'idle'"
+        )
     check_task(task)
     config = strategy.resolved(config, task)
     base_meta = run_meta(task, meta)

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import distributed, programs, rescoring
+from . import distributed, programs, rescoring, spare
 from . import exploitation as ex
 from .compiler import Bucket, CompiledBatch, batch_rows, compile_genomes
 from .evaluate import as_genomes
@@ -40,6 +40,7 @@ from .tasks.base import Task, check_task
 from .warmstart import Search as Search
 from .warmstart import align as align
 from .warmstart import inherited as inherited
+from .watch import Watch
 
 __all__ = [
     "OptimizeResult",
@@ -238,34 +239,6 @@ class Tuned:
     picked: list[str] | None = None
 
 
-class _Watch:
-    """The ``halt`` of `exploitation.run` that tests each structure's best network whenever
-    it is one not tested yet (after each chunk of iterations; a rejected pruning attempt
-    restores an earlier best) and halts the search at the first that passes ``test``, in
-    batch order."""
-
-    def __init__(self, genomes: Sequence[Genome], test: Callable[[Genome], bool]):
-        self.genomes, self.test = genomes, test
-        self.tested: list[set[bytes]] = [set() for _ in genomes]
-        self.found: tuple[int, Genome, float] | None = None
-
-    def __call__(self, st: ex.ExploitState) -> bool:
-        best_x, best_cost, mask = distributed.gather((st.cma.best_x, st.cma.best_cost, st.cma.mask))
-        best_x, best_cost = np.asarray(best_x, np.float64), np.asarray(best_cost, np.float64)
-        mask = np.asarray(mask)
-        for i, g in enumerate(self.genomes):
-            n = g.n_params
-            seen = best_x[i, :n].tobytes() + mask[i, :n].tobytes()
-            if not np.isfinite(best_cost[i]) or seen in self.tested[i]:
-                continue
-            self.tested[i].add(seen)
-            network = prune_genome(g, mask[i, :n], best_x[i, :n])
-            if self.test(network):
-                self.found = (i, network, float(best_cost[i]))
-                return True
-        return False
-
-
 def tune(
     genomes: Sequence[Genome],
     task: Task,
@@ -313,6 +286,10 @@ def tune(
     """
     genomes = list(genomes)
     check_task(task, genomes)
+    count = len(genomes)
+    if config.spare_rows == "restarts":  # every padding row searches again (`spare`)
+        rows = batch_rows(count, min_rows=min_rows, pad_count=pad_count)
+        genomes, start = spare.spread(genomes, start, rows)
     init_key, run_key = jax.random.split(key)
     prep = prepare(
         genomes,
@@ -326,7 +303,7 @@ def tune(
         start=start,
         mesh=mesh,
     )
-    watch = None if solution_test is None else _Watch(genomes, solution_test)
+    watch = None if solution_test is None else Watch(genomes, solution_test)
     rescorer = None
     if getattr(task, "noisy", False):
         rescorer = rescoring.Rescorer(
@@ -345,7 +322,8 @@ def tune(
         on_compile=on_compile,
         halt=watch,
     )
-    return _handed_back(genomes, st, hist, config, watch, rescorer, keep_search)
+    res = _handed_back(genomes, st, hist, config, watch, rescorer, keep_search)
+    return res if len(genomes) == count else spare.best_of(res, count)
 
 
 def _handed_back(genomes, st, hist, config, watch, rescorer, keep_search) -> Tuned:

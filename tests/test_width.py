@@ -153,23 +153,32 @@ genomes = [E.Genome.parse("N0/4*1 N1/3*0.1 I0*0.1 I1*-0.1 B*0.05 I0*0.1 I1*0.1 B
 config = E.ExploitConfig(width=64, max_iters=4, pruner="none")
 runs = [tuning.tune(genomes, E.tasks.xor(), key=jax.random.key(3), config=config, mesh=mesh)
         for mesh in (None, distributed.make_mesh(4))]
-print(json.dumps({"rows": [r.history.running.shape[1] for r in runs],
+# Spare rows as restarts (6 rows: 3 copies) on 4 devices: 8 rows, the 2 added stay idle.
+spare = [tuning.tune(genomes, E.tasks.xor(), key=jax.random.key(3), min_rows=5, mesh=mesh,
+                     config=config.replace(spare_rows="restarts"))
+         for mesh in (None, distributed.make_mesh(4))]
+print(json.dumps({"rows": [r.history.running.shape[1] for r in runs + spare],
                   "popsize": [popsize_of(r.state) for r in runs],
-                  "evaluations": [r.evaluations for r in runs], "costs": [r.costs for r in runs]}))
+                  "evaluations": [r.evaluations for r in runs + spare],
+                  "costs": [r.costs for r in runs]}))
 """
 
 
 @pytest.mark.slow  # a fresh interpreter with 4 CPU devices: about 20 s on 2 busy cores
 def test_a_device_mesh_changes_placement_only_not_the_popsize():
     """Width counts the whole batch, on every device; the rows a mesh adds to split the
-    batch evenly (3 rows -> 4 over 4 CPU devices) change neither the popsize nor the run."""
+    batch evenly (3 rows -> 4 over 4 CPU devices) change neither the popsize nor the run,
+    nor do they become restarts (`eant2_jax.spare`)."""
     env = {**os.environ, "XLA_FLAGS": xla_flags(4)}
     proc = subprocess.run([sys.executable, "-W", "error", "-c", textwrap.dedent(MESH)],
                           env=env, capture_output=True, text=True, timeout=240)  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-4000:]
     out = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert out["rows"] == [3, 4] and out["popsize"] == [64 // 3] * 2
+    assert out["rows"] == [3, 4, 6, 8] and out["popsize"] == [64 // 3] * 2
     assert out["evaluations"][0] == out["evaluations"][1]
+    # The rows that split the batch evenly search nothing: two searches per structure, each
+    # of 4 iterations of 64 // 6 candidates.
+    assert out["evaluations"][2] == out["evaluations"][3] == [2 * 4 * (64 // 6)] * 3
     # Up to float reduction order across devices (tests/test_distributed.py says why).
     np.testing.assert_allclose(out["costs"][1], out["costs"][0], rtol=1e-3)
 

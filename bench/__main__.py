@@ -16,6 +16,7 @@ determinism (what XLA's deterministic GPU mode costs; whether runs repeat withou
 throughput (network-episodes and env steps per second against batch width, brax, issue 41).
 width (the batch-width choice of docs/protocol.md section 6 from the field's choice runs).
 normalize (the observation-normalisation choice of docs/protocol.md section 8, likewise).
+spare (the spare-rows choice of docs/protocol.md section 9, likewise).
 Each writes JSON (device, versions, config, compile time apart from steady state) and a
 markdown table, and never over an existing result file unless ``--force`` is given;
 ``--help`` after the suite name lists its options.
@@ -48,6 +49,7 @@ SUITES = {
     "throughput": "bench.bench_throughput",
     "width": "bench.field_width",
     "normalize": "bench.field_normalize",
+    "spare": "bench.field_spare",
 }
 
 

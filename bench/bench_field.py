@@ -65,7 +65,7 @@ from typing import Any
 
 from bench import field_protocol, harness
 from bench.common import BenchInputError, Column, eant2_pruner, environment, markdown_table
-from bench.field_settings import NORMALIZE
+from bench.field_settings import NORMALIZE, SPARE_ROWS
 
 __all__ = ["ENVS", "METHODS", "Env", "first_reaching", "main", "summarise"]
 # The runs themselves: bench/field_runner.py; the learning curves: bench/field_figure.py.
@@ -332,6 +332,9 @@ def _options(p: argparse.ArgumentParser) -> None:
                    help="--protocol trial: eant2's input convention; random: observations "
                         "normalised by frozen statistics of random-policy episodes "
                         "(docs/protocol.md section 8)")  # fmt: skip
+    p.add_argument("--spare-rows", choices=SPARE_ROWS, default=None,
+                   help="--protocol trial: eant2's ExploitConfig.spare_rows; restarts: "
+                        "each padding row searches again (protocol section 9)")  # fmt: skip
     p.add_argument("--tensorneat", default=None,
                    help="folder holding TensorNEAT's tensorneat package (its src/)")  # fmt: skip
     p.add_argument("--tensorneat-pop", type=int, default=None,
@@ -346,9 +349,10 @@ def _prepare(args: argparse.Namespace) -> None:
         return field_protocol.prepare(args)
     if args.resume or args.checkpoint or args.peer_runs:
         raise BenchInputError("--checkpoint, --resume and --peer-runs belong to --protocol")
-    for flag in ("width", "normalize"):
+    for flag in ("width", "normalize", "spare_rows"):
         if getattr(args, flag) is not None:
-            raise BenchInputError(f"--{flag} belongs to --protocol (a trial's option)")
+            name = flag.replace("_", "-")
+            raise BenchInputError(f"--{name} belongs to --protocol (a trial's option)")
     args.seeds = 3 if args.seeds is None else args.seeds
     args.first_seed = 0 if args.first_seed is None else args.first_seed
     args.deadline_s = args.deadline_s or 600.0

@@ -11,7 +11,7 @@ from typing import Any
 
 from bench.common import BenchInputError
 
-__all__ = ["SEEDS", "checked_result", "choice_main", "choice_runs"]
+__all__ = ["SEEDS", "checked_result", "choice_main", "choice_runs", "judged_eant2"]
 
 SEEDS = [100, 101, 102]  # the choice seeds: never reported as the field's result
 
@@ -36,6 +36,17 @@ def checked_result(path: Path, want: dict[str, Any], section: int, what: str) ->
     if not payload.get("protocol"):
         raise BenchInputError(f"{path}: not a `--protocol` run")
     return payload
+
+
+def judged_eant2(payload: dict[str, Any]) -> dict[int, dict[str, Any]]:
+    """Seed -> eant2_jax's judging (``budgets``, ``curve``) in a result file, for the seeds
+    judged at a reporting budget (a run still going has none yet)."""
+    out = {}
+    for rec in payload.get("seeds", []):
+        judged = (rec.get("judged") or {}).get("eant2") or {}
+        if judged.get("budgets"):
+            out[int(rec["seed"])] = judged
+    return out
 
 
 def choice_runs(folder: str | Path, envs, names, read, values) -> tuple[dict, list[str], Any]:

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.field_choice import SEEDS, checked_result, choice_main, choice_runs
+from bench.field_choice import SEEDS, checked_result, choice_main, choice_runs, judged_eant2
 
 __all__ = ["CANDIDATES", "ENVS", "SEEDS", "choose", "main", "render"]
 
@@ -32,18 +32,16 @@ CANDIDATES = {"raw": None, "random": "random"}  # file name -> the call's --norm
 def _payload(path: Path, env: str, name: str) -> dict[str, Any]:
     want = {"envs": [env], "methods": ["eant2"], "first_seed": SEEDS[0], "seeds": len(SEEDS),
             "normalize": CANDIDATES[name], "budget": None, "population": None,
-            "max_iters": None, "width": None}  # fmt: skip
+            "max_iters": None, "width": None, "spare_rows": None}  # fmt: skip
     return checked_result(path, want, 8, f"{env} {name}")
 
 
 def _returns(payload: dict[str, Any], path: Path) -> dict[int, float]:
     """Seed -> eant2_jax's test return at the last reporting budget, for the judged seeds."""
-    out = {}
-    for rec in payload.get("seeds", []):
-        budgets = ((rec.get("judged") or {}).get("eant2") or {}).get("budgets") or []
-        if budgets:
-            out[int(rec["seed"])] = float(max(budgets, key=lambda b: b["budget"])["test_return"])
-    return out
+    return {
+        seed: float(max(judged["budgets"], key=lambda b: b["budget"])["test_return"])
+        for seed, judged in judged_eant2(payload).items()
+    }
 
 
 def choose(folder: str | Path) -> dict[str, Any]:

@@ -53,10 +53,10 @@ __all__ = [
     "trial_overrides",
 ]
 
-TRIAL = ("budget", "population", "max_iters", "width", "normalize", "tensorneat_pop")
+TRIAL = ("budget", "population", "max_iters", "width", "normalize", "spare_rows", "tensorneat_pop")
 # Trial options added after checkpoints existed: left out of a call's settings while unset,
 # so that a checkpoint written before them still matches the call that resumes it.
-_LATER = ("width", "normalize")
+_LATER = ("width", "normalize", "spare_rows")
 
 
 def _tensorneat_size(args: argparse.Namespace, env: str) -> tuple[int, int]:
@@ -76,7 +76,8 @@ def _train_argv(method: str, args: argparse.Namespace, env: str, seed: int, out:
         pop, generations = _tensorneat_size(args, env)
         argv += ["--pop", str(pop), "--generations", str(generations)]
     eant2 = (("--population", args.population), ("--max-iters", args.max_iters),
-             ("--width", args.width), ("--normalize", args.normalize))  # fmt: skip
+             ("--width", args.width), ("--normalize", args.normalize),
+             ("--spare-rows", args.spare_rows))  # fmt: skip
     for flag, v in eant2:
         if v is not None and method == "eant2":
             argv += [flag, str(v)]

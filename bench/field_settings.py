@@ -31,6 +31,7 @@ __all__ = [
     "NORMALIZE",
     "NORM_EPISODES",
     "NORM_SEED",
+    "SPARE_ROWS",
     "SEEDS",
     "TEST_EPISODES",
     "TEST_KEY",
@@ -55,6 +56,8 @@ SEEDS = {"gymnax": tuple(range(4000, 4010)), "brax": tuple(range(4000, 4005))}
 # (`eant2_jax.tasks.obsnorm`), from jax.random.key(NORM_SEED), the same for every seed.
 NORM_EPISODES, NORM_SEED = 1000, 0
 NORMALIZE = ("none", "random")  # a trial's --normalize choices
+# A trial's --spare-rows choices (docs/protocol.md section 9): ExploitConfig.spare_rows's.
+SPARE_ROWS = ("idle", "restarts")
 
 _TN = {"pop_size": 1000, "species_size": 20, "survival_threshold": 0.1,
        "compatibility_threshold": 1.0, "generations": 100, "activation": "tanh",

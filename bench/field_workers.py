@@ -27,7 +27,15 @@ from typing import Any
 import numpy as np
 
 from bench import field_tnstate
-from bench.field_settings import ENVS, NORM_EPISODES, NORM_SEED, NORMALIZE, TOP, budgets
+from bench.field_settings import (
+    ENVS,
+    NORM_EPISODES,
+    NORM_SEED,
+    NORMALIZE,
+    SPARE_ROWS,
+    TOP,
+    budgets,
+)
 
 __all__ = [
     "Log",
@@ -82,17 +90,19 @@ def protocol_task(env: dict[str, Any], episodes: int, normalize: str | None = No
 
 
 def eant2_config(env: dict[str, Any], *, budget: int, population: int | None = None,
-                 max_iters: int | None = None, width: int | None = None):  # fmt: skip
+                 max_iters: int | None = None, width: int | None = None,
+                 spare_rows: str | None = None):  # fmt: skip
     """The protocol's `eant2_jax.EANT2Config` for ``env`` (its frozen settings), a trial's
-    ``population``, ``max_iters`` or ``width`` in their place where given (``width`` sets
-    ``ExploitConfig.width`` and leaves the popsize to its rule; so does the settings'
-    ``width``, where they have one)."""
+    ``population``, ``max_iters``, ``width`` or ``spare_rows`` in their place where given
+    (``width`` sets ``ExploitConfig.width`` and leaves the popsize to its rule; so does the
+    settings' ``width``, where they have one)."""
     import eant2_jax
 
     s = env["eant2"]
     exploit = eant2_jax.ExploitConfig(
         pruner=s["pruner"], max_iters=max_iters or s["max_iters"], rescore=s["rescore"],
         popsize=None if width else s["popsize"], width=width or s["width"],
+        spare_rows=spare_rows or s.get("spare_rows", "idle"),
     )  # fmt: skip
     return eant2_jax.EANT2Config(
         population=population or s["population"], max_evaluations=budget,
@@ -105,7 +115,7 @@ def eant2_config(env: dict[str, Any], *, budget: int, population: int | None = N
 def train_eant2(env: dict[str, Any], *, seed: int, budget: int, log: Log, top: int = TOP,
                 population: int | None = None, max_iters: int | None = None,
                 width: int | None = None, rundir: str | Path | None = None,
-                normalize: str | None = None) -> None:  # fmt: skip
+                normalize: str | None = None, spare_rows: str | None = None) -> None:  # fmt: skip
     """The protocol's eant2_jax run: ``eant2_jax.run`` with the frozen settings; after each
     generation its population after selection (read from the run directory, the time not
     counted) offered to the archive.
@@ -123,7 +133,7 @@ def train_eant2(env: dict[str, Any], *, seed: int, budget: int, log: Log, top: i
 
     task = protocol_task(env, env["episodes"], normalize)
     config = eant2_config(env, budget=budget, population=population, max_iters=max_iters,
-                          width=width)  # fmt: skip
+                          width=width, spare_rows=spare_rows)  # fmt: skip
     log.data.update(kind="eant2", settings=config.to_dict())
     if normalize is not None:
         log.data["normalize"] = normalize
@@ -263,7 +273,7 @@ def _train(args: argparse.Namespace) -> None:
     if args.method == "eant2":
         train_eant2(env, seed=args.seed, budget=budget, log=log, population=args.population,
                     max_iters=args.max_iters, width=args.width, rundir=args.rundir,
-                    normalize=args.normalize)  # fmt: skip
+                    normalize=args.normalize, spare_rows=args.spare_rows)  # fmt: skip
     else:
         from bench.field_tensorneat import train
 
@@ -294,6 +304,8 @@ def main(argv: list[str]) -> int:
     p.add_argument("--width", type=int, default=None, help="a trial's eant2 batch width")
     p.add_argument("--normalize", choices=NORMALIZE, default=None,
                    help="a trial's eant2 input convention (protocol_task)")  # fmt: skip
+    p.add_argument("--spare-rows", choices=SPARE_ROWS, default=None,
+                   help="a trial's eant2 ExploitConfig.spare_rows")  # fmt: skip
     p.add_argument("--deadline-s", type=float, default=math.inf)
     p.add_argument("--rundir", default=None, help="keep (and go on from) the run's state here")
     p.add_argument("--budgets", type=int, nargs="+", default=None, help="reporting budgets")

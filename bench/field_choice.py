@@ -11,7 +11,14 @@ from typing import Any
 
 from bench.common import BenchInputError
 
-__all__ = ["SEEDS", "checked_result", "choice_main", "choice_runs", "judged_eant2"]
+__all__ = [
+    "SEEDS",
+    "checked_result",
+    "choice_main",
+    "choice_runs",
+    "judged_eant2",
+    "verdict_lines",
+]
 
 SEEDS = [100, 101, 102]  # the choice seeds: never reported as the field's result
 
@@ -77,6 +84,15 @@ def choice_runs(folder: str | Path, envs, names, read, values) -> tuple[dict, li
     if len(set(devices.values())) > 1:
         raise BenchInputError(f"choice runs on more than one device kind: {devices}")
     return found, missing, next(iter(set(devices.values())), None)
+
+
+def verdict_lines(choice: dict[str, Any], option: str, otherwise: str) -> list[str]:
+    """A choice report's last lines: what is missing, or whether ``option`` (as a call names
+    it) is adopted, ``otherwise`` saying what stays if not."""
+    if choice["adopted"] is None:
+        return ["", "Not decided: missing " + ", ".join(choice["missing"]) + "."]
+    verdict = "adopted" if choice["adopted"] else f"not adopted: {otherwise}"
+    return ["", f"`{option}`: **{verdict}**."]
 
 
 def choice_main(argv: list[str], *, prog: str, doc: str, folder: str, choose, render) -> None:

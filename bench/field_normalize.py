@@ -21,7 +21,14 @@ from typing import Any
 
 import numpy as np
 
-from bench.field_choice import SEEDS, checked_result, choice_main, choice_runs, judged_eant2
+from bench.field_choice import (
+    SEEDS,
+    checked_result,
+    choice_main,
+    choice_runs,
+    judged_eant2,
+    verdict_lines,
+)
 
 __all__ = ["CANDIDATES", "ENVS", "SEEDS", "choose", "main", "render"]
 
@@ -71,11 +78,7 @@ def render(choice: dict[str, Any]) -> str:
                  for k in ("raw", "random", "difference")]  # fmt: skip
         median = f"{row['median']:.0f}" if "median" in row else "—"
         lines.append(f"| {env} | {' | '.join(cells)} | {median} |")
-    if choice["adopted"] is None:
-        lines += ["", "Not decided: missing " + ", ".join(choice["missing"]) + "."]
-    else:
-        verdict = "adopted" if choice["adopted"] else "not adopted: the raw inputs stay"
-        lines += ["", f"`--normalize random`: **{verdict}**."]
+    lines += verdict_lines(choice, "--normalize random", "the raw inputs stay")
     return "\n".join(lines) + "\n"
 
 

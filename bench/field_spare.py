@@ -30,7 +30,14 @@ from typing import Any
 
 import numpy as np
 
-from bench.field_choice import SEEDS, checked_result, choice_main, choice_runs, judged_eant2
+from bench.field_choice import (
+    SEEDS,
+    checked_result,
+    choice_main,
+    choice_runs,
+    judged_eant2,
+    verdict_lines,
+)
 from bench.field_stats import return_at
 
 __all__ = ["CANDIDATES", "ENVS", "SEEDS", "choose", "main", "render"]
@@ -113,11 +120,7 @@ def render(choice: dict[str, Any]) -> str:
         lines.append(f"| {env} | wall {_cells(row['wall_s'])} s | {_cells(row['idle_at_wall'])} | "
                      f"{_cells(row['restarts_at_wall'])} | {_cells(row['wall_difference'])} | "
                      f"{row['wall_median']:.0f} |")  # fmt: skip
-    if choice["adopted"] is None:
-        lines += ["", "Not decided: missing " + ", ".join(choice["missing"]) + "."]
-    else:
-        verdict = "adopted" if choice["adopted"] else "not adopted: the padding rows stay idle"
-        lines += ["", f"`--spare-rows restarts`: **{verdict}**."]
+    lines += verdict_lines(choice, "--spare-rows restarts", "the padding rows stay idle")
     return "\n".join(lines) + "\n"
 
 

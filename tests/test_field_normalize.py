@@ -8,8 +8,9 @@ from __future__ import annotations
 import json
 
 import pytest
+from fieldchoice import check_trial_option, protocol_args, write_result
 
-from bench import bench_field, field_protocol, field_workers, harness
+from bench import field_protocol, field_workers
 from bench.common import BenchInputError
 from bench.field_settings import ENVS, NORM_EPISODES, NORM_SEED
 
@@ -25,11 +26,7 @@ def made(monkeypatch):
 
 
 def _args(tmp_path, *extra: str):
-    (tmp_path / "tensorneat").mkdir(exist_ok=True)
-    (tmp_path / "tensorneat" / "pipeline.py").write_text("")  # found, never imported here
-    argv = ["--protocol", "--envs", "halfcheetah", "--tensorneat", str(tmp_path),
-            "--out", str(tmp_path / "f.json"), *extra]  # fmt: skip
-    return harness.parse_args(bench_field.SUITE, argv)
+    return protocol_args(tmp_path, "halfcheetah", *extra)
 
 
 def test_the_protocol_task_takes_the_frozen_convention_or_the_trials(made):
@@ -51,20 +48,7 @@ def test_the_protocol_task_takes_the_frozen_convention_or_the_trials(made):
 
 
 def test_normalize_is_a_trial_option_of_eant2_alone(tmp_path):
-    args = _args(tmp_path, "--normalize", "random")
-    assert args.trial and "--normalize" in field_protocol.trial_overrides(args)
-    out = tmp_path / "run.json"
-    eant2 = field_protocol.METHODS["eant2"]("eant2", args, "halfcheetah", 100, out)
-    tn = field_protocol.METHODS["tensorneat"]("tensorneat", args, "halfcheetah", 100, out)
-    assert eant2[eant2.index("--normalize") + 1] == "random" and "--normalize" not in tn
-    assert field_protocol.call_settings(args)["args"]["normalize"] == "random"
-    # A call without it has the settings a checkpoint written before the option holds.
-    plain = _args(tmp_path)
-    assert not plain.trial and "normalize" not in field_protocol.call_settings(plain)["args"]
-    with pytest.raises(BenchInputError, match="--normalize belongs to --protocol"):
-        bench_field.main(["--normalize", "random", "--quick", "--out", str(tmp_path / "g.json")])
-    with pytest.raises(SystemExit):
-        _args(tmp_path, "--normalize", "bounds")  # not one of the trial's choices
+    check_trial_option(tmp_path, "halfcheetah", "--normalize", "random", "bounds")
 
 
 def test_the_judge_scores_both_methods_on_the_task_eant2_trained_on(tmp_path, monkeypatch):
@@ -90,18 +74,12 @@ def _write_choice(folder, returns: dict[tuple[str, str], list[float]], change=No
     (an earlier budget's return beside it, which the rule must not read)."""
     from bench import field_normalize as fn
 
-    folder.mkdir(exist_ok=True)
     for (env, name), values in returns.items():
-        args = {"envs": [env], "methods": ["eant2"], "first_seed": 100, "seeds": 3,
-                "normalize": fn.CANDIDATES[name], "budget": None, "population": None,
-                "max_iters": None, "width": None, "tensorneat_pop": None}  # fmt: skip
-        seeds = [{"seed": s, "judged": {"eant2": {"budgets": [
-            {"budget": 100_000, "test_return": v}, {"budget": 25_000, "test_return": -1e9}]}}}
-            for s, v in zip(fn.SEEDS, values, strict=False)]  # fmt: skip
-        payload = {"protocol": True, "args": args, "environment": {"device_kind": "H200"},
-                   "seeds": seeds}  # fmt: skip
-        payload.update((change or {}).get((env, name), {}))
-        (folder / f"{env}-{name}.json").write_text(json.dumps(payload))
+        judged = [{"budgets": [{"budget": 100_000, "test_return": v},
+                               {"budget": 25_000, "test_return": -1e9}]}
+                  for v in values]  # fmt: skip
+        write_result(folder, env, name, {"normalize": fn.CANDIDATES[name]}, judged,
+                     (change or {}).get((env, name)))  # fmt: skip
 
 
 def test_the_normalisation_rule_adopts_only_a_median_gain_on_both(tmp_path, capsys):

@@ -11,37 +11,17 @@ import math
 
 import numpy as np
 import pytest
+from fieldchoice import check_trial_option, write_result
 
-from bench import bench_field, field_protocol, field_settings, field_workers, harness
+from bench import field_settings, field_workers
 from bench import field_spare as fs
 from bench.common import BenchInputError
 from eant2_jax import configvalues
 
 
-def _args(tmp_path, *extra: str):
-    (tmp_path / "tensorneat").mkdir(exist_ok=True)
-    (tmp_path / "tensorneat" / "pipeline.py").write_text("")  # found, never imported here
-    argv = ["--protocol", "--envs", "hopper", "--tensorneat", str(tmp_path),
-            "--out", str(tmp_path / "f.json"), *extra]  # fmt: skip
-    return harness.parse_args(bench_field.SUITE, argv)
-
-
 def test_spare_rows_is_a_trial_option_of_eant2_alone(tmp_path):
     assert field_settings.SPARE_ROWS == configvalues.SPARE_ROWS
-    args = _args(tmp_path, "--spare-rows", "restarts")
-    assert args.trial and "--spare-rows" in field_protocol.trial_overrides(args)
-    out = tmp_path / "run.json"
-    eant2 = field_protocol.METHODS["eant2"]("eant2", args, "hopper", 100, out)
-    tn = field_protocol.METHODS["tensorneat"]("tensorneat", args, "hopper", 100, out)
-    assert eant2[eant2.index("--spare-rows") + 1] == "restarts" and "--spare-rows" not in tn
-    assert field_protocol.call_settings(args)["args"]["spare_rows"] == "restarts"
-    # A call without it has the settings a checkpoint written before the option holds.
-    plain = _args(tmp_path)
-    assert "spare_rows" not in field_protocol.call_settings(plain)["args"]
-    with pytest.raises(BenchInputError, match="--spare-rows belongs to --protocol"):
-        bench_field.main(["--spare-rows", "restarts", "--quick", "--out", str(tmp_path / "g")])
-    with pytest.raises(SystemExit):
-        _args(tmp_path, "--spare-rows", "copies")  # not one of the trial's choices
+    check_trial_option(tmp_path, "hopper", "--spare-rows", "restarts", "copies")
 
 
 def test_the_run_configuration_takes_the_trial_s_spare_rows():
@@ -63,20 +43,14 @@ def _curve(points):
 def _write_choice(folder, runs: dict, change=None) -> None:
     """Section 9's result files: per (env, name) one ``(return at 100,000, curve)`` per seed
     (an earlier budget's return beside it, which the rule must not read)."""
-    folder.mkdir(exist_ok=True)
     for (env, name), values in runs.items():
-        args = {"envs": [env], "methods": ["eant2"], "first_seed": 100, "seeds": 3,
-                "spare_rows": fs.CANDIDATES[name], "budget": None, "population": None,
-                "max_iters": None, "width": None, "tensorneat_pop": None}  # fmt: skip
-        if args["spare_rows"] is None:
-            del args["spare_rows"]  # a call without the option does not record it
-        seeds = [{"seed": s, "judged": {"eant2": {"curve": _curve(curve), "budgets": [
-            {"budget": 100_000, "test_return": v}, {"budget": 25_000, "test_return": -1e9}]}}}
-            for s, (v, curve) in zip(fs.SEEDS, values, strict=False)]  # fmt: skip
-        payload = {"protocol": True, "args": args, "environment": {"device_kind": "H100"},
-                   "seeds": seeds}  # fmt: skip
-        payload.update((change or {}).get((env, name), {}))
-        (folder / f"{env}-{name}.json").write_text(json.dumps(payload))
+        judged = [{"curve": _curve(curve), "budgets": [
+            {"budget": 100_000, "test_return": v}, {"budget": 25_000, "test_return": -1e9}]}
+            for v, curve in values]  # fmt: skip
+        # A call without the option does not record it.
+        options = {"spare_rows": fs.CANDIDATES[name]} if fs.CANDIDATES[name] else {}
+        write_result(folder, env, name, options, judged, (change or {}).get((env, name)),
+                     device="H100")  # fmt: skip
 
 
 def _plain_rule(runs) -> dict:

@@ -17,6 +17,7 @@ throughput (network-episodes and env steps per second against batch width, brax,
 width (the batch-width choice of docs/protocol.md section 6 from the field's choice runs).
 normalize (the observation-normalisation choice of docs/protocol.md section 8, likewise).
 spare (the spare-rows choice of docs/protocol.md section 9, likewise).
+rows (whether a row's result depends on how many rows its program holds, stage by stage).
 Each writes JSON (device, versions, config, compile time apart from steady state) and a
 markdown table, and never over an existing result file unless ``--force`` is given;
 ``--help`` after the suite name lists its options.
@@ -50,6 +51,7 @@ SUITES = {
     "width": "bench.field_width",
     "normalize": "bench.field_normalize",
     "spare": "bench.field_spare",
+    "rows": "bench.bench_rows",
 }
 
 

@@ -272,10 +272,10 @@ def random_genome(
 
     Growth repeats, until the genome is long enough, one of three structural mutations (the
     same kinds EANT2's exploration uses): with probability ``p_neuron`` a new hidden neuron
-    reading 1-3 random inputs (and a bias half the time) becomes the first input of a random
-    neuron; with ``p_forward`` a forward jumper from a neuron to the right is added to a random
-    neuron; otherwise a recurrent jumper from any neuron. The result may overshoot
-    ``n_genes`` by at most the size of one new neuron (5 genes).
+    reading 1-3 random inputs (at most all of them; and a bias half the time) becomes the
+    first input of a random neuron; with ``p_forward`` a forward jumper from a neuron to the
+    right is added to a random neuron; otherwise a recurrent jumper from any neuron. The
+    result may overshoot ``n_genes`` by at most the size of one new neuron (5 genes).
 
     Args:
       rng: the NumPy generator (the result depends only on its state).
@@ -296,7 +296,7 @@ def random_genome(
         i = neurons[rng.integers(len(neurons))]
         u = rng.random()
         if u < p_neuron:
-            k = int(rng.integers(1, 4))
+            k = int(rng.integers(1, min(3, n_inputs) + 1))  # the same draws where n_inputs >= 3
             new = [
                 Gene(GeneKind.INPUT, int(j), float(rng.normal(scale=0.5)))
                 for j in rng.choice(n_inputs, size=k, replace=False)

@@ -11,9 +11,9 @@ import math
 
 import numpy as np
 import pytest
-from fieldchoice import check_trial_option, write_result
+from fieldchoice import check_trial_option, protocol_args, write_result
 
-from bench import field_settings, field_workers
+from bench import field_protocol, field_settings, field_workers
 from bench import field_spare as fs
 from bench.common import BenchInputError
 from eant2_jax import configvalues
@@ -33,6 +33,17 @@ def test_the_run_configuration_takes_the_trial_s_spare_rows():
     frozen = field_workers.eant2_config(env, budget=1000)
     assert dataclasses.replace(config, exploit=frozen.exploit) == frozen
     assert frozen.exploit.replace(spare_rows="restarts") == config.exploit
+
+
+def test_the_training_process_passes_the_option_to_the_run(tmp_path, monkeypatch):
+    """The worker's command line (`field_protocol`'s argv) reaches `train_eant2` intact."""
+    got = {}
+    monkeypatch.setattr(field_workers, "train_eant2", lambda env, **kw: got.update(kw))
+    args = protocol_args(tmp_path, "hopper", "--spare-rows", "restarts")
+    argv = field_protocol.METHODS["eant2"]("eant2", args, "hopper", 100, tmp_path / "r.json")
+    argv = argv[argv.index("train") :] + ["--t0", "0"]
+    assert field_workers.main(argv) == 0
+    assert got["spare_rows"] == "restarts" and got["seed"] == 100
 
 
 def _curve(points):

@@ -24,9 +24,12 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .tuning import Tuned
 
 __all__ = ["best_of", "spread"]
 
@@ -43,7 +46,7 @@ def spread(
     return genomes, start
 
 
-def best_of(tuned: Any, count: int) -> Any:
+def best_of(tuned: Tuned, count: int) -> Tuned:
     """A `eant2_jax.tuning.Tuned` of ``count`` structures from one of the rows `spread`
     made: each structure's search of the lowest cost, with every search's evaluations."""
     rows = len(tuned.genomes)

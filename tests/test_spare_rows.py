@@ -13,7 +13,7 @@ import pytest
 from rundirs import run_main
 
 import eant2_jax
-from eant2_jax import EANT2Config, ExploitConfig, Genome
+from eant2_jax import EANT2Config, ExploitConfig, Genome, pytree
 from eant2_jax.genomepruning import PruneAttempt
 from eant2_jax.spare import best_of, spread
 from eant2_jax.tasks import xor
@@ -136,3 +136,40 @@ def test_eant2_run_with_restarts_spends_every_row_s_evaluations(tmp_path, capsys
     # searches of 5 iterations of the 8-gene bucket's default 10 candidates.
     (record,) = [json.loads(x) for x in (out / "generations.jsonl").read_text().splitlines()]
     assert record["exploited"] == 1 and record["evaluations"] == 3 * 5 * 10, record
+
+
+@pytree.dataclass
+class NoisyXor:
+    """XOR's cost plus a uniform draw of the key (times 0.05): noisy, so `tune` scores each
+    search's result again on fresh draws, and restarts are picked on those."""
+
+    n_inputs: int = pytree.field(pytree_node=False, default=2)
+    n_outputs: int = pytree.field(pytree_node=False, default=1)
+    hidden: str = pytree.field(pytree_node=False, default="tanh")
+    output: str = pytree.field(pytree_node=False, default="identity")
+    noisy: bool = pytree.field(pytree_node=False, default=True)
+
+    def cost(self, key, nets):
+        plain = xor().cost(key, nets)
+        return plain + 0.05 * jax.random.uniform(key, plain.shape)
+
+
+@pytest.mark.slow
+def test_on_a_noisy_task_restarts_are_picked_on_their_fresh_draws():
+    """As against the explicit copies above, on a noisy task: the pick follows the costs on
+    fresh episodes (`tune` step 7), and the evaluations include every search's rescoring."""
+    key, config = jax.random.key(4), ExploitConfig(max_iters=20, sigma0=1.0, pruner="none")
+    genomes = GENOMES[:2]
+    res = tune(genomes, NoisyXor(), key=key, min_rows=6,
+               config=config.replace(spare_rows="restarts"))  # fmt: skip
+    ref = tune([genomes[j % 2] for j in range(6)], NoisyXor(), key=key, min_rows=6,
+               config=config)  # fmt: skip
+    assert ref.costs != ref.search_costs  # rescored
+    for i in range(2):
+        own = [i, i + 2, i + 4]
+        j = own[int(np.argmin([ref.costs[r] for r in own]))]
+        assert (res.costs[i], res.search_costs[i], res.picked[i]) == (
+            ref.costs[j], ref.search_costs[j], ref.picked[j])  # fmt: skip
+        assert res.genomes[i] == ref.genomes[j]
+        assert res.evaluations[i] == sum(ref.evaluations[r] for r in own)
+        assert res.evaluations[i] > sum(int(ref.history.evaluations[-1, r]) for r in own)

@@ -98,7 +98,7 @@ def verdict_lines(choice: dict[str, Any], option: str, otherwise: str) -> list[s
 def choice_main(argv: list[str], *, prog: str, doc: str, folder: str, choose, render) -> None:
     """A choice's command: ``--dir`` (default ``folder``) through ``choose``, printed by
     ``render``; ``--out FILE`` also writes the choice as JSON (never over a file)."""
-    p = argparse.ArgumentParser(prog=prog, description=doc.split("\n")[0])
+    p = argparse.ArgumentParser(prog=prog, description=" ".join(doc.split("\n\n")[0].split()))
     p.add_argument("--dir", default=folder, help="the choice runs' folder (default: %(default)s)")
     p.add_argument("--out", help="also write the choice as JSON here (never over a file)")
     args = p.parse_args(argv)

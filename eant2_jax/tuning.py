@@ -291,18 +291,8 @@ def tune(
         rows = batch_rows(count, min_rows=min_rows, pad_count=pad_count)
         genomes, start = spare.spread(genomes, start, rows)
     init_key, run_key = jax.random.split(key)
-    prep = prepare(
-        genomes,
-        task,
-        key=init_key,
-        config=config,
-        keys=keys,
-        bucket=bucket,
-        min_rows=min_rows,
-        pad_count=pad_count,
-        start=start,
-        mesh=mesh,
-    )
+    prep = prepare(genomes, task, key=init_key, config=config, keys=keys, bucket=bucket,
+                   min_rows=min_rows, pad_count=pad_count, start=start, mesh=mesh)  # fmt: skip
     watch = None if solution_test is None else Watch(genomes, solution_test)
     rescorer = None
     if getattr(task, "noisy", False):
@@ -310,18 +300,9 @@ def tune(
             genomes, task, key, config,
             rows=prep.batch.layout.slot.shape[0], bucket=prep.batch.bucket, pad_count=pad_count,
         )  # fmt: skip
-    st, hist = ex.run(
-        prep.state,
-        prep.batch.layout,
-        task,
-        key=run_key,
-        config=config,
-        tables=prep.tables,
-        on_chunk=on_chunk,
-        mesh=mesh,
-        on_compile=on_compile,
-        halt=watch,
-    )
+    st, hist = ex.run(prep.state, prep.batch.layout, task, key=run_key, config=config,
+                      tables=prep.tables, on_chunk=on_chunk, mesh=mesh, on_compile=on_compile,
+                      halt=watch)  # fmt: skip
     res = _handed_back(genomes, st, hist, config, watch, rescorer, keep_search)
     return res if len(genomes) == count else spare.best_of(res, count)
 

@@ -23,7 +23,6 @@ Run: ``python -m bench rows [--rows 64] [--ks 1 2 3 4 8 32] [--task xor]``.
 from __future__ import annotations
 
 import argparse
-import json
 from typing import Any
 
 import jax
@@ -33,6 +32,7 @@ import numpy as np
 from bench import harness
 from bench.common import BenchInputError, Column, environment, markdown_table, random_population
 from eant2_jax import tasks
+from eant2_jax.app.taskoptions import task_options
 from eant2_jax.compiler import compile_genomes
 from eant2_jax.kernels import cmaes
 from eant2_jax.rescoring import cost_batch
@@ -135,15 +135,10 @@ def _prepare(args: argparse.Namespace) -> None:
         raise BenchInputError(f"--ks must lie in [1, --rows = {args.rows}]; got {bad}")
     if args.genes < 2 or args.popsize < 2:
         raise BenchInputError("--genes and --popsize must be at least 2")
-    args.options = {}
-    for item in args.task_option:
-        name, sep, value = item.partition("=")
-        if not sep or not name:
-            raise BenchInputError(f"--task-option {item!r}: expected KEY=VALUE")
-        try:
-            args.options[name] = json.loads(value)
-        except json.JSONDecodeError:
-            args.options[name] = value
+    try:  # the eant2 command line's reading: JSON or text, checked against the defaults
+        args.options = task_options(args.task_option, args.task)
+    except ValueError as e:
+        raise BenchInputError(str(e)) from None
 
 
 def _render(payload: dict) -> str:

@@ -103,7 +103,10 @@ def compare(fn, args: tuple, ks: list[int]) -> list[dict[str, Any]]:
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
     payload: dict[str, Any] = {"environment": environment(), "config": harness.settings(args),
                                "rows": []}  # fmt: skip
-    task = tasks.make(args.task, **args.options)
+    try:
+        task = tasks.make(args.task, **args.options)
+    except (ValueError, TypeError) as e:  # a name or option the task does not take
+        raise BenchInputError(f"--task {args.task}: {e}") from None
     cases = _cmaes_args(args.rows, args.genes, args.popsize, args.seed)
     cases["cost"] = _cost_args(task, args.rows, args.genes, args.seed)
     for stage in args.stages:

@@ -44,4 +44,6 @@ def test_quick_run_writes_every_stage_and_k(tmp_path, capsys):
     with pytest.raises(BenchInputError, match=r"--ks must lie in \[1, --rows = 6\]"):
         bench_rows.main(["--rows", "6", "--ks", "7", "--out", str(tmp_path / "bad.json")])
     assert not (tmp_path / "bad.json").exists()
+    with pytest.raises(BenchInputError, match="--task xor: .*max_steps"):
+        bench_rows.main(["--quick", "--task-option", "max_steps=9", "--out", str(tmp_path / "t")])
     capsys.readouterr()

@@ -5,6 +5,7 @@ picked and its searches' evaluations summed in NumPy."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
@@ -17,6 +18,7 @@ from eant2_jax import EANT2Config, ExploitConfig, Genome, pytree
 from eant2_jax.genomepruning import PruneAttempt
 from eant2_jax.spare import best_of, spread
 from eant2_jax.tasks import xor
+from eant2_jax.tasks.regression import Regression
 from eant2_jax.tuning import Search, Tuned, tune
 
 # Three XOR structures: one hidden neuron (tests/test_optimize.py's start), the same with
@@ -139,19 +141,20 @@ def test_eant2_run_with_restarts_spends_every_row_s_evaluations(tmp_path, capsys
 
 
 @pytree.dataclass
-class NoisyXor:
+class NoisyXor(Regression):
     """XOR's cost plus a uniform draw of the key (times 0.05): noisy, so `tune` scores each
     search's result again on fresh draws, and restarts are picked on those."""
 
-    n_inputs: int = pytree.field(pytree_node=False, default=2)
-    n_outputs: int = pytree.field(pytree_node=False, default=1)
-    hidden: str = pytree.field(pytree_node=False, default="tanh")
-    output: str = pytree.field(pytree_node=False, default="identity")
     noisy: bool = pytree.field(pytree_node=False, default=True)
 
     def cost(self, key, nets):
-        plain = xor().cost(key, nets)
+        plain = super().cost(key, nets)
         return plain + 0.05 * jax.random.uniform(key, plain.shape)
+
+
+def noisy_xor() -> NoisyXor:
+    plain = xor()
+    return NoisyXor(**{f.name: getattr(plain, f.name) for f in dataclasses.fields(plain)})
 
 
 @pytest.mark.slow
@@ -160,9 +163,9 @@ def test_on_a_noisy_task_restarts_are_picked_on_their_fresh_draws():
     fresh episodes (`tune` step 7), and the evaluations include every search's rescoring."""
     key, config = jax.random.key(4), ExploitConfig(max_iters=20, sigma0=1.0, pruner="none")
     genomes = GENOMES[:2]
-    res = tune(genomes, NoisyXor(), key=key, min_rows=6,
+    res = tune(genomes, noisy_xor(), key=key, min_rows=6,
                config=config.replace(spare_rows="restarts"))  # fmt: skip
-    ref = tune([genomes[j % 2] for j in range(6)], NoisyXor(), key=key, min_rows=6,
+    ref = tune([genomes[j % 2] for j in range(6)], noisy_xor(), key=key, min_rows=6,
                config=config)  # fmt: skip
     assert ref.costs != ref.search_costs  # rescored
     for i in range(2):

@@ -153,6 +153,11 @@ class GenerationRecord:
       mean_cost, cost_std: the population's cost after selection, its mean and standard
         deviation (ddof 0, as neat-python's StatisticsReporter), over the individuals whose
         cost is finite (None if none is, and in records written before they existed).
+      batch_fill: the share of the generation's exploitation batch that searched: its
+        row-iterations in which a row ran a CMA-ES search, over all rows times the engine's
+        iterations (`eant2_jax.strategy.batch_fill`). A lock-step group shares one batch
+        and one fill. None where nothing was tuned, and in records written before it
+        existed.
     """
 
     generation: int
@@ -175,6 +180,7 @@ class GenerationRecord:
     generation_evaluations: int | None = None
     mean_cost: float | None = None
     cost_std: float | None = None
+    batch_fill: float | None = None
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)

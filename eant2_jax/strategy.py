@@ -68,6 +68,7 @@ __all__ = [
     "Told",
     "Tuned",
     "ask",
+    "batch_fill",
     "exploit",
     "exploit_together",
     "init",
@@ -119,6 +120,7 @@ class Tuned(NamedTuple):
       solution: the index of the structure whose network passed a ``solution_test``, or
         None.
       bucket: the padding bucket of the tuning (`grow_bucket`); the new state records it.
+      fill: the batch's fill (`batch_fill`), or None where nothing was tuned.
     """
 
     genomes: list[Genome]
@@ -128,6 +130,7 @@ class Tuned(NamedTuple):
     searches: list[Search | None] | None
     solution: int | None
     bucket: Bucket | None
+    fill: float | None = None
 
 
 class Told(NamedTuple):
@@ -139,6 +142,18 @@ class Told(NamedTuple):
     record: GenerationRecord
     pruning: list[PruneAttempt]
     solution: Individual | None
+
+
+def batch_fill(running) -> float | None:
+    """The share of a batch's row-iterations that ran a search. ``running`` is the engine's
+    ``[ticks, rows]`` record (`eant2_jax.exploitation.StepRecord`), every row of the batch
+    included: padding rows, rows that round a batch up for a mesh and rows whose search has
+    stopped count as idle (docs/algorithm.md, "Batch width"). The iterations counted are
+    those the engine ran: up to the last in which a row ran (its last chunk's record goes on
+    past it, iterations its loop never ran). None for a batch in which nothing ran."""
+    running = np.asarray(running, bool)
+    ran = np.flatnonzero(running.any(axis=1)) if running.ndim == 2 else np.array([])
+    return float(np.mean(running[: ran[-1] + 1])) if ran.size else None
 
 
 @jax.jit
@@ -332,6 +347,7 @@ def exploit_together(
                 searches,
                 solution,
                 bucket,
+                batch_fill(res.history.running),
             )  # fmt: skip
         )
         lo = hi
@@ -379,7 +395,8 @@ def tell(
         bucket=None if bucket is None else (bucket.neurons, bucket.genes, bucket.sweeps),
     )
     compiled = stats.snapshot() - brood.compiled
-    record = _record(state, len(new), prune, dt, compiled, state.evaluations - brood.evaluations)
+    spent = state.evaluations - brood.evaluations
+    record = _record(state, len(new), prune, dt, compiled, spent, tuned.fill)
     return Told(state, record, prune, solution)
 
 
@@ -415,6 +432,7 @@ def _record(
     t: float,
     compiled: stats.CompileStats,
     spent: int,
+    fill: float | None,
 ) -> GenerationRecord:
     best = state.best()
     sizes = [ind.genome.n_params for ind in state.population]
@@ -440,4 +458,5 @@ def _record(
         generation_evaluations=spent,
         mean_cost=mean_cost,
         cost_std=cost_std,
+        batch_fill=fill,
     )

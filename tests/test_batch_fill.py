@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 
+import jax
 import numpy as np
 import pytest
 from rundirs import run_main
@@ -59,24 +60,18 @@ def test_a_tuned_batch_s_fill_is_its_searches_iterations_over_the_batch(spare_ro
     config = ExploitConfig(max_iters=400, sigma0=1.0, pruner="none", popsize=6,
                            spare_rows=spare_rows)  # fmt: skip
     rows = 8
-    res = tune(GENOMES, xor(), min_rows=rows, config=config, key=_key(3))
+    res = tune(GENOMES, xor(), min_rows=rows, config=config, key=jax.random.key(3))
     if spare_rows == "idle":
         iters = np.array(res.evaluations) // 6
     else:  # each row's own search: the same rows tuned as explicit copies
         copies = [GENOMES[j % 3] for j in range(rows)]
         ref = tune(copies, xor(), min_rows=rows, config=config.replace(spare_rows="idle"),
-                   key=_key(3))  # fmt: skip
+                   key=jax.random.key(3))  # fmt: skip
         iters = np.array(ref.evaluations) // 6
         assert [sum(iters[i::3]) * 6 for i in range(3)] == res.evaluations
     assert len(set(iters.tolist())) > 1  # searches of different lengths: a real check
     want = iters.sum() / (rows * iters.max())
     assert batch_fill(res.history.running) == pytest.approx(want, rel=1e-12)
-
-
-def _key(seed: int):
-    import jax
-
-    return jax.random.key(seed)
 
 
 @pytest.mark.slow

@@ -152,7 +152,7 @@ def batch_fill(running) -> float | None:
     those the engine ran: up to the last in which a row ran (its last chunk's record goes on
     past it, iterations its loop never ran). None for a batch in which nothing ran."""
     running = np.asarray(running, bool)
-    ran = np.flatnonzero(running.any(axis=1)) if running.ndim == 2 else np.array([])
+    ran = np.flatnonzero(running.any(axis=1))
     return float(np.mean(running[: ran[-1] + 1])) if ran.size else None
 
 
@@ -328,6 +328,7 @@ def exploit_together(
         min_rows=min_rows, on_chunk=on_chunk, on_compile=on_compile, mesh=mesh,
         solution_test=solution_test, start=starts, keep_search=config.inherit_search,
     )  # fmt: skip
+    fill = batch_fill(res.history.running)  # the batch's, shared by its broods
     parts, lo = [], 0
     for b in broods:
         hi = lo + len(b.new)
@@ -347,7 +348,7 @@ def exploit_together(
                 searches,
                 solution,
                 bucket,
-                batch_fill(res.history.running),
+                fill,
             )  # fmt: skip
         )
         lo = hi

@@ -18,6 +18,7 @@ width (the batch-width choice of docs/protocol.md section 6 from the field's cho
 normalize (the observation-normalisation choice of docs/protocol.md section 8, likewise).
 spare (the spare-rows choice of docs/protocol.md section 9, likewise).
 rows (whether a row's result depends on how many rows its program holds, stage by stage).
+variants (CMA-ES variants for larger networks: evaluations to a target, protocol section 10).
 Each writes JSON (device, versions, config, compile time apart from steady state) and a
 markdown table, and never over an existing result file unless ``--force`` is given;
 ``--help`` after the suite name lists its options.
@@ -48,6 +49,7 @@ SUITES = {
     "determinism": "bench.bench_determinism",
     "finetune": "bench.bench_finetune",
     "throughput": "bench.bench_throughput",
+    "variants": "bench.bench_variants",
     "width": "bench.field_width",
     "normalize": "bench.field_normalize",
     "spare": "bench.field_spare",

@@ -49,11 +49,11 @@ SUITES = {
     "determinism": "bench.bench_determinism",
     "finetune": "bench.bench_finetune",
     "throughput": "bench.bench_throughput",
-    "variants": "bench.bench_variants",
     "width": "bench.field_width",
     "normalize": "bench.field_normalize",
     "spare": "bench.field_spare",
     "rows": "bench.bench_rows",
+    "variants": "bench.bench_variants",
 }
 
 

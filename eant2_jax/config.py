@@ -260,7 +260,9 @@ class ExploitConfig(Configured):
         "O(n^2), and ``lazy_eigen`` has nothing to do. For large networks whose weights "
         "matter nearly independently; it learns no correlations. The covariance pruner then "
         "shifts along coordinate axes only: it sets the candidate weight i to 0 and moves no "
-        "other (docs/algorithm.md, Separable CMA-ES). No size switches to it by default.",
+        "other (docs/algorithm.md, Separable CMA-ES). No size switches to it by default: at "
+        "n = 128 it needs more evaluations than ``full`` where weights interact "
+        "(docs/protocol.md section 10).",
         check=one_of("full", "diagonal"),
         static=True,
         added="0.1.0 (issue 41)",

@@ -156,7 +156,7 @@ def _interval(values: list[int], reference: list[int] | None) -> tuple[float, ..
             [inf(values), inf(reference)],
             lambda a, b: np.median(a, axis=-1) / np.median(b, axis=-1),
         )
-    return med + ratio  # fmt: skip
+    return med + ratio
 
 
 def run(args: argparse.Namespace, save: harness.Save) -> dict[str, Any]:
@@ -193,7 +193,7 @@ def _options(p: argparse.ArgumentParser) -> None:
         nargs="+",
         default=list(METHODS),
         choices=METHODS,
-        help="the first is the reference of the ratios; full must be first if given",
+        help="the ratios are to full's, which must then come first",
     )
     p.add_argument("--cond", type=float, default=1e4, help="the ellipsoids' condition number")
     p.add_argument("--target", type=float, default=1e-6, help="a run ends below this cost")

@@ -9,7 +9,11 @@ the same seed. ``random`` is adopted when the median of the three differences is
 both environments; otherwise the raw inputs stay.
 
 Nothing is decided while a file is missing or has fewer than the three seeds judged (a run
-still going writes each seed as it ends): the report names what is missing. A file made with
+still going writes each seed as it ends), unless the seeds still missing cannot change the
+outcome: an environment with two of its three differences already above 0 (or two at or
+below 0) has the sign of its median fixed, and one environment fixed at or below 0 keeps
+the raw inputs whatever the rest gives (added to the protocol on 2026-12-05). The report
+names what is missing and the differences known so far. A file made with
 other options than section 8 gives, or on another device kind than the others, is refused
 with the difference named. Result files are read as JSON only.
 """
@@ -30,7 +34,7 @@ from bench.field_choice import (
     verdict_lines,
 )
 
-__all__ = ["CANDIDATES", "ENVS", "SEEDS", "choose", "main", "render"]
+__all__ = ["CANDIDATES", "ENVS", "SEEDS", "choose", "main", "render", "settled"]
 
 ENVS = ("hopper", "halfcheetah")
 CANDIDATES = {"raw": None, "random": "random"}  # file name -> the call's --normalize
@@ -53,8 +57,9 @@ def _returns(payload: dict[str, Any], path: Path) -> dict[int, float]:
 
 def choose(folder: str | Path) -> dict[str, Any]:
     """The rule applied to ``folder`` (the module docstring): per environment each
-    candidate's returns, the paired differences and their median; ``adopted`` is None, with
-    ``missing`` naming what is absent, until every file holds the three seeds."""
+    candidate's returns, the paired differences and their median, the differences known so
+    far (``known``) and whether they fix the median's sign (``settled``); ``adopted`` is None,
+    with ``missing`` naming what is absent, until the seeds judged fix the outcome."""
     found, missing, device = choice_runs(folder, ENVS, CANDIDATES, _payload, _returns)
     envs: dict[str, dict[str, Any]] = {}
     for env, row in found.items():
@@ -62,9 +67,35 @@ def choose(folder: str | Path) -> dict[str, Any]:
         if len(row) == len(CANDIDATES):
             diff = [b - a for a, b in zip(row["raw"], row["random"], strict=True)]
             envs[env].update(difference=diff, median=float(np.median(diff)))
-    adopted = None if missing else all(envs[e]["median"] > 0 for e in ENVS)
+    for env in ENVS:
+        known = _known_differences(Path(folder), env)
+        envs.setdefault(env, {}).update(known=known, settled=settled(list(known.values())))
+    signs = [envs[e]["settled"] for e in ENVS]
+    adopted = False if False in signs else (True if all(signs) else None)
     return {"folder": str(folder), "seeds": SEEDS, "envs": envs, "adopted": adopted,
             "missing": missing, "device_kind": device}  # fmt: skip
+
+
+def settled(known: list[float]) -> bool | None:
+    """Whether the median of the differences of all `SEEDS` is above 0 (True) or not
+    (False) whatever the seeds not yet judged give, from the ``known`` ones; None while it
+    could still go either way. With every seed known, that is ``median > 0``."""
+    need = len(SEEDS) // 2 + 1  # an odd count: the median is the need-th value in order
+    if sum(d > 0 for d in known) >= need:
+        return True
+    if sum(d <= 0 for d in known) >= need:
+        return False
+    return None
+
+
+def _known_differences(folder: Path, env: str) -> dict[int, float]:
+    """Seed -> ``random`` minus raw for the seeds judged in both of ``env``'s files so far."""
+    got = []
+    for name in CANDIDATES:
+        path = folder / f"{env}-{name}.json"
+        got.append(_returns(_payload(path, env, name), path) if path.is_file() else {})
+    raw, random = got
+    return {seed: random[seed] - raw[seed] for seed in SEEDS if seed in raw and seed in random}
 
 
 def render(choice: dict[str, Any]) -> str:
@@ -74,10 +105,20 @@ def render(choice: dict[str, Any]) -> str:
              f"| env | raw, seeds {head} | random, seeds {head} | random - raw | median |",
              "| --- | --- | --- | --- | --- |"]  # fmt: skip
     for env, row in choice["envs"].items():
-        cells = [", ".join(f"{v:.0f}" for v in row.get(k, [])) or "—"
-                 for k in ("raw", "random", "difference")]  # fmt: skip
-        median = f"{row['median']:.0f}" if "median" in row else "—"
-        lines.append(f"| {env} | {' | '.join(cells)} | {median} |")
+        cells = [", ".join(f"{v:.0f}" for v in row.get(k, [])) or "—" for k in ("raw", "random")]
+        if "difference" in row:
+            diff, median = ", ".join(f"{v:.0f}" for v in row["difference"]), f"{row['median']:.0f}"
+        else:  # the seeds judged on both so far
+            known = row.get("known", {})
+            diff = ", ".join(f"{v:.0f} (seed {s})" for s, v in known.items()) or "—"
+            median = {True: "> 0 whatever the rest", False: "<= 0 whatever the rest"}.get(
+                row.get("settled"), "—"
+            )
+        lines.append(f"| {env} | {' | '.join(cells)} | {diff} | {median} |")
+    if choice["adopted"] is not None and choice["missing"]:
+        lines += ["", "Decided before every seed is judged: the seeds still missing ("
+                  + ", ".join(choice["missing"]) + ") cannot change the outcome."]  # fmt: skip
+        choice = {**choice, "missing": []}
     lines += verdict_lines(choice, "--normalize random", "the raw inputs stay")
     return "\n".join(lines) + "\n"
 

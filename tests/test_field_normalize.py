@@ -5,8 +5,10 @@ conversion of TensorNEAT's networks to a normalised task's inputs in test_field_
 
 from __future__ import annotations
 
+import itertools
 import json
 
+import numpy as np
 import pytest
 from fieldchoice import check_trial_option, protocol_args, write_result
 
@@ -104,16 +106,69 @@ def test_the_normalisation_rule_adopts_only_a_median_gain_on_both(tmp_path, caps
     assert choice["adopted"] is False and "raw inputs stay" in fn.render(choice)
     # A missing file or seed: nothing decided, what is missing named.
     _write_choice(tmp_path / "c", {k: v for k, v in gain.items() if k != ("hopper", "raw")})
-    _write_choice(tmp_path / "c", {("halfcheetah", "random"): [1.0, 2.0]})
+    _write_choice(tmp_path / "c", {("halfcheetah", "random"): [1.0, 2500.0]})
     choice = fn.choose(tmp_path / "c")
     assert choice["adopted"] is None and choice["missing"] == [
         "hopper-raw.json", "halfcheetah-random.json (seeds judged: [100, 101])"]  # fmt: skip
     assert "Not decided: missing hopper-raw.json" in fn.render(choice)
+    assert choice["envs"]["halfcheetah"]["known"] == {100: -999.0, 101: 500.0}  # still open
     fn.main(["--dir", str(tmp_path / "a"), "--out", str(tmp_path / "a.json")])
     assert json.loads((tmp_path / "a.json").read_text())["adopted"] is True
     with pytest.raises(BenchInputError, match="exists; not written over"):
         fn.main(["--dir", str(tmp_path / "a"), "--out", str(tmp_path / "a.json")])
     capsys.readouterr()
+    # halfcheetah's two judged differences (-999, -1998) already fix its median at or below
+    # 0: decided (raw stays) while hopper's file and halfcheetah's third seed are missing.
+    _write_choice(tmp_path / "d", {("halfcheetah", "raw"): raw[:2],
+                                   ("halfcheetah", "random"): [1.0, 2.0]})  # fmt: skip
+    choice = fn.choose(tmp_path / "d")
+    assert choice["envs"]["halfcheetah"]["known"] == {100: -999.0, 101: -1998.0}
+    assert choice["adopted"] is False and choice["envs"]["halfcheetah"]["settled"] is False
+    text = fn.render(choice)
+    assert "-999 (seed 100), -1998 (seed 101) | <= 0 whatever the rest |" in text
+    assert "cannot change the outcome" in text and "**not adopted" in text
+    # One gain and one loss known: open; two gains on both: adopted before the third seeds.
+    _write_choice(
+        tmp_path / "e",
+        {
+            ("hopper", "raw"): raw[:2],
+            ("hopper", "random"): [1.0, 2500.0],
+            ("halfcheetah", "raw"): raw,
+            ("halfcheetah", "random"): raw,
+        },
+    )
+    assert fn.choose(tmp_path / "e")["adopted"] is False  # halfcheetah: three ties, at most 0
+    _write_choice(tmp_path / "f", {("hopper", "raw"): raw[:2], ("hopper", "random"): [1.0, 2500.0],
+                                   ("halfcheetah", "raw"): raw[:2],
+                                   ("halfcheetah", "random"): [1100.0, 2100.0]})  # fmt: skip
+    choice = fn.choose(tmp_path / "f")
+    assert choice["adopted"] is None and choice["envs"]["hopper"]["settled"] is None
+    assert choice["envs"]["halfcheetah"]["settled"] is True
+    _write_choice(tmp_path / "f", {("hopper", "random"): [1001.0, 2500.0]})
+    assert fn.choose(tmp_path / "f")["adopted"] is True
+
+
+@pytest.mark.parametrize(
+    "known, want",
+    [
+        ([], None),
+        ([1.0], None),
+        ([1.0, -1.0], None),
+        ([1.0, 2.0], True),
+        ([0.0, -3.0], False),
+        ([1.0, 0.0], None),
+        ([1.0, -1.0, 0.5], True),
+        ([1.0, -1.0, 0.0], False),
+    ],
+)
+def test_settled_is_the_sign_of_the_median_of_three_whatever_is_missing(known, want):
+    from bench import field_normalize as fn
+
+    assert fn.settled(known) is want
+    rest = [-1e9, 0.0, 1e9]  # every way the missing seeds could fall gives the same sign
+    outcomes = {bool(np.median(known + list(fill)) > 0)
+                for fill in itertools.product(rest, repeat=3 - len(known))}  # fmt: skip
+    assert (outcomes == {want}) if want is not None else (outcomes == {True, False})
 
 
 def test_a_file_of_other_options_or_another_device_is_refused(tmp_path):

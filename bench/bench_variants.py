@@ -70,30 +70,47 @@ def cost(rot, scale, opt, x):
     return (((x - opt[None, :]) @ rot.T) ** 2) @ scale
 
 
+def _until_target(start, step):
+    """A jitted ``(seeds, rot, scale, opt, target, max_gens) -> generations to target``
+    (``-1``: never), vmapped over the seeds. ``start(key)`` is a search's state from
+    ``jax.random.key(seed)``, which also starts the loop's key; ``step(state, key, f)``
+    returns ``(state, best cost of its candidates or so far, key)`` for costs ``f``."""
+
+    def one(seed, rot, scale, opt, target, max_gens):
+        f = functools.partial(cost, rot, scale, opt)
+
+        def body(c):
+            state, g, hit, key = c
+            state, best, key = step(state, key, f)
+            hit = jnp.where((hit < 0) & (best < target), g + 1, hit)
+            return state, g + 1, hit, key
+
+        key = jax.random.key(seed)
+        init = (start(key), 0, -1, key)
+        return jax.lax.while_loop(lambda c: (c[2] < 0) & (c[1] < max_gens), body, init)[2]
+
+    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, None, None)))
+
+
 @functools.cache
 def _kernel_run(n: int, method: str):
-    """A jitted ``(seeds, rot, scale, opt, target, max_gens) -> generations to target``
-    (``-1``: never), vmapped over the seeds: the library's kernel."""
+    """`_until_target` of the library's kernel, and its popsize."""
     popsize = 4 + int(np.floor(3 * np.log(n)))
     params = cmaes.default_params(n, popsize, diagonal=method == "diagonal")
     period = cmaes.eigen_period(params, LAZY_EIGEN)
 
-    def one(seed, rot, scale, opt, target, max_gens):
-        def body(c):
-            state, g, hit, key = c
-            key, sub = jax.random.split(key)
-            x, state = cmaes.ask(sub, state, params)
-            state = cmaes.tell(state, x, cost(rot, scale, opt, x), params, decompose=False)
-            due = (state.generation % period) == 0
-            state = jax.lax.cond(due, lambda s: cmaes.decompose(s, params), lambda s: s, state)
-            hit = jnp.where((hit < 0) & (state.best_cost < target), g + 1, hit)
-            return state, g + 1, hit, key
+    def step(state, key, f):
+        key, sub = jax.random.split(key)
+        x, state = cmaes.ask(sub, state, params)
+        state = cmaes.tell(state, x, f(x), params, decompose=False)
+        due = (state.generation % period) == 0
+        state = jax.lax.cond(due, lambda s: cmaes.decompose(s, params), lambda s: s, state)
+        return state, state.best_cost, key
 
-        state = cmaes.init(jnp.zeros(n), 1.0, jnp.ones(n, bool), params)
-        init = (state, 0, -1, jax.random.key(seed))
-        return jax.lax.while_loop(lambda c: (c[2] < 0) & (c[1] < max_gens), body, init)[2]
+    def start(key):
+        return cmaes.init(jnp.zeros(n), 1.0, jnp.ones(n, bool), params)
 
-    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, None, None))), popsize
+    return _until_target(start, step), popsize
 
 
 @functools.cache
@@ -105,23 +122,18 @@ def _evosax_run(n: int):
     es = LM_MA_ES(popsize, jnp.zeros(n))
     params = es.default_params.replace(std_init=1.0)
 
-    def one(seed, rot, scale, opt, target, max_gens):
-        def body(c):
-            state, g, hit, key = c
-            key, k_ask, k_tell = jax.random.split(key, 3)
-            x, state = es.ask(k_ask, state, params)
-            f = cost(rot, scale, opt, x)
-            state, _ = es.tell(k_tell, x, f, state, params)
-            hit = jnp.where((hit < 0) & (jnp.min(f) < target), g + 1, hit)
-            return state, g + 1, hit, key
+    def step(state, key, f):
+        key, k_ask, k_tell = jax.random.split(key, 3)
+        x, state = es.ask(k_ask, state, params)
+        cost_x = f(x)
+        state, _ = es.tell(k_tell, x, cost_x, state, params)
+        return state, jnp.min(cost_x), key
 
-        key = jax.random.key(seed)
+    def start(key):
         state = es.init(key, jnp.zeros(n), params)
-        state = jax.tree.map(lambda a: jnp.asarray(a, a.dtype), state)
-        return jax.lax.while_loop(lambda c: (c[2] < 0) & (c[1] < max_gens), body,
-                                  (state, 0, -1, key))[2]  # fmt: skip
+        return jax.tree.map(lambda a: jnp.asarray(a, a.dtype), state)
 
-    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, None, None))), popsize
+    return _until_target(start, step), popsize
 
 
 def evaluations(method: str, fn: dict[str, np.ndarray], seeds: list[int], target: float,

@@ -8,6 +8,8 @@ first k of them (``--ks``), and compares the first k rows of the two results bit
 
 * ``ask``, ``tell``, ``decompose``: the CMA-ES kernels (`eant2_jax.kernels.cmaes`), vmapped
   over S states of ``--genes`` P parameters with random covariances, ``--popsize`` candidates;
+  ``tell-lazy`` is ``tell`` without its eigendecomposition (``decompose=False``, as the
+  engine's lazy rule runs it), which parts the update's rounding from the decomposition's;
 * ``cost``: the task's cost of S random networks of about P genes (`bench.common.random_genome`
   with the task's inputs and outputs; one draw, the same key for every row), as the engine
   evaluates a batch (`eant2_jax.rescoring.cost_batch`). ``--task brax:hopper --task-option
@@ -23,6 +25,7 @@ Run: ``python -m bench rows [--rows 64] [--ks 1 2 3 4 8 32] [--task xor]``.
 from __future__ import annotations
 
 import argparse
+import functools
 from typing import Any
 
 import jax
@@ -37,7 +40,7 @@ from eant2_jax.compiler import compile_genomes
 from eant2_jax.kernels import cmaes
 from eant2_jax.rescoring import cost_batch
 
-STAGES = ("ask", "tell", "decompose", "cost")
+STAGES = ("ask", "tell", "tell-lazy", "decompose", "cost")
 
 
 def _cmaes_args(rows: int, genes: int, popsize: int, seed: int) -> dict[str, tuple]:
@@ -60,6 +63,12 @@ def _cmaes_args(rows: int, genes: int, popsize: int, seed: int) -> dict[str, tup
         "ask": (lambda k, s: jax.vmap(cmaes.ask, (0, 0, None))(k, s, params), (keys, st)),
         "tell": (
             lambda s, x, c: jax.vmap(cmaes.tell, (0, 0, 0, None))(s, x, c, params),
+            (st, x, costs),
+        ),  # fmt: skip
+        "tell-lazy": (  # the update without its eigendecomposition (the engine's lazy rule)
+            lambda s, x, c: jax.vmap(
+                functools.partial(cmaes.tell, decompose=False), (0, 0, 0, None)
+            )(s, x, c, params),
             (st, x, costs),
         ),  # fmt: skip
         "decompose": (lambda s: jax.vmap(cmaes.decompose, (0, None))(s, params), (st,)),

@@ -42,9 +42,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from bench import harness
-from bench.bench_cmaes import ellipsoid_data
+from bench.bench_cmaes import ellipsoid, ellipsoid_data
 from bench.common import BenchInputError, Column, environment, markdown_table
+from bench.field_stats import median_interval
 from bench.lmmaes import lmmaes_evals_to_target, lmmaes_params
+from eant2_jax.exploitation import default_popsize
 from eant2_jax.kernels import cmaes
 
 METHODS = ("full", "diagonal", "lm-ma-es", "evosax-lm-ma-es")
@@ -67,7 +69,7 @@ def functions(kind: str, n: int, cond: float, seeds: list[int]) -> dict[str, np.
 
 def cost(rot, scale, opt, x):
     """``f`` of candidates ``x`` ``[K, n]`` (NumPy or JAX arrays)."""
-    return (((x - opt[None, :]) @ rot.T) ** 2) @ scale
+    return ellipsoid(rot, scale, x - opt[None, :])
 
 
 def _until_target(start, step):
@@ -95,7 +97,7 @@ def _until_target(start, step):
 @functools.cache
 def _kernel_run(n: int, method: str):
     """`_until_target` of the library's kernel, and its popsize."""
-    popsize = 4 + int(np.floor(3 * np.log(n)))
+    popsize = default_popsize(n)
     params = cmaes.default_params(n, popsize, diagonal=method == "diagonal")
     period = cmaes.eigen_period(params, LAZY_EIGEN)
 
@@ -118,7 +120,7 @@ def _evosax_run(n: int):
     """As `_kernel_run` for evosax's ``LM_MA_ES`` (its default parameters, step size 1)."""
     from evosax.algorithms import LM_MA_ES
 
-    popsize = 4 + int(np.floor(3 * np.log(n)))
+    popsize = default_popsize(n)
     es = LM_MA_ES(popsize, jnp.zeros(n))
     params = es.default_params.replace(std_init=1.0)
 
@@ -155,18 +157,19 @@ def evaluations(method: str, fn: dict[str, np.ndarray], seeds: list[int], target
 
 
 def _interval(values: list[int], reference: list[int] | None) -> tuple[float, ...]:
-    from eant2_jax.app.report_stats import bootstrap_interval
+    """The median with its bootstrap interval, then (against ``reference``) the ratio of the
+    medians with its interval; a run that never reached counts as infinite."""
+    from eant2_jax.app.report_stats import bootstrap_interval, median
 
     def inf(v):
         return np.where(np.asarray(v) < 0, np.inf, np.asarray(v, np.float64))
 
-    med = bootstrap_interval([inf(values)], lambda x: np.median(x, axis=-1))
+    med = median_interval(inf(values))
     if reference is None:
         return med
     with np.errstate(invalid="ignore"):
         ratio = bootstrap_interval(
-            [inf(values), inf(reference)],
-            lambda a, b: np.median(a, axis=-1) / np.median(b, axis=-1),
+            [inf(values), inf(reference)], lambda a, b: median(a) / median(b)
         )
     return med + ratio
 

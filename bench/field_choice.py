@@ -56,12 +56,15 @@ def judged_eant2(payload: dict[str, Any]) -> dict[int, dict[str, Any]]:
     return out
 
 
-def choice_runs(folder: str | Path, envs, names, read, values) -> tuple[dict, list[str], Any]:
+def choice_runs(
+    folder: str | Path, envs, names, read, values, judged: dict | None = None
+) -> tuple[dict, list[str], Any]:
     """A choice's result files ``folder/ENV-NAME.json``: ``({env: {name: [value per seed of
     SEEDS]}}, missing, device_kind)``. ``read(path, env, name)`` checks a file's payload,
     ``values(payload, path)`` gives its judged seeds' values; a file absent or with other
-    seeds than `SEEDS` judged is listed in ``missing``. Refused: no such folder, or files
-    from more than one device kind."""
+    seeds than `SEEDS` judged is listed in ``missing``. ``judged``, where given, receives
+    ``{env: {name: {seed: value}}}`` for every file read, the seeds judged so far. Refused:
+    no such folder, or files from more than one device kind."""
     folder = Path(folder)
     if not folder.is_dir():
         raise BenchInputError(f"{folder}: no such folder")
@@ -77,6 +80,8 @@ def choice_runs(folder: str | Path, envs, names, read, values) -> tuple[dict, li
             payload = read(path, env, name)
             devices[path.name] = (payload.get("environment") or {}).get("device_kind")
             got = values(payload, path)
+            if judged is not None:
+                judged.setdefault(env, {})[name] = got
             if sorted(got) != SEEDS:  # a run still going: judged seeds are written as they end
                 missing.append(f"{path.name} (seeds judged: {sorted(got)})")
                 continue
@@ -89,10 +94,15 @@ def choice_runs(folder: str | Path, envs, names, read, values) -> tuple[dict, li
 def verdict_lines(choice: dict[str, Any], option: str, otherwise: str) -> list[str]:
     """A choice report's last lines: what is missing, or whether ``option`` (as a call names
     it) is adopted, ``otherwise`` saying what stays if not."""
+    missing = ", ".join(choice["missing"])
     if choice["adopted"] is None:
-        return ["", "Not decided: missing " + ", ".join(choice["missing"]) + "."]
+        return ["", f"Not decided: missing {missing}."]
     verdict = "adopted" if choice["adopted"] else f"not adopted: {otherwise}"
-    return ["", f"`{option}`: **{verdict}**."]
+    early = []  # a rule that can be settled before every seed is judged (section 8's)
+    if choice["missing"]:
+        early = ["", f"Decided before every seed is judged: the seeds still missing ({missing}) "
+                 "cannot change the outcome."]  # fmt: skip
+    return [*early, "", f"`{option}`: **{verdict}**."]
 
 
 def choice_main(argv: list[str], *, prog: str, doc: str, folder: str, choose, render) -> None:

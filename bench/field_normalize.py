@@ -60,15 +60,17 @@ def choose(folder: str | Path) -> dict[str, Any]:
     candidate's returns, the paired differences and their median, the differences known so
     far (``known``) and whether they fix the median's sign (``settled``); ``adopted`` is None,
     with ``missing`` naming what is absent, until the seeds judged fix the outcome."""
-    found, missing, device = choice_runs(folder, ENVS, CANDIDATES, _payload, _returns)
+    judged: dict[str, dict[str, dict[int, float]]] = {}
+    found, missing, device = choice_runs(folder, ENVS, CANDIDATES, _payload, _returns, judged)
     envs: dict[str, dict[str, Any]] = {}
     for env, row in found.items():
         envs[env] = dict(row)
         if len(row) == len(CANDIDATES):
             diff = [b - a for a, b in zip(row["raw"], row["random"], strict=True)]
             envs[env].update(difference=diff, median=float(np.median(diff)))
-    for env in ENVS:
-        known = _known_differences(Path(folder), env)
+    for env in ENVS:  # the seeds judged on both candidates so far
+        raw, random = (judged.get(env, {}).get(name, {}) for name in CANDIDATES)
+        known = {s: random[s] - raw[s] for s in SEEDS if s in raw and s in random}
         envs.setdefault(env, {}).update(known=known, settled=settled(list(known.values())))
     signs = [envs[e]["settled"] for e in ENVS]
     adopted = False if False in signs else (True if all(signs) else None)
@@ -88,16 +90,6 @@ def settled(known: list[float]) -> bool | None:
     return None
 
 
-def _known_differences(folder: Path, env: str) -> dict[int, float]:
-    """Seed -> ``random`` minus raw for the seeds judged in both of ``env``'s files so far."""
-    got = []
-    for name in CANDIDATES:
-        path = folder / f"{env}-{name}.json"
-        got.append(_returns(_payload(path, env, name), path) if path.is_file() else {})
-    raw, random = got
-    return {seed: random[seed] - raw[seed] for seed in SEEDS if seed in raw and seed in random}
-
-
 def render(choice: dict[str, Any]) -> str:
     head = ", ".join(map(str, SEEDS))
     lines = [f"The observation-normalisation choice (docs/protocol.md section 8) from "
@@ -115,10 +107,6 @@ def render(choice: dict[str, Any]) -> str:
                 row.get("settled"), "—"
             )
         lines.append(f"| {env} | {' | '.join(cells)} | {diff} | {median} |")
-    if choice["adopted"] is not None and choice["missing"]:
-        lines += ["", "Decided before every seed is judged: the seeds still missing ("
-                  + ", ".join(choice["missing"]) + ") cannot change the outcome."]  # fmt: skip
-        choice = {**choice, "missing": []}
     lines += verdict_lines(choice, "--normalize random", "the raw inputs stay")
     return "\n".join(lines) + "\n"
 
